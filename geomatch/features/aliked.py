@@ -1,0 +1,55 @@
+"""ALIKED (kornia architecture, weights from the installed package): keypoints and a dense map."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from kornia.feature import ALIKED
+
+from ..weights import load_state_dict
+from .base import DenseFeatures, Extractor, ImageFeatures, SparseFeatures
+from .pooling import pool_to_grid
+
+
+class AlikedExtractor(Extractor):
+    """One pass gives both branches: keypoints + descriptors, and the 128-d dense feature map."""
+
+    name = "aliked"
+    provides_sparse = True
+    provides_dense = True
+
+    def __init__(
+        self,
+        device: torch.device,
+        model: str = "aliked-n16",
+        max_keypoints: int = 2048,
+        detection_threshold: float = 0.0,
+        stride: int = 8,
+        weights: str | None = None,
+    ) -> None:
+        net = ALIKED(model, max_num_keypoints=max_keypoints, detection_threshold=detection_threshold)
+        missing = net.load_state_dict(load_state_dict(f"{model}.pth", weights), strict=False).missing_keys
+        if any(not k.startswith("dkd.") for k in missing):  # dkd holds derived buffers only
+            raise ValueError(f"{model} checkpoint is missing learned weights: {missing[:5]}")
+        self.net = net.eval().to(device)
+        self.stride = stride
+
+    @torch.inference_mode()
+    def extract(self, image: torch.Tensor) -> ImageFeatures:
+        net = self.net
+        feature_map, score_map = net.extract_dense_map(image)
+        kpts_n, scores, _ = net.dkd(score_map)
+        desc, _ = net.desc_head(feature_map, kpts_n)
+        h, w = image.shape[-2:]
+        wh = torch.tensor([w - 1, h - 1], device=image.device, dtype=torch.float32)
+        keypoints = wh * (kpts_n[0] + 1) / 2.0  # align_corners frame: pixel centres at integers
+        sparse = SparseFeatures(keypoints, F.normalize(desc[0], dim=-1), scores[0], (w, h))
+        fmap = feature_map[0]
+        dense = DenseFeatures(
+            coarse=pool_to_grid(fmap, self.stride),
+            fine=fmap,
+            stride=self.stride,
+            image_size=(w, h),
+            heatmap=score_map[0, 0],
+        )
+        return ImageFeatures(sparse=sparse, dense=dense)

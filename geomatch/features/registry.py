@@ -1,0 +1,45 @@
+"""Backbones by name. Networks are imported lazily so that naming one loads only that one."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+
+from .base import DenseHead, Extractor, SparseMatcher
+
+if TYPE_CHECKING:
+    from ..matcher import MatcherConfig
+
+
+def build_extractor(name: str, device: torch.device, config: MatcherConfig) -> Extractor:
+    if name == "aliked":
+        from .aliked import AlikedExtractor
+
+        return AlikedExtractor(device, max_keypoints=config.max_keypoints)
+    if name == "disk":
+        from .disk import DiskExtractor
+
+        return DiskExtractor(device, max_keypoints=config.max_keypoints)
+    if name == "loftr":
+        from .loftr import LoftrExtractor
+
+        return LoftrExtractor(device, weights=config.loftr_weights)
+    raise ValueError(f"unknown backbone {name!r}")
+
+
+def build_sparse_matcher(config: MatcherConfig, device: torch.device) -> SparseMatcher:
+    from .lightglue import LightGlueMatcher
+
+    return LightGlueMatcher(config.sparse, device, filter_threshold=config.lightglue_threshold)
+
+
+def build_dense_head(config: MatcherConfig, extractor: Extractor) -> DenseHead:
+    if config.dense == "loftr":
+        from .loftr import LoftrExtractor, LoftrHead
+
+        assert isinstance(extractor, LoftrExtractor)
+        return LoftrHead(extractor)
+    from .descriptor_head import DescriptorHead
+
+    return DescriptorHead(config.dense, refine=config.refine)

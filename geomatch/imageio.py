@@ -1,0 +1,96 @@
+"""Reading images and preparing network inputs.
+
+Images are used in their stored pixel orientation (EXIF orientation is not applied), which is
+what COLMAP does, so keypoints written to a COLMAP database line up with what COLMAP reads.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from PIL import Image
+
+MAX_PIXELS = 250_000_000  # beyond this a file is treated as a decompression bomb
+
+
+class ImageReadError(ValueError):
+    """The input is missing, empty, truncated, too large or not an image."""
+
+
+def read_image(source: str | os.PathLike[str] | bytes) -> np.ndarray:
+    """Decode to an (H, W, 3) uint8 RGB array, or raise ImageReadError with a one-line reason."""
+    if isinstance(source, bytes):
+        name, data = "<bytes>", source
+    else:
+        path = Path(source)
+        name = str(path)
+        if not path.exists():
+            raise ImageReadError(f"{name}: no such file")
+        if not path.is_file():
+            raise ImageReadError(f"{name}: not a file")
+        data = path.read_bytes()
+    if not data:
+        raise ImageReadError(f"{name}: empty file")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data)) as im:
+                if im.width * im.height > MAX_PIXELS:
+                    raise ImageReadError(f"{name}: {im.width}x{im.height} exceeds {MAX_PIXELS} pixels")
+                im.load()
+                rgb = im.convert("RGB")
+    except ImageReadError:
+        raise
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+        raise ImageReadError(f"{name}: not a readable image ({e})") from None
+    arr = np.asarray(rgb, dtype=np.uint8)
+    if arr.shape[0] < 16 or arr.shape[1] < 16:
+        raise ImageReadError(f"{name}: {arr.shape[1]}x{arr.shape[0]} is too small to match (min 16x16)")
+    return arr
+
+
+def image_key(image: np.ndarray) -> str:
+    """Content hash of the decoded pixels: the feature cache key."""
+    h = hashlib.sha256()
+    h.update(str(image.shape).encode())
+    h.update(np.ascontiguousarray(image).tobytes())
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Prepared:
+    tensor: torch.Tensor  # (1, 3, H, W) float in [0, 1]
+    original_size: tuple[int, int]  # (W, H)
+    scale: tuple[float, float]  # network px per original px, x and y
+
+    def to_original(self, points: torch.Tensor) -> np.ndarray:
+        """Network-input pixels -> original pixels (pixel centres at integers in both)."""
+        sx, sy = self.scale
+        p = points.detach().double().cpu().numpy().reshape(-1, 2)
+        return np.stack([(p[:, 0] + 0.5) / sx - 0.5, (p[:, 1] + 0.5) / sy - 0.5], 1)
+
+    def from_original(self) -> np.ndarray:
+        """3x3 map from original pixels to network pixels."""
+        sx, sy = self.scale
+        return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1.0]])
+
+
+def prepare(image: np.ndarray, resize: int | None, device: torch.device, multiple: int = 16) -> Prepared:
+    """Resize so the longer side is ``resize`` (None: keep), each side rounded to ``multiple``."""
+    h, w = image.shape[:2]
+    s = 1.0 if not resize else resize / max(h, w)
+    nw = max(multiple, int(round(w * s / multiple)) * multiple)
+    nh = max(multiple, int(round(h * s / multiple)) * multiple)
+    if (nw, nh) != (w, h):
+        interp = cv2.INTER_AREA if nw * nh < w * h else cv2.INTER_LINEAR
+        image = cv2.resize(image, (nw, nh), interpolation=interp)
+    t = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float().div(255.0)
+    return Prepared(t.to(device), (w, h), (nw / w, nh / h))

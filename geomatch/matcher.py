@@ -1,0 +1,338 @@
+"""Pair matching: backbones, the optimizer and refinement put together, one method per name.
+
+Methods (the paper's ablations, selectable by name):
+``sparse``        anchors only (detector + LightGlue);
+``dense``         dense mutual-NN + refinement, no optimisation;
+``concat``        anchors naively concatenated to ``dense``;
+``geo-noanchor``  optimisation initialised from the top half of the dense matches;
+``geo``           the full method: anchors initialise F, dense matches are re-weighted,
+                  refined under the epipolar prior, and anchors are kept alongside them.
+
+Features are computed once per image (keyed by pixel hash, backbone and resolution) and kept
+in a small in-memory LRU, so matching one image against many runs each network once.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .features.base import DenseHead, Extractor, ImageFeatures, SparseMatcher
+from .features.registry import build_dense_head, build_extractor, build_sparse_matcher
+from .geometry import estimate_fundamental, sampson_distance, scale_fundamental
+from .imageio import Prepared, image_key, prepare, read_image
+from .optimizer import GeoOptions, dense_mutual_nn, geometry_aware_matching
+from .refine import RefineOptions
+
+log = logging.getLogger(__name__)
+
+METHODS = ("sparse", "dense", "concat", "geo-noanchor", "geo")
+SPARSE_BACKBONES = ("aliked", "disk")
+DENSE_BACKBONES = ("disk", "aliked", "loftr")
+
+
+def resolve_device(name: str = "auto") -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+@dataclass(frozen=True)
+class MatcherConfig:
+    method: str = "geo"
+    resize: int | None = 640
+    device: str = "auto"
+    sparse: str = "aliked"
+    dense: str = "disk"
+    max_keypoints: int = 2048
+    lightglue_threshold: float = 0.1
+    dense_temperature: float | None = None  # None: the head's own (0.02 descriptor maps, 0.1 LoFTR)
+    loftr_weights: str | None = None
+    geo: GeoOptions = field(default_factory=GeoOptions)
+    refine: RefineOptions = field(default_factory=RefineOptions)
+    final_check: bool = True  # geo methods: drop final matches farther than tau from the fitted F
+    dedup_radius: float = 2.0  # px at network input: a dense match this close to an anchor is the same
+    cache_images: int = 16
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose from {', '.join(METHODS)}")
+        if self.sparse not in SPARSE_BACKBONES:
+            raise ValueError(f"unknown sparse backbone {self.sparse!r}; choose from {SPARSE_BACKBONES}")
+        if self.dense not in DENSE_BACKBONES:
+            raise ValueError(f"unknown dense backbone {self.dense!r}; choose from {DENSE_BACKBONES}")
+
+    @property
+    def needs_sparse(self) -> bool:
+        return self.method in ("sparse", "concat", "geo")
+
+    @property
+    def needs_dense(self) -> bool:
+        return self.method != "sparse"
+
+
+@dataclass
+class MatchResult:
+    """Matches in ORIGINAL image pixels, pixel centres at integer coordinates (x right, y down).
+
+    COLMAP puts pixel centres at +0.5: add 0.5 to both coordinates before writing keypoints there.
+    """
+
+    keypoints0: np.ndarray  # (N, 2) float32
+    keypoints1: np.ndarray  # (N, 2) float32
+    scores: np.ndarray  # (N,) float32
+    F: np.ndarray  # (3, 3) x1^T F x0 = 0 in original pixels; zeros when fewer than 8 matches
+    method: str
+    image_sizes: tuple[tuple[int, int], tuple[int, int]]
+    timings: dict[str, float] = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.keypoints0.shape[0])
+
+    def save_npz(self, path: str | Path) -> None:
+        np.savez(
+            path,
+            keypoints0=self.keypoints0,
+            keypoints1=self.keypoints1,
+            scores=self.scores,
+            F=self.F,
+            method=np.array(self.method),
+            image_size0=np.array(self.image_sizes[0]),
+            image_size1=np.array(self.image_sizes[1]),
+        )
+
+
+class _Timer:
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+        self.times: dict[str, float] = {}
+
+    def __call__(self, name: str) -> _Timer:
+        self._name = name
+        return self
+
+    def __enter__(self) -> None:
+        self._t0 = time.perf_counter()
+
+    def __exit__(self, *exc: object) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        self.times[self._name] = self.times.get(self._name, 0.0) + time.perf_counter() - self._t0
+
+
+class Matcher:
+    """Holds the networks and the per-image feature cache; ``match`` is one pair."""
+
+    def __init__(self, config: MatcherConfig | None = None, **overrides: Any) -> None:
+        self.config = replace(config or MatcherConfig(), **overrides)
+        self.device = resolve_device(self.config.device)
+        self._extractors: dict[str, Extractor] = {}
+        self._sparse: SparseMatcher | None = None
+        self._dense: DenseHead | None = None
+        self._cache: OrderedDict[tuple[str, str, int | None], tuple[ImageFeatures, Prepared]] = OrderedDict()
+        self.extract_calls = 0
+
+    # -- networks -------------------------------------------------------------------------
+    def extractor(self, name: str) -> Extractor:
+        if name not in self._extractors:
+            self._extractors[name] = build_extractor(name, self.device, self.config)
+        return self._extractors[name]
+
+    @property
+    def sparse_matcher(self) -> SparseMatcher:
+        if self._sparse is None:
+            self._sparse = build_sparse_matcher(self.config, self.device)
+        return self._sparse
+
+    @property
+    def dense_head(self) -> DenseHead:
+        if self._dense is None:
+            self._dense = build_dense_head(self.config, self.extractor(self.config.dense))
+        return self._dense
+
+    def needed_extractors(self) -> list[str]:
+        names = []
+        if self.config.needs_sparse:
+            names.append(self.config.sparse)
+        if self.config.needs_dense and self.config.dense not in names:
+            names.append(self.config.dense)
+        return names
+
+    # -- features, once per image -------------------------------------------------------------
+    def features(self, image: np.ndarray, key: str | None = None) -> dict[str, ImageFeatures]:
+        key = key or image_key(image)
+        out: dict[str, ImageFeatures] = {}
+        prepared: Prepared | None = None
+        for name in self.needed_extractors():
+            ck = (key, name, self.config.resize)
+            if ck in self._cache:
+                self._cache.move_to_end(ck)
+                out[name] = self._cache[ck][0]
+                continue
+            if prepared is None:
+                prepared = prepare(image, self.config.resize, self.device)
+            with torch.inference_mode():
+                feats = self.extractor(name).extract(prepared.tensor)
+            self.extract_calls += 1
+            self._cache[ck] = (feats, prepared)
+            while len(self._cache) > self.config.cache_images * max(1, len(self.needed_extractors())):
+                self._cache.popitem(last=False)
+            out[name] = feats
+        return out
+
+    def _prepared(self, image: np.ndarray, key: str) -> Prepared:
+        for (k, _, r), (_, prep) in self._cache.items():
+            if k == key and r == self.config.resize:
+                return prep
+        return prepare(image, self.config.resize, self.device)
+
+    # -- one pair --------------------------------------------------------------------------
+    @torch.inference_mode()
+    def match(self, image0: np.ndarray, image1: np.ndarray) -> MatchResult:
+        cfg = self.config
+        timer = _Timer(self.device)
+        key0, key1 = image_key(image0), image_key(image1)
+        with timer("features0"):
+            f0 = self.features(image0, key0)
+        with timer("features1"):
+            f1 = self.features(image1, key1)
+        prep0, prep1 = self._prepared(image0, key0), self._prepared(image1, key1)
+        stats: dict[str, Any] = {}
+
+        parts_a: list[torch.Tensor] = []
+        parts_b: list[torch.Tensor] = []
+        parts_s: list[torch.Tensor] = []
+        anchors = None
+        if cfg.needs_sparse:
+            sa, sb = f0[cfg.sparse].sparse, f1[cfg.sparse].sparse
+            assert sa is not None and sb is not None
+            with timer("anchors"):
+                ia, ib, sc = self.sparse_matcher.match(sa, sb)
+            anchors = (sa.keypoints[ia].float(), sb.keypoints[ib].float(), sc)
+            stats["anchors"] = int(ia.numel())
+
+        F_coarse = None
+        if cfg.needs_dense:
+            da, db = f0[cfg.dense].dense, f1[cfg.dense].dense
+            assert da is not None and db is not None
+            head = self.dense_head
+            with timer("dense_coarse"):
+                pair = head.coarse_pair(da, db)
+                if cfg.dense_temperature is not None:
+                    pair.temperature = cfg.dense_temperature
+            stats["coarse_cells"] = (int(pair.feats_a.shape[0]), int(pair.feats_b.shape[0]))
+            if cfg.method in ("dense", "concat"):
+                with timer("dense_coarse"):
+                    ci, cj, conf = dense_mutual_nn(
+                        pair.feats_a, pair.feats_b, pair.temperature, cfg.geo.theta_c, cfg.geo.memory_budget_mb
+                    )
+            else:
+                geo = cfg.geo if cfg.method == "geo" else replace(cfg.geo, use_anchors=False)
+                with timer("optimizer"):
+                    cm = geometry_aware_matching(
+                        pair.feats_a, pair.feats_b, pair.grid_a, pair.grid_b, pair.temperature, anchors, geo
+                    )
+                ci, cj, conf, F_coarse = cm.idx_a, cm.idx_b, cm.confidence, cm.fundamental
+                stats.update(init=cm.init, history=cm.history, candidates=cm.candidates)
+            stats["coarse_matches"] = int(ci.numel())
+            with timer("refine"):
+                ref = head.refine(da, db, pair, ci, cj, F_coarse)
+            dense_a, dense_b, dense_s = ref.points_a, ref.points_b, conf.float()
+        if cfg.method in ("sparse", "concat", "geo") and anchors is not None:
+            parts_a.append(anchors[0])
+            parts_b.append(anchors[1])
+            parts_s.append(anchors[2].float())
+        if cfg.needs_dense:
+            parts_a.append(dense_a.float())
+            parts_b.append(dense_b.float())
+            parts_s.append(dense_s)
+
+        with timer("merge"):
+            pa, pb, ps = _merge(parts_a, parts_b, parts_s, cfg.dedup_radius, self.device)
+            F_net, _ = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
+            if cfg.method in ("geo", "geo-noanchor") and cfg.final_check and F_net is not None:
+                keep = sampson_distance(F_net, pa, pb) <= cfg.geo.tau
+                stats["final_check_removed"] = int((~keep).sum())
+                pa, pb, ps = pa[keep], pb[keep], ps[keep]
+        F = np.zeros((3, 3))
+        if F_net is not None:
+            F = scale_fundamental(F_net.double().cpu().numpy(), prep0.from_original(), prep1.from_original())
+        timer.times["total"] = sum(timer.times.values())
+        return MatchResult(
+            keypoints0=prep0.to_original(pa).astype(np.float32),
+            keypoints1=prep1.to_original(pb).astype(np.float32),
+            scores=ps.detach().cpu().numpy().astype(np.float32),
+            F=F,
+            method=cfg.method,
+            image_sizes=(prep0.original_size, prep1.original_size),
+            timings=timer.times,
+            stats=stats,
+        )
+
+
+def _merge(
+    parts_a: list[torch.Tensor],
+    parts_b: list[torch.Tensor],
+    parts_s: list[torch.Tensor],
+    radius: float,
+    device: torch.device,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Concatenate in priority order; a later match whose point in A or in B falls in an
+    already-used ``radius`` cell is a duplicate of an earlier one and is dropped."""
+    if not parts_a:
+        z = torch.zeros(0, 2, device=device)
+        return z, z.clone(), torch.zeros(0, device=device)
+    pa, pb, ps = torch.cat(parts_a), torch.cat(parts_b), torch.cat(parts_s)
+    if len(parts_a) == 1 or radius <= 0 or pa.shape[0] == 0:
+        return pa, pb, ps
+    keep = torch.arange(pa.shape[0], device=pa.device)
+    for pts in (pa, pb):
+        q = torch.floor(pts[keep] / radius).long()
+        key = q[:, 0] * 1_000_003 + q[:, 1]
+        _, inverse = torch.unique(key, return_inverse=True)
+        pos = torch.arange(key.numel(), device=key.device)
+        first = torch.full((int(inverse.max()) + 1,), key.numel(), device=key.device, dtype=torch.long)
+        first = first.scatter_reduce(0, inverse, pos, "amin")
+        keep = keep[torch.sort(first).values]
+    return pa[keep], pb[keep], ps[keep]
+
+
+_DEFAULT_MATCHERS: dict[MatcherConfig, Matcher] = {}
+
+
+def match_pair(
+    image0: str | Path | np.ndarray, image1: str | Path | np.ndarray, **options: Any
+) -> MatchResult:
+    """Match two images (paths or RGB uint8 arrays) with the paper's method by default.
+
+    Keyword options are :class:`MatcherConfig` fields; ``geo`` and ``refine`` fields may also be
+    given directly (``tau=50``, ``iterations=5``, ``radius=5`` ...). Matchers are reused across
+    calls with the same options, so weights load once per process.
+    """
+    config = config_from_options(**options)
+    matcher = _DEFAULT_MATCHERS.get(config)
+    if matcher is None:
+        matcher = _DEFAULT_MATCHERS[config] = Matcher(config)
+    a = image0 if isinstance(image0, np.ndarray) else read_image(image0)
+    b = image1 if isinstance(image1, np.ndarray) else read_image(image1)
+    return matcher.match(a, b)
+
+
+def config_from_options(**options: Any) -> MatcherConfig:
+    geo_fields = set(GeoOptions.__dataclass_fields__)
+    refine_fields = set(RefineOptions.__dataclass_fields__)
+    geo_kw = {k: options.pop(k) for k in list(options) if k in geo_fields}
+    refine_kw = {k: options.pop(k) for k in list(options) if k in refine_fields}
+    unknown = set(options) - set(MatcherConfig.__dataclass_fields__)
+    if unknown:
+        raise TypeError(f"unknown matching options: {', '.join(sorted(unknown))}")
+    base = MatcherConfig(**options)
+    return replace(base, geo=replace(base.geo, **geo_kw), refine=replace(base.refine, **refine_kw))
