@@ -140,6 +140,25 @@ class Matcher:
         self._cache: OrderedDict[tuple[str, str, int | None], tuple[ImageFeatures, Prepared]] = OrderedDict()
         self.extract_calls = 0
 
+    def derive(self, **overrides: Any) -> Matcher:
+        """A matcher with other options that shares this one's networks and feature cache.
+
+        Sharing is valid because cached features depend only on the image, the backbone and
+        the resolution, all part of the cache key; the sparse matcher is shared only when its
+        own options are unchanged.
+        """
+        other = Matcher(self.config, **overrides)
+        if other.device == self.device:
+            other._extractors = self._extractors
+            other._cache = self._cache
+            same_sparse = (other.config.sparse, other.config.lightglue_threshold) == (
+                self.config.sparse,
+                self.config.lightglue_threshold,
+            )
+            if same_sparse:
+                other._sparse = self._sparse
+        return other
+
     # -- networks -------------------------------------------------------------------------
     def extractor(self, name: str) -> Extractor:
         if name not in self._extractors:

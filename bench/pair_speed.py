@@ -1,0 +1,122 @@
+"""Per-stage time and peak memory of one pair, at 640 and 1024 px, for every method.
+
+    python bench/pair_speed.py [--images A B] [--sizes 640,1024] [--repeat 3] [--device cpu]
+
+Each (size, method) runs in a fresh subprocess so its peak resident memory (ru_maxrss; on CUDA
+also torch's peak allocation) is its own. A run matches the pair once cold (features extracted)
+and ``--repeat`` times warm (features cached, as for every pair after an image's first); the
+stage times are the medians of the warm runs, "features/img" comes from the cold run. The
+default pair is the LightGlue example pair from ../shared/data when present, else a
+package-shipped photo warped by a homography.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_PAIR = HERE.parent.parent / "shared" / "data" / "real" / "lightglue_pair"
+STAGES = ("anchors", "dense_coarse", "optimizer", "refine", "merge")
+
+
+def worker(args: argparse.Namespace) -> None:
+    import torch
+
+    from geomatch import Matcher, MatcherConfig, read_image
+    from geomatch.homography import warped_pair
+
+    if args.images:
+        a, b = read_image(args.images[0]), read_image(args.images[1])
+    else:
+        p = warped_pair("retina", seed=1, strength=0.2)
+        a, b = p.image0, p.image1
+    m = Matcher(MatcherConfig(method=args.method, resize=args.size, device=args.device))
+    m.match(a, b)  # load the networks (not timed: a worker loads them once)
+    m._cache.clear()
+    t0 = time.perf_counter()
+    cold = m.match(a, b)
+    cold_total = time.perf_counter() - t0
+    warm = []
+    for _ in range(args.repeat):
+        t0 = time.perf_counter()
+        r = m.match(a, b)
+        warm.append((time.perf_counter() - t0, r.timings))
+    stage = {s: float(np.median([w[1].get(s, 0.0) for w in warm])) for s in STAGES}
+    out = {
+        "size": args.size,
+        "method": args.method,
+        "features_per_image": (cold.timings["features0"] + cold.timings["features1"]) / 2,
+        "cold_pair": cold_total,
+        "warm_pair": float(np.median([w[0] for w in warm])),
+        **stage,
+        "matches": len(cold),
+        "candidates": cold.stats.get("candidates", 0),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "cuda_peak_mb": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else 0.0,
+    }
+    print("RESULT " + json.dumps(out))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--images", nargs=2, default=None)
+    ap.add_argument("--sizes", default="640,1024")
+    ap.add_argument("--methods", default="sparse,dense,concat,geo-noanchor,geo")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--size", type=int, default=640, help=argparse.SUPPRESS)
+    ap.add_argument("--method", default="geo", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.worker:
+        worker(args)
+        return
+    if args.images is None and DEFAULT_PAIR.is_dir():
+        args.images = [str(p) for p in sorted(DEFAULT_PAIR.iterdir())[:2]]
+    rows = []
+    for size in (int(s) for s in args.sizes.split(",")):
+        for method in args.methods.split(","):
+            cmd = [sys.executable, __file__, "--worker", "--size", str(size), "--method", method]
+            cmd += ["--repeat", str(args.repeat), "--device", args.device]
+            if args.images:
+                cmd += ["--images", *args.images]
+            res = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
+            line = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
+            if res.returncode or not line:
+                sys.exit(f"worker failed for {size}/{method}:\n{res.stderr[-2000:]}")
+            rows.append(json.loads(line[0][7:]))
+            print(json.dumps(rows[-1]), flush=True)
+    print(f"\npair: {args.images or 'warped scikit-image retina'}; device {args.device}; "
+          f"stage times are medians of {args.repeat} warm runs (features cached)\n")
+    print("| px | method | features/img s | anchors s | dense coarse s | optimizer s | refine s "
+          "| warm pair s | cold pair s | optimizer share (cold) | matches | peak RSS MB |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        share = r["optimizer"] / r["cold_pair"] if r["cold_pair"] else 0.0
+        print(f"| {r['size']} | {r['method']} | {r['features_per_image']:.2f} | {r['anchors']:.2f} "
+              f"| {r['dense_coarse']:.2f} | {r['optimizer']:.2f} | {r['refine']:.2f} | {r['warm_pair']:.2f} "
+              f"| {r['cold_pair']:.2f} | {100 * share:.0f}% | {r['matches']} | {r['peak_rss_mb']:.0f} |")
+    print("\n| px | geo / dense, warm pair | geo / dense, cold pair | geo / sparse, cold pair |")
+    print("|---|---:|---:|---:|")
+    for size in sorted({r["size"] for r in rows}):
+        by = {r["method"]: r for r in rows if r["size"] == size}
+        if {"geo", "dense", "sparse"} <= set(by):
+            g, d, s = by["geo"], by["dense"], by["sparse"]
+            print(f"| {size} | {g['warm_pair'] / d['warm_pair']:.2f} | {g['cold_pair'] / d['cold_pair']:.2f} "
+                  f"| {g['cold_pair'] / s['cold_pair']:.2f} |")
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,108 @@
+"""The ``geomatch`` command."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from .imageio import ImageReadError, read_image
+from .matcher import DENSE_BACKBONES, METHODS, SPARSE_BACKBONES
+from .weights import WeightsNotFoundError
+
+EXIT_BAD_INPUT = 2
+
+
+def _add_matching_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--method", choices=METHODS, default="geo")
+    p.add_argument("--resize", type=int, default=640, help="longer image side fed to the networks (0: keep)")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1 ...")
+    p.add_argument("--sparse", choices=SPARSE_BACKBONES, default="aliked", help="anchor backbone (+LightGlue)")
+    p.add_argument("--dense", choices=DENSE_BACKBONES, default="disk", help="dense backbone")
+    p.add_argument("--loftr-weights", default=None, help="LoFTR checkpoint (for --dense loftr)")
+    g = p.add_argument_group("optimizer (paper defaults)")
+    g.add_argument("--tau", type=float, default=10.0, help="Sampson distance threshold, px^2")
+    g.add_argument("--iterations", type=int, default=10)
+    g.add_argument("--w", type=float, default=1.2, help="update weight")
+    g.add_argument("--theta-iter", type=float, default=0.01)
+    g.add_argument("--theta-c", type=float, default=0.2)
+    g.add_argument("--memory-budget-mb", type=float, default=256.0)
+
+
+def _matching_options(args: argparse.Namespace) -> dict[str, object]:
+    return {
+        "method": args.method,
+        "resize": args.resize or None,
+        "device": args.device,
+        "sparse": args.sparse,
+        "dense": args.dense,
+        "loftr_weights": args.loftr_weights,
+        "tau": args.tau,
+        "iterations": args.iterations,
+        "w": args.w,
+        "theta_iter": args.theta_iter,
+        "theta_c": args.theta_c,
+        "memory_budget_mb": args.memory_budget_mb,
+    }
+
+
+def cmd_match(args: argparse.Namespace) -> int:
+    from .matcher import match_pair
+
+    try:
+        image0, image1 = read_image(args.image0), read_image(args.image1)
+    except ImageReadError as e:
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    t0 = time.perf_counter()
+    result = match_pair(image0, image1, **_matching_options(args))
+    elapsed = time.perf_counter() - t0
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    result.save_npz(args.out)
+    if args.viz is not None:
+        from .viz import save_matches
+
+        args.viz.parent.mkdir(parents=True, exist_ok=True)
+        save_matches(args.viz, image0, image1, result)
+    stages = ", ".join(f"{k} {v:.2f}s" for k, v in result.timings.items() if k != "total")
+    print(f"{len(result)} matches ({result.method}) in {elapsed:.2f}s [{stages}] -> {args.out}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    return run_demo(args.out, resize=args.resize)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="geomatch", description="Geometry-aware matching for SfM")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    m = sub.add_parser("match", help="match two images")
+    m.add_argument("image0", type=Path)
+    m.add_argument("image1", type=Path)
+    m.add_argument("--out", type=Path, required=True, help="output .npz")
+    m.add_argument("--viz", type=Path, default=None, help="also draw the matches into this PNG")
+    _add_matching_options(m)
+    m.set_defaults(func=cmd_match)
+
+    d = sub.add_parser("demo", help="match package-shipped photos warped by known homographies")
+    d.add_argument("--out", type=Path, default=Path("geomatch-data/demo"))
+    d.add_argument("--resize", type=int, default=640)
+    d.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except WeightsNotFoundError as e:
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

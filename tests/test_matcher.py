@@ -1,0 +1,71 @@
+"""Real networks with real weights on a package-shipped photo warped by a known homography."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from geomatch import METHODS, Matcher, match_pair
+from geomatch.homography import WarpedPair, reprojection_errors, warped_pair
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_method_matches_a_warped_photo_to_subpixel_median(
+    matcher: Matcher, astronaut_pair: WarpedPair, method: str
+) -> None:
+    r = matcher.derive(method=method).match(astronaut_pair.image0, astronaut_pair.image1)
+    assert len(r) >= 100
+    err = reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)
+    assert np.median(err) < 2.0, f"{method}: median reprojection error {np.median(err):.2f} px"
+    assert r.keypoints0.dtype == np.float32 and r.keypoints0.shape == (len(r), 2)
+    assert r.scores.shape == (len(r),) and r.F.shape == (3, 3)
+    # F is expressed in the original pixel frames: the matches satisfy it
+    x0 = np.c_[r.keypoints0, np.ones(len(r))]
+    x1 = np.c_[r.keypoints1, np.ones(len(r))]
+    Fx0 = x0 @ r.F.T
+    dist = np.abs((x1 * Fx0).sum(1)) / np.linalg.norm(Fx0[:, :2], axis=1)
+    assert np.median(dist) < 2.0
+
+
+def test_geo_keeps_only_epipolar_consistent_matches(matcher: Matcher, astronaut_pair: WarpedPair) -> None:
+    geo = matcher.derive(method="geo").match(astronaut_pair.image0, astronaut_pair.image1)
+    dense = matcher.derive(method="dense").match(astronaut_pair.image0, astronaut_pair.image1)
+    err_geo = reprojection_errors(astronaut_pair.H, geo.keypoints0, geo.keypoints1)
+    err_dense = reprojection_errors(astronaut_pair.H, dense.keypoints0, dense.keypoints1)
+    assert (err_geo < 3).mean() >= (err_dense < 3).mean()
+    assert geo.stats["init"] == "anchors"
+
+
+def test_features_are_computed_once_per_image(astronaut_pair: WarpedPair, matcher: Matcher) -> None:
+    m = matcher.derive(method="geo")
+    m._cache.clear()
+    before = m.extract_calls
+    third = warped_pair("astronaut", seed=2, strength=0.15).image1
+    m.match(astronaut_pair.image0, astronaut_pair.image1)
+    m.match(astronaut_pair.image0, third)
+    m.match(astronaut_pair.image1, third)
+    # three images, two backbones (aliked for anchors, disk for the dense branch)
+    assert m.extract_calls - before == 6
+
+
+def test_disk_for_both_branches_runs_one_pass_per_image(astronaut_pair: WarpedPair, matcher: Matcher) -> None:
+    m = matcher.derive(method="geo", sparse="disk", dense="disk")
+    m._cache.clear()
+    before = m.extract_calls
+    r = m.match(astronaut_pair.image0, astronaut_pair.image1)
+    assert m.extract_calls - before == 2
+    assert np.median(reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)) < 2.0
+
+
+def test_match_pair_api_takes_paths_and_options(tmp_path, astronaut_pair: WarpedPair) -> None:
+    import cv2
+
+    p0, p1 = tmp_path / "a.png", tmp_path / "b.jpg"
+    cv2.imwrite(str(p0), astronaut_pair.image0[:, :, ::-1])
+    cv2.imwrite(str(p1), astronaut_pair.image1[:, :, ::-1])
+    r = match_pair(p0, p1, method="geo", resize=320, device="cpu", iterations=3, tau=50.0)
+    assert len(r) > 50 and r.method == "geo"
+    with pytest.raises(TypeError, match="unknown matching options: bogus"):
+        match_pair(p0, p1, bogus=1)
+    with pytest.raises(ValueError, match="unknown method"):
+        match_pair(p0, p1, method="magic")
