@@ -96,24 +96,32 @@ def main() -> None:
                 sys.exit(f"worker failed for {size}/{method}:\n{res.stderr[-2000:]}")
             rows.append(json.loads(line[0][7:]))
             print(json.dumps(rows[-1]), flush=True)
-    print(f"\npair: {args.images or 'warped scikit-image retina'}; device {args.device}; "
-          f"stage times are medians of {args.repeat} warm runs (features cached)\n")
-    print("| px | method | features/img s | anchors s | dense coarse s | optimizer s | refine s "
-          "| warm pair s | cold pair s | optimizer share (cold) | matches | peak RSS MB |")
+    print(
+        f"\npair: {args.images or 'warped scikit-image retina'}; device {args.device}; "
+        f"stage times are medians of {args.repeat} warm runs (features cached)\n"
+    )
+    print(
+        "| px | method | features/img s | anchors s | dense coarse s | optimizer s | refine s "
+        "| warm pair s | cold pair s | optimizer share (cold) | matches | peak RSS MB |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         share = r["optimizer"] / r["cold_pair"] if r["cold_pair"] else 0.0
-        print(f"| {r['size']} | {r['method']} | {r['features_per_image']:.2f} | {r['anchors']:.2f} "
-              f"| {r['dense_coarse']:.2f} | {r['optimizer']:.2f} | {r['refine']:.2f} | {r['warm_pair']:.2f} "
-              f"| {r['cold_pair']:.2f} | {100 * share:.0f}% | {r['matches']} | {r['peak_rss_mb']:.0f} |")
+        print(
+            f"| {r['size']} | {r['method']} | {r['features_per_image']:.2f} | {r['anchors']:.2f} "
+            f"| {r['dense_coarse']:.2f} | {r['optimizer']:.2f} | {r['refine']:.2f} | {r['warm_pair']:.2f} "
+            f"| {r['cold_pair']:.2f} | {100 * share:.0f}% | {r['matches']} | {r['peak_rss_mb']:.0f} |"
+        )
     print("\n| px | geo / dense, warm pair | geo / dense, cold pair | geo / sparse, cold pair |")
     print("|---|---:|---:|---:|")
     for size in sorted({r["size"] for r in rows}):
         by = {r["method"]: r for r in rows if r["size"] == size}
         if {"geo", "dense", "sparse"} <= set(by):
             g, d, s = by["geo"], by["dense"], by["sparse"]
-            print(f"| {size} | {g['warm_pair'] / d['warm_pair']:.2f} | {g['cold_pair'] / d['cold_pair']:.2f} "
-                  f"| {g['cold_pair'] / s['cold_pair']:.2f} |")
+            print(
+                f"| {size} | {g['warm_pair'] / d['warm_pair']:.2f} | {g['cold_pair'] / d['cold_pair']:.2f} "
+                f"| {g['cold_pair'] / s['cold_pair']:.2f} |"
+            )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 

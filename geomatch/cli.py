@@ -18,7 +18,9 @@ def _add_matching_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", choices=METHODS, default="geo")
     p.add_argument("--resize", type=int, default=640, help="longer image side fed to the networks (0: keep)")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1 ...")
-    p.add_argument("--sparse", choices=SPARSE_BACKBONES, default="aliked", help="anchor backbone (+LightGlue)")
+    p.add_argument(
+        "--sparse", choices=SPARSE_BACKBONES, default="aliked", help="anchor backbone (+LightGlue)"
+    )
     p.add_argument("--dense", choices=DENSE_BACKBONES, default="disk", help="dense backbone")
     p.add_argument("--loftr-weights", default=None, help="LoFTR checkpoint (for --dense loftr)")
     g = p.add_argument_group("optimizer (paper defaults)")

@@ -22,8 +22,10 @@ def run_demo(out: Path, resize: int = 640) -> int:
     out.mkdir(parents=True, exist_ok=True)
     pairs = [warped_pair(name, seed, strength=0.2) for name, seed in DEMO_PAIRS]
     base = Matcher(MatcherConfig(resize=resize))
-    print(f"geomatch demo: {len(pairs)} photo pairs warped by random homographies, resize {resize}, "
-          f"device {base.device}")
+    print(
+        f"geomatch demo: {len(pairs)} photo pairs warped by random homographies, resize {resize}, "
+        f"device {base.device}"
+    )
     print("| method | matches | within 3 px | precision | AUC@5px | s/pair |")
     print("|---|---:|---:|---:|---:|---:|")
     for method in METHODS:
@@ -41,7 +43,10 @@ def run_demo(out: Path, resize: int = 640) -> int:
             r.save_npz(out / f"{stem}.npz")
             save_matches(out / f"{stem}.png", p.image0, p.image1, r)
         prec = good / max(n, 1)
-        print(f"| {method} | {n / len(pairs):.0f} | {good / len(pairs):.0f} | {prec:.3f} "
-              f"| {100 * auc(np.array(errs), (5,))[0]:.1f} | {secs / len(pairs):.2f} |", flush=True)
+        print(
+            f"| {method} | {n / len(pairs):.0f} | {good / len(pairs):.0f} | {prec:.3f} "
+            f"| {100 * auc(np.array(errs), (5,))[0]:.1f} | {secs / len(pairs):.2f} |",
+            flush=True,
+        )
     print(f"match pictures and .npz files: {out}/ (the first method's times include feature extraction)")
     return 0

@@ -75,7 +75,9 @@ def warped_pair(name: str, seed: int, strength: float = 0.2, max_side: int | Non
     img = photo(name)
     if max_side is not None and max(img.shape[:2]) > max_side:
         s = max_side / max(img.shape[:2])
-        img = cv2.resize(img, (round(img.shape[1] * s), round(img.shape[0] * s)), interpolation=cv2.INTER_AREA)
+        img = cv2.resize(
+            img, (round(img.shape[1] * s), round(img.shape[0] * s)), interpolation=cv2.INTER_AREA
+        )
     h, w = img.shape[:2]
     rng = np.random.default_rng(seed)
     H = random_homography(w, h, rng, strength)
@@ -83,10 +85,10 @@ def warped_pair(name: str, seed: int, strength: float = 0.2, max_side: int | Non
     return WarpedPair(f"{name}#{seed}", img, warped, H)
 
 
-def warped_pairs(count: int, seed: int = 0, strength: float = 0.2, max_side: int | None = 640) -> list[WarpedPair]:
-    return [
-        warped_pair(PHOTOS[i % len(PHOTOS)], seed + i, strength, max_side) for i in range(count)
-    ]
+def warped_pairs(
+    count: int, seed: int = 0, strength: float = 0.2, max_side: int | None = 640
+) -> list[WarpedPair]:
+    return [warped_pair(PHOTOS[i % len(PHOTOS)], seed + i, strength, max_side) for i in range(count)]
 
 
 def apply_h(H: np.ndarray, points: np.ndarray) -> np.ndarray:

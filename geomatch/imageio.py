@@ -49,7 +49,13 @@ def read_image(source: str | os.PathLike[str] | bytes) -> np.ndarray:
                 rgb = im.convert("RGB")
     except ImageReadError:
         raise
-    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+    except (
+        OSError,
+        SyntaxError,
+        ValueError,
+        Image.DecompressionBombError,
+        Image.DecompressionBombWarning,
+    ) as e:
         raise ImageReadError(f"{name}: not a readable image ({e})") from None
     arr = np.asarray(rgb, dtype=np.uint8)
     if arr.shape[0] < 16 or arr.shape[1] < 16:
@@ -87,8 +93,8 @@ def prepare(image: np.ndarray, resize: int | None, device: torch.device, multipl
     """Resize so the longer side is ``resize`` (None: keep), each side rounded to ``multiple``."""
     h, w = image.shape[:2]
     s = 1.0 if not resize else resize / max(h, w)
-    nw = max(multiple, int(round(w * s / multiple)) * multiple)
-    nh = max(multiple, int(round(h * s / multiple)) * multiple)
+    nw = max(multiple, round(w * s / multiple) * multiple)
+    nh = max(multiple, round(h * s / multiple) * multiple)
     if (nw, nh) != (w, h):
         interp = cv2.INTER_AREA if nw * nh < w * h else cv2.INTER_LINEAR
         image = cv2.resize(image, (nw, nh), interpolation=interp)

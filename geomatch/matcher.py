@@ -177,21 +177,23 @@ class Matcher:
             self._dense = build_dense_head(self.config, self.extractor(self.config.dense))
         return self._dense
 
-    def needed_extractors(self) -> list[str]:
-        names = []
-        if self.config.needs_sparse:
-            names.append(self.config.sparse)
-        if self.config.needs_dense and self.config.dense not in names:
-            names.append(self.config.dense)
-        return names
+    def needed_extractors(self) -> list[tuple[str, bool]]:
+        """(backbone, dense maps wanted) for each network pass an image needs."""
+        cfg = self.config
+        passes: dict[str, bool] = {}
+        if cfg.needs_sparse:
+            passes[cfg.sparse] = False
+        if cfg.needs_dense:
+            passes[cfg.dense] = True
+        return list(passes.items())
 
     # -- features, once per image -------------------------------------------------------------
     def features(self, image: np.ndarray, key: str | None = None) -> dict[str, ImageFeatures]:
         key = key or image_key(image)
         out: dict[str, ImageFeatures] = {}
         prepared: Prepared | None = None
-        for name in self.needed_extractors():
-            ck = (key, name, self.config.resize)
+        for name, dense in self.needed_extractors():
+            ck = (key, f"{name}+dense" if dense else name, self.config.resize)
             if ck in self._cache:
                 self._cache.move_to_end(ck)
                 out[name] = self._cache[ck][0]
@@ -199,7 +201,7 @@ class Matcher:
             if prepared is None:
                 prepared = prepare(image, self.config.resize, self.device)
             with torch.inference_mode():
-                feats = self.extractor(name).extract(prepared.tensor)
+                feats = self.extractor(name).extract(prepared.tensor, dense=dense)
             self.extract_calls += 1
             self._cache[ck] = (feats, prepared)
             while len(self._cache) > self.config.cache_images * max(1, len(self.needed_extractors())):
@@ -251,7 +253,11 @@ class Matcher:
             if cfg.method in ("dense", "concat"):
                 with timer("dense_coarse"):
                     ci, cj, conf = dense_mutual_nn(
-                        pair.feats_a, pair.feats_b, pair.temperature, cfg.geo.theta_c, cfg.geo.memory_budget_mb
+                        pair.feats_a,
+                        pair.feats_b,
+                        pair.temperature,
+                        cfg.geo.theta_c,
+                        cfg.geo.memory_budget_mb,
                     )
             else:
                 geo = cfg.geo if cfg.method == "geo" else replace(cfg.geo, use_anchors=False)

@@ -1,28 +1,28 @@
 """The geometry-aware optimization module (paper section 3.2, defaults from section 3.4).
 
-The N x M confidence matrix is the memory hot spot (1024 px: ~12k cells a side, 150M
-entries), so it is never held whole. Two facts make an exact, block-wise version possible:
+The N x M confidence matrix is the memory hot spot (1024 px: ~9-12k cells a side, ~100M
+entries), so it is never held whole. Two facts bound the work:
 
-* min-max normalisation is a positive affine map, so it never changes which entry is a row
-  or column maximum; after the first normalisation the matrix minimum is exactly 0, so later
+* min-max normalisation is a positive affine map, so it never changes which entry is a row or
+  column maximum; after the first normalisation the matrix minimum is exactly 0, so later
   normalisations are plain divisions by the maximum;
-* each iteration multiplies an entry by ``P_d * w`` with ``P_d`` in ``[0.5, sigmoid(tau)]``, so
-  over the remaining ``iterations - 1`` rounds two entries' ratio moves by at most
-  ``(2 sigmoid(tau)) ** (iterations - 1)``.
+* each round multiplies an entry by ``P_d * w`` with ``P_d`` in ``[0.5, sigmoid(tau)]``, so over
+  ``iterations`` rounds two entries' ratio moves by at most ``(2 sigmoid(tau)) ** iterations``.
 
-Hence only entries within that ratio of their row's or their column's maximum after the first
-round can ever be a row or column maximum, i.e. take part in a mutual nearest neighbour. The
-first round is streamed over row blocks sized by ``memory_budget_mb``; the remaining rounds
-run on that candidate set, which is exact. (Note that ``w`` cancels under min-max
-normalisation: it is kept as an option because the paper states it, and its ablation shows
-no effect, as expected.)
+Hence only entries of P_c within that ratio of their row's or their column's maximum can ever
+take part in a mutual nearest neighbour. One streamed pass over row blocks (sized by
+``memory_budget_mb``) computes the dual-softmax normalisers, a second one the row and column
+maxima and, per row and per column, the ``candidates_per_line`` largest entries; the rounds then
+run on the candidates within the bound. The result equals the full-matrix computation unless a
+row or column has more than ``candidates_per_line`` entries within the bound (a flat, ambiguous
+line), where the weakest are dropped. (``w`` cancels under min-max normalisation: it is kept as an
+option because the paper states it; its ablation shows no effect, as expected.)
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -46,9 +46,10 @@ class GeoOptions:
     fallback_fraction: float = 0.5  # "top half" of the initial mutual-NN matches
     use_anchors: bool = True
     f_estimator: str = "magsac"  # magsac | 8point
-    f_threshold: float = 1.0  # px, MAGSAC inlier threshold at the network-input scale
+    f_threshold: float = 1.0  # px, MAGSAC threshold for the anchors (keypoint precision)
+    f_threshold_coarse: float = 3.0  # px, MAGSAC threshold on coarse cell centres (~sqrt(tau))
     memory_budget_mb: float = 256.0  # working memory of one streamed block
-    max_candidates: int = 4_000_000
+    candidates_per_line: int = 32  # entries kept per row and per column of the confidence matrix
 
 
 @dataclass
@@ -84,8 +85,12 @@ class DualSoftmax:
         dev = self.fa.device
         self.row_lse = torch.empty(n, device=dev)
         self.col_lse = torch.full((m,), -math.inf, device=dev)
+        # when the whole similarity matrix fits the budget it is computed once and kept
+        self._full: torch.Tensor | None = None
         for rows in self.blocks():
             s = self.similarity(rows)
+            if rows.stop - rows.start == n:
+                self._full = s
             self.row_lse[rows] = torch.logsumexp(s, dim=1)
             self.col_lse = torch.logaddexp(self.col_lse, torch.logsumexp(s, dim=0))
 
@@ -93,25 +98,19 @@ class DualSoftmax:
         return [slice(i, min(i + self.rows, self.n)) for i in range(0, self.n, self.rows)]
 
     def similarity(self, rows: slice) -> torch.Tensor:
-        return (self.fa[rows] @ self.fb.T) * self.inv_t
+        return (self.fa[rows] @ self.fb.T).mul_(self.inv_t)
 
     def block(self, rows: slice) -> torch.Tensor:
-        s = self.similarity(rows)
-        return torch.exp(2 * s - self.row_lse[rows, None] - self.col_lse[None, :])
+        """P0 for a row block: a fresh tensor the caller may modify."""
+        s = self._full.clone() if self._full is not None else self.similarity(rows)
+        return s.mul_(2).sub_(self.row_lse[rows, None]).sub_(self.col_lse[None, :]).exp_()
 
     def pairs(self, ia: torch.Tensor, jb: torch.Tensor) -> torch.Tensor:
         s = (self.fa[ia] * self.fb[jb]).sum(-1) * self.inv_t
         return torch.exp(2 * s - self.row_lse[ia] - self.col_lse[jb])
 
 
-Value = Callable[[slice, torch.Tensor], torch.Tensor]
-
-
-def _identity(rows: slice, p: torch.Tensor) -> torch.Tensor:
-    return p
-
-
-def _stream_stats(ds: DualSoftmax, value: Value) -> _Stats:
+def _stream_stats(ds: DualSoftmax) -> _Stats:
     dev = ds.fa.device
     row_max = torch.empty(ds.n, device=dev)
     row_arg = torch.empty(ds.n, dtype=torch.long, device=dev)
@@ -119,7 +118,7 @@ def _stream_stats(ds: DualSoftmax, value: Value) -> _Stats:
     col_arg = torch.zeros(ds.m, dtype=torch.long, device=dev)
     minimum = math.inf
     for rows in ds.blocks():
-        v = value(rows, ds.block(rows))
+        v = ds.block(rows)
         row_max[rows], row_arg[rows] = v.max(dim=1)
         bmax, barg = v.max(dim=0)
         better = bmax > col_max
@@ -165,7 +164,7 @@ def dense_mutual_nn(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Plain detector-free coarse matching: mutual nearest neighbours of P_c above ``threshold``."""
     ds = DualSoftmax(fa, fb, temperature, budget_mb)
-    return _mutual(_stream_stats(ds, _identity), threshold)
+    return _mutual(_stream_stats(ds), threshold)
 
 
 def geometric_confidence(d: torch.Tensor, tau: float) -> torch.Tensor:
@@ -189,7 +188,7 @@ def initial_fundamental(
             if F is not None:
                 return F, "anchors"
     ia, jb, conf = initial
-    k = int(math.ceil(ia.numel() * opts.fallback_fraction))
+    k = math.ceil(ia.numel() * opts.fallback_fraction)
     if k < 8:
         return None, "none"
     top = torch.argsort(conf, descending=True)[:k]
@@ -213,7 +212,8 @@ def geometry_aware_matching(
     """
     opts = opts or GeoOptions()
     ds = DualSoftmax(fa, fb, temperature, opts.memory_budget_mb)
-    stats0 = _stream_stats(ds, _identity)
+    k_line = max(1, opts.candidates_per_line)
+    stats0, top = _stream_stats_topk(ds, k_line)
     initial = _mutual(stats0, opts.theta_iter)
     F, init = initial_fundamental(grid_a, grid_b, initial, anchors, opts)
     if F is None or opts.iterations <= 0:
@@ -221,55 +221,73 @@ def geometry_aware_matching(
         return CoarseMatches(ia, jb, conf, F, init if F is None else "off", [int(initial[0].numel())])
 
     tau = opts.tau
-    sampson = SampsonGrid(F, grid_a.float(), grid_b.float())
-
-    def first_round(rows: slice, p: torch.Tensor) -> torch.Tensor:
-        return p * geometric_confidence(sampson.block(rows), tau) * opts.w
-
-    stats1 = _stream_stats(ds, first_round)
-    m1, big = stats1.minimum, float(stats1.row_max.max())
     ratio = 2.0 * torch.sigmoid(torch.tensor(max(tau, 0.0))).item()
-    rho = ratio ** -(opts.iterations - 1)
-    ci, cj, val = _candidates(ds, first_round, stats1, m1, rho, opts.max_candidates)
-    val = (val - m1) / max(big - m1, 1e-30)
+    ci, cj, p0 = _candidates(stats0, top, ratio**-opts.iterations, ds.m)
+    ga, gb = grid_a.float(), grid_b.float()
+    # the first round's matrix minimum is at least P_d's floor (0.5) times min(P0): below 1e-30 in
+    # practice, so using that bound instead of the exact minimum changes no ranking
+    floor = 0.5 * opts.w * stats0.minimum
 
     history: list[int] = []
     n, m = ds.n, ds.m
+    val = p0
     for it in range(opts.iterations):
-        if it > 0:
-            d = SampsonGrid(F, grid_a.float(), grid_b.float()).pairs(ci, cj)
-            val = val * geometric_confidence(d, tau) * opts.w
+        d = SampsonGrid(F, ga, gb).pairs(ci, cj)
+        val = val * geometric_confidence(d, tau) * opts.w
+        if it == 0:
+            val = (val - floor) / (val.max() - floor).clamp_min(1e-30)
+        else:
             val = val / val.max().clamp_min(1e-30)  # the matrix minimum is 0 from round 1 on
         sel = _mutual_sparse(ci, cj, val, n, m, opts.theta_iter)
         history.append(int(sel.numel()))
-        F_new, _ = estimate_fundamental(
-            grid_a[ci[sel]], grid_b[cj[sel]], opts.f_estimator, opts.f_threshold
-        )
+        F_new, _ = estimate_fundamental(ga[ci[sel]], gb[cj[sel]], opts.f_estimator, opts.f_threshold_coarse)
         if F_new is not None:
             F = F_new
     sel = _mutual_sparse(ci, cj, val, n, m, opts.theta_c)
     return CoarseMatches(ci[sel], cj[sel], val[sel], F, init, history, int(ci.numel()))
 
 
+def _stream_stats_topk(ds: DualSoftmax, k: int) -> tuple[_Stats, dict[str, torch.Tensor]]:
+    """Row/column maxima of P0 plus each row's and each column's k largest entries, one pass."""
+    dev = ds.fa.device
+    kr = min(k, ds.m)
+    row_max = torch.empty(ds.n, device=dev)
+    row_arg = torch.empty(ds.n, dtype=torch.long, device=dev)
+    row_top_v = torch.empty(ds.n, kr, device=dev)
+    row_top_j = torch.empty(ds.n, kr, dtype=torch.long, device=dev)
+    col_top_v = torch.empty(0, ds.m, device=dev)
+    col_top_i = torch.empty(0, ds.m, dtype=torch.long, device=dev)
+    minimum = math.inf
+    for rows in ds.blocks():
+        p = ds.block(rows)
+        v, j = p.topk(kr, dim=1)
+        row_top_v[rows], row_top_j[rows] = v, j
+        row_max[rows], row_arg[rows] = v[:, 0], j[:, 0]
+        kc = min(k, p.shape[0])
+        cv, ci = p.topk(kc, dim=0)
+        col_top_v = torch.cat([col_top_v, cv])
+        col_top_i = torch.cat([col_top_i, ci + rows.start])
+        if col_top_v.shape[0] > k:
+            keep_v, order = col_top_v.topk(k, dim=0)
+            col_top_v, col_top_i = keep_v, col_top_i.gather(0, order)
+        minimum = min(minimum, float(p.min()))
+    col_max, pos = col_top_v.max(dim=0)
+    col_arg = col_top_i.gather(0, pos[None])[0]
+    stats = _Stats(row_max, row_arg, col_max, col_arg, minimum)
+    return stats, {"row_v": row_top_v, "row_j": row_top_j, "col_v": col_top_v, "col_i": col_top_i}
+
+
 def _candidates(
-    ds: DualSoftmax, value: Value, stats: _Stats, m1: float, rho: float, cap: int
+    stats: _Stats, top: dict[str, torch.Tensor], rho: float, m: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    while True:
-        row_floor = m1 + (stats.row_max - m1) * rho
-        col_floor = m1 + (stats.col_max - m1) * rho
-        parts_i, parts_j, parts_v = [], [], []
-        total = 0
-        for rows in ds.blocks():
-            v = value(rows, ds.block(rows))
-            keep = (v >= row_floor[rows, None]) | (v >= col_floor[None, :])
-            i, j = keep.nonzero(as_tuple=True)
-            total += i.numel()
-            if total > cap:
-                break
-            parts_i.append(i + rows.start)
-            parts_j.append(j)
-            parts_v.append(v[i, j])
-        if total <= cap:
-            return torch.cat(parts_i), torch.cat(parts_j), torch.cat(parts_v)
-        log.warning("more than %d candidate entries; tightening the ratio bound (no longer exact)", cap)
-        rho = min(1.0, rho * 8)
+    """Entries that can still become a row or column maximum within the remaining rounds."""
+    rv, rj = top["row_v"], top["row_j"]
+    rkeep = rv >= stats.row_max[:, None] * rho
+    ri = torch.arange(rv.shape[0], device=rv.device)[:, None].expand_as(rj)[rkeep]
+    cv, cidx = top["col_v"], top["col_i"]
+    ckeep = cv >= stats.col_max[None, :] * rho
+    cj = torch.arange(cv.shape[1], device=cv.device)[None, :].expand_as(cidx)[ckeep]
+    keys = torch.cat([ri * m + rj[rkeep], cidx[ckeep] * m + cj])
+    values = torch.cat([rv[rkeep], cv[ckeep]])
+    keys, first = _first_unique(keys)
+    return keys // m, keys % m, values[first]

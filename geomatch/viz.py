@@ -34,8 +34,8 @@ def draw_matches(
         p1 = (result.keypoints1[order] + 0.5) * s1 + np.array([a.shape[1] + gap, 0])
         for q0, q1, c in zip(p0, p1, colors, strict=True):
             color = tuple(int(v) for v in c)
-            x0, y0 = (int(round(v * 16)) for v in q0)
-            x1, y1 = (int(round(v * 16)) for v in q1)
+            x0, y0 = (round(v * 16) for v in q0)
+            x1, y1 = (round(v * 16) for v in q1)
             cv2.line(canvas, (x0, y0), (x1, y1), color, 1, cv2.LINE_AA, shift=4)
             cv2.circle(canvas, (x0, y0), 2 * 16, color, -1, cv2.LINE_AA, shift=4)
             cv2.circle(canvas, (x1, y1), 2 * 16, color, -1, cv2.LINE_AA, shift=4)

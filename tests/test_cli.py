@@ -29,7 +29,9 @@ def pair_files(tmp_path_factory) -> tuple[Path, Path, np.ndarray]:
 def test_good_pair_writes_npz_and_picture(pair_files, tmp_path) -> None:
     a, b, H = pair_files
     out, viz = tmp_path / "m.npz", tmp_path / "m.png"
-    res = run("match", str(a), str(b), "--resize", "400", "--device", "cpu", "--out", str(out), "--viz", str(viz))
+    res = run(
+        "match", str(a), str(b), "--resize", "400", "--device", "cpu", "--out", str(out), "--viz", str(viz)
+    )
     assert res.returncode == 0, res.stderr
     assert "matches (geo)" in res.stdout
     z = np.load(out)

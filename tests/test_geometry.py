@@ -42,7 +42,9 @@ def test_sampson_grid_equals_pairwise() -> None:
     grid = SampsonGrid(F, pa, pb)
     full = grid.block(slice(0, 30))
     ia, jb = torch.meshgrid(torch.arange(30), torch.arange(40), indexing="ij")
-    np.testing.assert_allclose(full.numpy(), sampson_distance(F, pa[ia.flatten()], pb[jb.flatten()]).reshape(30, 40))
+    np.testing.assert_allclose(
+        full.numpy(), sampson_distance(F, pa[ia.flatten()], pb[jb.flatten()]).reshape(30, 40)
+    )
     np.testing.assert_allclose(grid.pairs(ia.flatten(), jb.flatten()).reshape(30, 40).numpy(), full.numpy())
 
 

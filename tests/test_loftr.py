@@ -48,5 +48,5 @@ def test_loftr_runs_through_the_matcher(checkpoint: str) -> None:
 def test_missing_checkpoint_is_a_clear_error(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("GEOMATCH_WEIGHTS_DIR", str(tmp_path))
     monkeypatch.delenv("GEOMATCH_LOFTR_WEIGHTS", raising=False)
-    with pytest.raises(WeightsNotFoundError, match="loftr_outdoor.ckpt"):
+    with pytest.raises(WeightsNotFoundError, match=r"loftr_outdoor\.ckpt"):
         LoftrExtractor(torch.device("cpu"))

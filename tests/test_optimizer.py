@@ -65,7 +65,9 @@ def test_dense_keeps_distractors_geo_removes_them() -> None:
     assert distr_d >= 0.9 * len(s["distractors"]), "appearance alone should prefer the distractors"
 
     opts = GeoOptions(theta_c=0.01, f_estimator="8point")
-    cm = geometry_aware_matching(s["fa"], s["fb"], s["ga"], s["gb"], TEMPERATURE, anchors_from(s, 20, 0.9), opts)
+    cm = geometry_aware_matching(
+        s["fa"], s["fb"], s["ga"], s["gb"], TEMPERATURE, anchors_from(s, 20, 0.9), opts
+    )
     true_g, distr_g = classify(s, cm.idx_a, cm.idx_b)
     assert cm.init == "anchors"
     assert distr_g == 0
@@ -75,7 +77,9 @@ def test_dense_keeps_distractors_geo_removes_them() -> None:
 
 def test_geo_without_anchors_also_removes_distractors_when_most_matches_are_right() -> None:
     s = scene(n_distractors=20)
-    cm = geometry_aware_matching(s["fa"], s["fb"], s["ga"], s["gb"], TEMPERATURE, None, GeoOptions(theta_c=0.01))
+    cm = geometry_aware_matching(
+        s["fa"], s["fb"], s["ga"], s["gb"], TEMPERATURE, None, GeoOptions(theta_c=0.01)
+    )
     assert cm.init == "fallback"
     assert classify(s, cm.idx_a, cm.idx_b)[1] == 0
 
@@ -146,7 +150,9 @@ def test_streamed_candidates_equal_the_full_matrix(budget_mb: float) -> None:
 def test_iterations_zero_is_no_optimisation() -> None:
     s = scene()
     opts = GeoOptions(iterations=0, theta_c=0.01)
-    cm = geometry_aware_matching(s["fa"], s["fb"], s["ga"], s["gb"], TEMPERATURE, anchors_from(s, 20, 0.9), opts)
+    cm = geometry_aware_matching(
+        s["fa"], s["fb"], s["ga"], s["gb"], TEMPERATURE, anchors_from(s, 20, 0.9), opts
+    )
     ref = dense_mutual_nn(s["fa"], s["fb"], TEMPERATURE, 0.01)
     assert cm.init == "off"
     assert torch.equal(cm.idx_a, ref[0]) and torch.equal(cm.idx_b, ref[1])

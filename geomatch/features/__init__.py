@@ -1,6 +1,15 @@
 """Backbones behind two small interfaces: sparse (keypoints + matcher) and dense (coarse + fine maps)."""
 
-from .base import CoarsePair, DenseFeatures, DenseHead, Extractor, ImageFeatures, Refined, SparseFeatures, SparseMatcher
+from .base import (
+    CoarsePair,
+    DenseFeatures,
+    DenseHead,
+    Extractor,
+    ImageFeatures,
+    Refined,
+    SparseFeatures,
+    SparseMatcher,
+)
 
 __all__ = [
     "CoarsePair",

@@ -8,7 +8,7 @@ from kornia.feature import ALIKED
 
 from ..weights import load_state_dict
 from .base import DenseFeatures, Extractor, ImageFeatures, SparseFeatures
-from .pooling import pool_to_grid
+from .pooling import FINE_DTYPE, pool_to_grid
 
 
 class AlikedExtractor(Extractor):
@@ -35,7 +35,7 @@ class AlikedExtractor(Extractor):
         self.stride = stride
 
     @torch.inference_mode()
-    def extract(self, image: torch.Tensor) -> ImageFeatures:
+    def extract(self, image: torch.Tensor, dense: bool = True) -> ImageFeatures:
         net = self.net
         feature_map, score_map = net.extract_dense_map(image)
         kpts_n, scores, _ = net.dkd(score_map)
@@ -44,12 +44,14 @@ class AlikedExtractor(Extractor):
         wh = torch.tensor([w - 1, h - 1], device=image.device, dtype=torch.float32)
         keypoints = wh * (kpts_n[0] + 1) / 2.0  # align_corners frame: pixel centres at integers
         sparse = SparseFeatures(keypoints, F.normalize(desc[0], dim=-1), scores[0], (w, h))
+        if not dense:
+            return ImageFeatures(sparse=sparse)
         fmap = feature_map[0]
-        dense = DenseFeatures(
+        maps = DenseFeatures(
             coarse=pool_to_grid(fmap, self.stride),
-            fine=fmap,
+            fine=fmap.to(FINE_DTYPE),
             stride=self.stride,
             image_size=(w, h),
             heatmap=score_map[0, 0],
         )
-        return ImageFeatures(sparse=sparse, dense=dense)
+        return ImageFeatures(sparse=sparse, dense=maps)

@@ -79,8 +79,12 @@ class Extractor(ABC):
     provides_dense: bool = False
 
     @abstractmethod
-    def extract(self, image: torch.Tensor) -> ImageFeatures:
-        """``image`` is (1, 3, H, W) RGB in [0, 1] with H, W multiples of 16."""
+    def extract(self, image: torch.Tensor, dense: bool = True) -> ImageFeatures:
+        """``image`` is (1, 3, H, W) RGB in [0, 1] with H, W multiples of 16.
+
+        ``dense=False`` drops the dense maps (full-resolution maps are the bulk of the memory
+        a cached image holds) when only the sparse branch is used.
+        """
 
 
 class SparseMatcher(ABC):

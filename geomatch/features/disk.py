@@ -9,7 +9,7 @@ from kornia.feature.disk.detector import heatmap_to_keypoints
 
 from ..weights import load_state_dict
 from .base import DenseFeatures, Extractor, ImageFeatures, SparseFeatures
-from .pooling import pool_to_grid
+from .pooling import FINE_DTYPE, pool_to_grid
 
 
 class DiskExtractor(Extractor):
@@ -36,18 +36,19 @@ class DiskExtractor(Extractor):
         self.stride = stride
 
     @torch.inference_mode()
-    def extract(self, image: torch.Tensor) -> ImageFeatures:
+    def extract(self, image: torch.Tensor, dense: bool = True) -> ImageFeatures:
         heatmaps, descriptors = self.net.heatmap_and_dense_descriptors(image)
         kp = heatmap_to_keypoints(heatmaps, n=self.max_keypoints, window_size=self.nms_window)[0]
         feats = kp.merge_with_descriptors(descriptors[0])
         h, w = image.shape[-2:]
         sparse = SparseFeatures(feats.keypoints.float(), feats.descriptors, feats.detection_scores, (w, h))
-        fine = F.normalize(descriptors[0], dim=0)
-        dense = DenseFeatures(
+        if not dense:
+            return ImageFeatures(sparse=sparse)
+        maps = DenseFeatures(
             coarse=pool_to_grid(descriptors[0], self.stride),
-            fine=fine,
+            fine=F.normalize(descriptors[0], dim=0).to(FINE_DTYPE),
             stride=self.stride,
             image_size=(w, h),
             heatmap=heatmaps[0, 0],
         )
-        return ImageFeatures(sparse=sparse, dense=dense)
+        return ImageFeatures(sparse=sparse, dense=maps)

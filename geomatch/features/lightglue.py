@@ -12,12 +12,14 @@ CHECKPOINTS = {"aliked": "aliked_lightglue.pth", "disk": "disk_lightglue.pth"}
 
 
 def rename_legacy_keys(state: dict[str, torch.Tensor], n_layers: int) -> dict[str, torch.Tensor]:
-    """The released checkpoints name layers ``self_attn.{i}``; kornia nests them under ``transformers.{i}``."""
+    """Released checkpoints name layers ``self_attn.{i}``; kornia nests them in ``transformers.{i}``."""
     out = dict(state)
     for i in range(n_layers):
-        for old, new in ((f"self_attn.{i}.", f"transformers.{i}.self_attn."),
-                         (f"cross_attn.{i}.", f"transformers.{i}.cross_attn.")):
-            out = {(new + k[len(old):] if k.startswith(old) else k): v for k, v in out.items()}
+        for old, new in (
+            (f"self_attn.{i}.", f"transformers.{i}.self_attn."),
+            (f"cross_attn.{i}.", f"transformers.{i}.cross_attn."),
+        ):
+            out = {(new + k[len(old) :] if k.startswith(old) else k): v for k, v in out.items()}
     return out
 
 

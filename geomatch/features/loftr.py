@@ -43,7 +43,7 @@ class LoftrExtractor(Extractor):
         self.stride = int(self.net.config["resolution"][0])
 
     @torch.inference_mode()
-    def extract(self, image: torch.Tensor) -> ImageFeatures:
+    def extract(self, image: torch.Tensor, dense: bool = True) -> ImageFeatures:
         gray = (0.299 * image[:, 0] + 0.587 * image[:, 1] + 0.114 * image[:, 2])[:, None]
         feats = self.net.extract_features(gray)
         h, w = image.shape[-2:]
