@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from common import parse_variants
 
 from geomatch import METHODS, Matcher, MatcherConfig
 from geomatch.homography import auc, corner_error, reprojection_errors, warped_pairs
@@ -26,13 +27,15 @@ def main() -> None:
     ap.add_argument("--strength", type=float, default=0.2)
     ap.add_argument("--resize", type=int, default=640)
     ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--variants", default=None, help="';'-separated 'METHOD [option=value ...]' rows")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = ap.parse_args()
 
     pairs = warped_pairs(args.pairs, args.seed, args.strength)
     rows = []
-    for method in args.methods.split(","):
-        matcher = Matcher(MatcherConfig(method=method, resize=args.resize))
+    base = Matcher(MatcherConfig(resize=args.resize))
+    for label, method, options in parse_variants(args.variants, args.methods):
+        matcher = base.derive(method=method, **options)
         n_all, n_good, errs, t = [], [], [], 0.0
         for p in pairs:
             t0 = time.perf_counter()
@@ -45,7 +48,7 @@ def main() -> None:
             errs.append(corner_error(p.H, r.keypoints0, r.keypoints1, w, h))
         a3, a5, a10 = auc(errs, (3, 5, 10))
         row = {
-            "method": method,
+            "method": label,
             "matches": float(np.mean(n_all)),
             "within_3px": float(np.mean(n_good)),
             "precision": float(np.sum(n_good) / max(np.sum(n_all), 1)),

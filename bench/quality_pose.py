@@ -22,6 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pycolmap
+from common import parse_variants
 
 from geomatch import METHODS, Matcher, MatcherConfig, read_image
 from geomatch.homography import auc
@@ -77,6 +78,11 @@ def main() -> None:
     ap.add_argument("--images", type=Path, required=True)
     ap.add_argument("--resize", type=int, default=640)
     ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument(
+        "--variants",
+        default=None,
+        help="instead of --methods: ';'-separated 'METHOD [option=value ...]', e.g. 'geo;geo theta_c=0.05'",
+    )
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
 
@@ -87,8 +93,8 @@ def main() -> None:
     pixels = {im.name: read_image(args.images / im.name) for im in regs}
     base = Matcher(MatcherConfig(resize=args.resize))
     rows = []
-    for method in args.methods.split(","):
-        m = base.derive(method=method)
+    for label, method, options in parse_variants(args.variants, args.methods):
+        m = base.derive(method=method, **options)
         errs, n, t0 = [], [], time.perf_counter()
         for a, b in pairs:
             r = m.match(pixels[a.name], pixels[b.name])
@@ -96,7 +102,7 @@ def main() -> None:
             n.append(len(r))
         a5, a10, a20 = auc(errs, (5, 10, 20))
         row = {
-            "method": method,
+            "method": label,
             "auc5": a5,
             "auc10": a10,
             "auc20": a20,

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .features.base import DenseHead, Extractor, ImageFeatures, SparseMatcher
+from .features.base import DenseHead, Extractor, ImageFeatures, SparseFeatures, SparseMatcher
 from .features.registry import build_dense_head, build_extractor, build_sparse_matcher
 from .geometry import estimate_fundamental, sampson_distance, scale_fundamental
 from .imageio import Prepared, image_key, prepare, read_image
@@ -139,6 +139,9 @@ class Matcher:
         self._dense: DenseHead | None = None
         self._cache: OrderedDict[tuple[str, str, int | None], tuple[ImageFeatures, Prepared]] = OrderedDict()
         self.extract_calls = 0
+        # anchors of recent pairs: re-matching a pair with other optimizer options (ablations,
+        # a retried task) does not run LightGlue again
+        self._anchors: OrderedDict[tuple[str, str, int | None], tuple[torch.Tensor, ...]] = OrderedDict()
 
     def derive(self, **overrides: Any) -> Matcher:
         """A matcher with other options that shares this one's networks and feature cache.
@@ -148,15 +151,17 @@ class Matcher:
         own options are unchanged.
         """
         other = Matcher(self.config, **overrides)
-        if other.device == self.device:
-            other._extractors = self._extractors
-            other._cache = self._cache
-            same_sparse = (other.config.sparse, other.config.lightglue_threshold) == (
-                self.config.sparse,
-                self.config.lightglue_threshold,
-            )
-            if same_sparse:
-                other._sparse = self._sparse
+        a, b = self.config, other.config
+        if other.device != self.device or (a.max_keypoints, a.loftr_weights) != (
+            b.max_keypoints,
+            b.loftr_weights,
+        ):
+            return other  # networks built differently: nothing to share
+        other._extractors = self._extractors
+        other._cache = self._cache
+        if (a.sparse, a.lightglue_threshold) == (b.sparse, b.lightglue_threshold):
+            other._sparse = self._sparse
+            other._anchors = self._anchors
         return other
 
     # -- networks -------------------------------------------------------------------------
@@ -215,6 +220,19 @@ class Matcher:
                 return prep
         return prepare(image, self.config.resize, self.device)
 
+    def _match_anchors(
+        self, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures
+    ) -> tuple[torch.Tensor, ...]:
+        ak = (key0, key1, self.config.resize)
+        if ak in self._anchors:
+            self._anchors.move_to_end(ak)
+            return self._anchors[ak]
+        out = self.sparse_matcher.match(sa, sb)
+        self._anchors[ak] = out
+        while len(self._anchors) > 4 * self.config.cache_images:
+            self._anchors.popitem(last=False)
+        return out
+
     # -- one pair --------------------------------------------------------------------------
     @torch.inference_mode()
     def match(self, image0: np.ndarray, image1: np.ndarray) -> MatchResult:
@@ -236,7 +254,7 @@ class Matcher:
             sa, sb = f0[cfg.sparse].sparse, f1[cfg.sparse].sparse
             assert sa is not None and sb is not None
             with timer("anchors"):
-                ia, ib, sc = self.sparse_matcher.match(sa, sb)
+                ia, ib, sc = self._match_anchors(key0, key1, sa, sb)
             anchors = (sa.keypoints[ia].float(), sb.keypoints[ib].float(), sc)
             stats["anchors"] = int(ia.numel())
 

@@ -1,0 +1,35 @@
+"""Helpers shared by the benchmark scripts (run as ``python bench/NAME.py``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from geomatch.matcher import config_from_options
+
+
+def parse_variants(variants: str | None, methods: str) -> list[tuple[str, str, dict[str, Any]]]:
+    """(label, method, Matcher.derive overrides) per table row.
+
+    ``variants`` is ';'-separated ``METHOD [option=value ...]`` with option names as accepted by
+    ``match_pair`` (``tau=50``, ``iterations=0``, ``epipolar_sigma=none`` ...); without it, one row
+    per comma-separated method.
+    """
+    if not variants:
+        return [(m, m, {}) for m in methods.split(",")]
+    out = []
+    for spec in variants.split(";"):
+        method, *kvs = spec.split()
+        options = {k: _value(v) for k, v in (kv.split("=", 1) for kv in kvs)}
+        cfg = config_from_options(method=method, **options)
+        overrides = {k: getattr(cfg, k) for k in ("geo", "refine", "final_check", "dedup_radius", "dense")}
+        out.append((spec.strip(), method, overrides))
+    return out
+
+
+def _value(v: str) -> Any:
+    for cast in (int, float):
+        try:
+            return cast(v)
+        except ValueError:
+            pass
+    return {"true": True, "false": False, "none": None}.get(v.lower(), v)
