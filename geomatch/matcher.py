@@ -258,7 +258,7 @@ class Matcher:
             anchors = (sa.keypoints[ia].float(), sb.keypoints[ib].float(), sc)
             stats["anchors"] = int(ia.numel())
 
-        F_coarse = None
+        F_prior = None
         if cfg.needs_dense:
             da, db = f0[cfg.dense].dense, f1[cfg.dense].dense
             assert da is not None and db is not None
@@ -283,11 +283,15 @@ class Matcher:
                     cm = geometry_aware_matching(
                         pair.feats_a, pair.feats_b, pair.grid_a, pair.grid_b, pair.temperature, anchors, geo
                     )
-                ci, cj, conf, F_coarse = cm.idx_a, cm.idx_b, cm.confidence, cm.fundamental
+                ci, cj, conf = cm.idx_a, cm.idx_b, cm.confidence
+                # the refinement's epipolar prior needs a precise F: the anchors' (keypoint
+                # precision), not the rounds' fits on 8-px cell centres
+                if cm.init == "anchors":
+                    F_prior = cm.initial_fundamental
                 stats.update(init=cm.init, history=cm.history, candidates=cm.candidates)
             stats["coarse_matches"] = int(ci.numel())
             with timer("refine"):
-                ref = head.refine(da, db, pair, ci, cj, F_coarse)
+                ref = head.refine(da, db, pair, ci, cj, F_prior)
             dense_a, dense_b, dense_s = ref.points_a, ref.points_b, conf.float()
         if cfg.method in ("sparse", "concat", "geo") and anchors is not None:
             parts_a.append(anchors[0])

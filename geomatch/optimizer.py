@@ -61,6 +61,9 @@ class CoarseMatches:
     init: str  # anchors | fallback | none | off
     history: list[int] = field(default_factory=list)  # mutual-NN count after each round
     candidates: int = 0
+    initial_fundamental: torch.Tensor | None = (
+        None  # F0; from keypoint-precise anchors when init == "anchors"
+    )
 
 
 @dataclass
@@ -216,9 +219,10 @@ def geometry_aware_matching(
     stats0, top = _stream_stats_topk(ds, k_line)
     initial = _mutual(stats0, opts.theta_iter)
     F, init = initial_fundamental(grid_a, grid_b, initial, anchors, opts)
+    F0 = F
     if F is None or opts.iterations <= 0:
         ia, jb, conf = _mutual(stats0, opts.theta_c)
-        return CoarseMatches(ia, jb, conf, F, init if F is None else "off", [int(initial[0].numel())])
+        return CoarseMatches(ia, jb, conf, F, init if F is None else "off", [int(initial[0].numel())], 0, F0)
 
     tau = opts.tau
     ratio = 2.0 * torch.sigmoid(torch.tensor(max(tau, 0.0))).item()
@@ -244,7 +248,7 @@ def geometry_aware_matching(
         if F_new is not None:
             F = F_new
     sel = _mutual_sparse(ci, cj, val, n, m, opts.theta_c)
-    return CoarseMatches(ci[sel], cj[sel], val[sel], F, init, history, int(ci.numel()))
+    return CoarseMatches(ci[sel], cj[sel], val[sel], F, init, history, int(ci.numel()), F0)
 
 
 def _stream_stats_topk(ds: DualSoftmax, k: int) -> tuple[_Stats, dict[str, torch.Tensor]]:
