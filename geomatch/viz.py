@@ -1,4 +1,8 @@
-"""Match pictures: both images side by side, one line per match, coloured by score."""
+"""Match pictures: both images side by side, matches as lines coloured by score.
+
+At most ``max_lines`` lines are drawn (evenly spread over the score range): a picture with
+thousands of lines shows nothing; the title gives the full count.
+"""
 
 from __future__ import annotations
 
@@ -11,7 +15,7 @@ from .matcher import MatchResult
 
 
 def draw_matches(
-    image0: np.ndarray, image1: np.ndarray, result: MatchResult, max_lines: int = 2000, height: int = 600
+    image0: np.ndarray, image1: np.ndarray, result: MatchResult, max_lines: int = 300, height: int = 600
 ) -> np.ndarray:
     """RGB uint8 canvas; scores map through the turbo colour map (blue low, red high)."""
     s0, s1 = height / image0.shape[0], height / image1.shape[0]
@@ -39,9 +43,10 @@ def draw_matches(
             cv2.line(canvas, (x0, y0), (x1, y1), color, 1, cv2.LINE_AA, shift=4)
             cv2.circle(canvas, (x0, y0), 2 * 16, color, -1, cv2.LINE_AA, shift=4)
             cv2.circle(canvas, (x1, y1), 2 * 16, color, -1, cv2.LINE_AA, shift=4)
-    label = f"{result.method}: {n} matches"
-    cv2.putText(canvas, label, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(canvas, label, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 1, cv2.LINE_AA)
+    label = f"{result.method}: {n} matches" + (f" ({max_lines} drawn)" if n > max_lines else "")
+    (tw, th), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
+    cv2.rectangle(canvas, (0, 0), (tw + 16, th + 16), (0, 0, 0), -1)
+    cv2.putText(canvas, label, (8, th + 8), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
     return canvas
 
 
