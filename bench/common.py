@@ -33,3 +33,16 @@ def _value(v: str) -> Any:
         except ValueError:
             pass
     return {"true": True, "false": False, "none": None}.get(v.lower(), v)
+
+
+def print_table(title: str, columns: list[tuple[str, str, str]], rows: list[dict[str, Any]]) -> None:
+    """A markdown table: ``columns`` are (header, row key, format spec); '%' specs print x100."""
+    print(f"\n{title}\n")
+    print("| " + " | ".join(h for h, _, _ in columns) + " |")
+    print("|---|" + "---:|" * (len(columns) - 1))
+    for r in rows:
+        cells = []
+        for _, key, spec in columns:
+            v = r[key]
+            cells.append(f"{100 * v:.1f}" if spec == "%" else format(v, spec))
+        print("| " + " | ".join(cells) + " |")

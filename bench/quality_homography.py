@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import parse_variants
+from common import parse_variants, print_table
 
 from geomatch import METHODS, Matcher, MatcherConfig
 from geomatch.homography import auc, corner_error, reprojection_errors, warped_pairs
@@ -60,14 +60,17 @@ def main() -> None:
         rows.append(row)
         print(json.dumps(row), flush=True)
 
-    print(f"\n{len(pairs)} warped photos, resize {args.resize}, strength {args.strength}\n")
-    print("| method | matches | within 3 px | precision | AUC@3px | AUC@5px | AUC@10px |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
-    for r in rows:
-        print(
-            f"| {r['method']} | {r['matches']:.0f} | {r['within_3px']:.0f} | {r['precision']:.3f} "
-            f"| {100 * r['auc3']:.1f} | {100 * r['auc5']:.1f} | {100 * r['auc10']:.1f} |"
-        )
+    title = f"{len(pairs)} warped photos, resize {args.resize}, strength {args.strength}"
+    columns = [
+        ("method", "method", "s"),
+        ("matches", "matches", ".0f"),
+        ("within 3 px", "within_3px", ".0f"),
+        ("precision", "precision", ".3f"),
+        ("AUC@3px", "auc3", "%"),
+        ("AUC@5px", "auc5", "%"),
+        ("AUC@10px", "auc10", "%"),
+    ]
+    print_table(title, columns, rows)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 

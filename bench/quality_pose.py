@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pycolmap
-from common import parse_variants
+from common import parse_variants, print_table
 
 from geomatch import METHODS, Matcher, MatcherConfig, read_image
 from geomatch.homography import auc
@@ -112,14 +112,16 @@ def main() -> None:
         }
         rows.append(row)
         print(json.dumps(row), flush=True)
-    print(f"\n{args.images.name}: {len(pairs)} pairs, resize {args.resize}, reference COLMAP SIFT\n")
-    print("| method | AUC@5 | AUC@10 | AUC@20 | median error deg | matches |")
-    print("|---|---:|---:|---:|---:|---:|")
-    for r in rows:
-        print(
-            f"| {r['method']} | {100 * r['auc5']:.1f} | {100 * r['auc10']:.1f} | {100 * r['auc20']:.1f} "
-            f"| {r['median_err']:.2f} | {r['matches']:.0f} |"
-        )
+    title = f"{args.images.name}: {len(pairs)} pairs, resize {args.resize}, reference COLMAP SIFT"
+    columns = [
+        ("method", "method", "s"),
+        ("AUC@5", "auc5", "%"),
+        ("AUC@10", "auc10", "%"),
+        ("AUC@20", "auc20", "%"),
+        ("median error deg", "median_err", ".2f"),
+        ("matches", "matches", ".0f"),
+    ]
+    print_table(title, columns, rows)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 
