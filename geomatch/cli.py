@@ -58,7 +58,11 @@ def cmd_match(args: argparse.Namespace) -> int:
         print(f"geomatch: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
     t0 = time.perf_counter()
-    result = match_pair(image0, image1, **_matching_options(args))
+    try:
+        result = match_pair(image0, image1, **_matching_options(args))
+    except ValueError as e:  # bad option values: unknown device, CUDA absent ...
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     elapsed = time.perf_counter() - t0
     args.out.parent.mkdir(parents=True, exist_ok=True)
     result.save_npz(args.out)

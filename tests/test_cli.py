@@ -71,3 +71,16 @@ def test_missing_file_exits_2(pair_files, tmp_path) -> None:
     res = run("match", str(tmp_path / "nope.jpg"), str(a), "--out", str(tmp_path / "x.npz"))
     assert res.returncode == 2
     assert res.stderr.strip() == f"geomatch: error: {tmp_path / 'nope.jpg'}: no such file"
+
+
+def test_unavailable_device_is_a_one_line_error(pair_files, tmp_path) -> None:
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    a, b, _ = pair_files
+    res = run("match", str(a), str(b), "--device", "cuda", "--out", str(tmp_path / "x.npz"))
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [
+        "geomatch: error: device 'cuda' requested but CUDA is not available here (use --device cpu)"
+    ]
