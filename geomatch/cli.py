@@ -82,6 +82,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args.out, resize=args.resize)
 
 
+def cmd_synth(args: argparse.Namespace) -> int:
+    from .synth import write_scene
+
+    t0 = time.perf_counter()
+    cams = write_scene(args.out, args.aerial, args.ground, args.seed, args.width, args.height)
+    print(
+        f"{len(cams)} images ({args.aerial} aerial, {args.ground} ground) in {time.perf_counter() - t0:.1f}s "
+        f"-> {args.out}/images, ground truth in {args.out}/gt, aerial names in {args.out}/aerial.txt"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="geomatch", description="Geometry-aware matching for SfM")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -93,6 +105,15 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--viz", type=Path, default=None, help="also draw the matches into this PNG")
     _add_matching_options(m)
     m.set_defaults(func=cmd_match)
+
+    s = sub.add_parser("synth", help="render a synthetic air-to-ground scene with ground truth")
+    s.add_argument("out", type=Path)
+    s.add_argument("--aerial", type=int, default=8)
+    s.add_argument("--ground", type=int, default=12)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--width", type=int, default=640)
+    s.add_argument("--height", type=int, default=480)
+    s.set_defaults(func=cmd_synth)
 
     d = sub.add_parser("demo", help="match package-shipped photos warped by known homographies")
     d.add_argument("--out", type=Path, default=Path("geomatch-data/demo"))

@@ -1,0 +1,296 @@
+"""Synthetic air-to-ground scenes with ground truth, rendered by ray casting.
+
+A textured ground plane (z = 0, z up, metres) carries several textured axis-aligned boxes
+("buildings"); textures are photos shipped by scikit-image, tiled so that every part of the
+scene looks different. Aerial cameras fly high (nadir and oblique); ground cameras stand 1.5-2 m
+above the ground on a ring around the scene, looking near-horizontally at its centre. Every pixel
+is a real perspective ray intersected with the plane and the boxes (nearest hit wins, i.e. a
+depth test), rendered at 2x and area-downsampled against aliasing.
+
+Output of :func:`write_scene`: ``images/`` (PNG), ``gt/`` (COLMAP text model: cameras.txt,
+images.txt, empty points3D.txt; poses are cam_from_world as COLMAP stores them) and
+``aerial.txt`` (the aerial image names, one per line).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .homography import photo
+
+TEXTURES = (
+    "astronaut",
+    "coffee",
+    "rocket",
+    "chelsea",
+    "immunohistochemistry",
+    "hubble_deep_field",
+    "retina",
+    "motorcycle_left",
+    "camera",
+    "brick",
+    "gravel",
+    "coins",
+    "clock",
+    "cell",
+)
+GROUND_TEXTURES = (
+    "hubble_deep_field",
+    "retina",
+    "immunohistochemistry",
+    "coffee",
+    "astronaut",
+    "rocket",
+    "chelsea",
+    "motorcycle_left",
+    "motorcycle_right",
+)
+SKY = np.array([200.0, 215.0, 235.0])
+
+
+@dataclass(frozen=True)
+class Camera:
+    name: str
+    K: np.ndarray  # 3x3
+    R: np.ndarray  # cam_from_world rotation (COLMAP: x right, y down, z forward)
+    t: np.ndarray  # cam_from_world translation
+    width: int
+    height: int
+    aerial: bool
+
+    @property
+    def centre(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+    def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (pixel centres at integers) and depths of world points (N, 3)."""
+        Xc = X @ self.R.T + self.t
+        uv = Xc @ self.K.T
+        return uv[:, :2] / uv[:, 2:3] - 0.5, Xc[:, 2]
+
+
+@dataclass(frozen=True)
+class Box:
+    lo: np.ndarray  # (3,) min corner
+    hi: np.ndarray  # (3,) max corner
+    textures: tuple[int, ...]  # texture index per face: -x, +x, -y, +y, -z, +z
+
+
+def look_at(centre: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    f = target - centre
+    f = f / np.linalg.norm(f)
+    up = np.array([0.0, 0.0, 1.0]) if abs(f[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    r = np.cross(f, up)
+    r /= np.linalg.norm(r)
+    d = np.cross(f, r)
+    R = np.stack([r, d, f])
+    return R, -R @ centre
+
+
+class Scene:
+    def __init__(self, seed: int, extent: float = 24.0, n_boxes: int = 7) -> None:
+        rng = np.random.default_rng(seed)
+        self.rng = rng
+        self.extent = extent
+        self.textures = [self._prep(photo(n)) for n in TEXTURES]
+        # the ground: a mosaic of photos, 4 m per photo, each tile flipped/rotated at random
+        tiles_per_side = 6
+        tile_px = 256
+        mosaic = np.zeros((tiles_per_side * tile_px, tiles_per_side * tile_px, 3), np.uint8)
+        for i in range(tiles_per_side):
+            for j in range(tiles_per_side):
+                img = photo(GROUND_TEXTURES[rng.integers(len(GROUND_TEXTURES))])
+                img = cv2.resize(img, (tile_px, tile_px), interpolation=cv2.INTER_AREA)
+                img = np.rot90(img, rng.integers(4))
+                if rng.random() < 0.5:
+                    img = img[:, ::-1]
+                mosaic[i * tile_px : (i + 1) * tile_px, j * tile_px : (j + 1) * tile_px] = img
+        self.ground = mosaic.astype(np.float32)
+        self.ground_m_per_px = 2 * extent / mosaic.shape[0]
+        self.boxes: list[Box] = []
+        while len(self.boxes) < n_boxes:
+            c = rng.uniform(-0.55 * extent, 0.55 * extent, 2)
+            size = rng.uniform(2.5, 6.0, 2)
+            height = rng.uniform(2.5, 7.0)
+            lo = np.array([c[0] - size[0] / 2, c[1] - size[1] / 2, 0.0])
+            hi = np.array([c[0] + size[0] / 2, c[1] + size[1] / 2, height])
+            if any(np.all(lo[:2] < b.hi[:2] + 1.0) and np.all(b.lo[:2] - 1.0 < hi[:2]) for b in self.boxes):
+                continue
+            faces = tuple(int(x) for x in rng.integers(len(self.textures), size=6))
+            self.boxes.append(Box(lo, hi, faces))
+
+    @staticmethod
+    def _prep(img: np.ndarray) -> np.ndarray:
+        return cv2.resize(img, (384, 384), interpolation=cv2.INTER_AREA).astype(np.float32)
+
+    # -- cameras -------------------------------------------------------------------------
+    def cameras(self, n_aerial: int, n_ground: int, width: int, height: int) -> list[Camera]:
+        rng = self.rng
+        f = 0.9 * width
+        K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+        cams = []
+        for i in range(n_aerial):
+            alt = rng.uniform(28, 40)
+            if i % 2 == 0:  # nadir, jittered
+                C = np.array([*rng.uniform(-6, 6, 2), alt])
+                target = C - np.array([*rng.uniform(-3, 3, 2), alt])
+            else:  # oblique: 35-55 degrees off nadir, looking at the scene
+                ang = rng.uniform(0, 2 * np.pi)
+                off = alt * np.tan(np.deg2rad(rng.uniform(35, 55)))
+                C = np.array([off * np.cos(ang), off * np.sin(ang), alt])
+                target = np.array([*rng.uniform(-4, 4, 2), 0.0])
+            R, t = look_at(C, target)
+            cams.append(Camera(f"aerial_{i:02d}.png", K, R, t, width, height, True))
+        for i in range(n_ground):
+            ang = 2 * np.pi * i / max(n_ground, 1) + rng.uniform(-0.15, 0.15)
+            radius = rng.uniform(0.8, 1.0) * self.extent * 0.85
+            C = np.array([radius * np.cos(ang), radius * np.sin(ang), rng.uniform(1.5, 2.0)])
+            target = np.array([*rng.uniform(-4, 4, 2), rng.uniform(0.0, 2.5)])
+            R, t = look_at(C, target)
+            cams.append(Camera(f"ground_{i:02d}.png", K, R, t, width, height, False))
+        return cams
+
+    # -- rendering -----------------------------------------------------------------------
+    def render(self, cam: Camera, supersample: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """RGB uint8 image and per-pixel depth (z in the camera, inf for sky)."""
+        s = supersample
+        w, h = cam.width * s, cam.height * s
+        u, v = np.meshgrid((np.arange(w) + 0.5) / s, (np.arange(h) + 0.5) / s)
+        pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], 1)
+        dirs = (pix @ np.linalg.inv(cam.K).T) @ cam.R  # world directions, z_cam = 1
+        origin = cam.centre
+        t_best = np.full(len(dirs), np.inf)
+        colour = np.tile(SKY, (len(dirs), 1))
+        # ground plane
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tg = -origin[2] / dirs[:, 2]
+        hit = (tg > 0) & np.isfinite(tg)
+        P = origin + tg[hit, None] * dirs[hit]
+        inside = (np.abs(P[:, 0]) < self.extent) & (np.abs(P[:, 1]) < self.extent)
+        idx = np.flatnonzero(hit)[inside]
+        t_best[idx] = tg[idx]
+        colour[idx] = self._sample(
+            self.ground,
+            (P[inside, 0] + self.extent) / self.ground_m_per_px,
+            (self.extent - P[inside, 1]) / self.ground_m_per_px,
+        )
+        for box in self.boxes:
+            self._hit_box(box, origin, dirs, t_best, colour)
+        img = colour.reshape(h, w, 3)
+        depth = t_best.reshape(h, w)  # ray parameter with z_cam = 1 is the depth
+        if s > 1:
+            img = cv2.resize(img.astype(np.float32), (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+            depth = depth[s // 2 :: s, s // 2 :: s]
+        return np.clip(img, 0, 255).astype(np.uint8), depth
+
+    def _hit_box(
+        self, box: Box, o: np.ndarray, d: np.ndarray, t_best: np.ndarray, colour: np.ndarray
+    ) -> None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d
+            t0 = (box.lo - o) * inv
+            t1 = (box.hi - o) * inv
+        tmin = np.minimum(t0, t1)
+        tmax = np.maximum(t0, t1)
+        t_enter = np.nanmax(tmin, axis=1)
+        t_exit = np.nanmin(tmax, axis=1)
+        hit = (t_enter <= t_exit) & (t_enter > 0) & (t_enter < t_best)
+        if not hit.any():
+            return
+        idx = np.flatnonzero(hit)
+        axis = np.nanargmax(tmin[idx], axis=1)
+        P = o + t_enter[idx, None] * d[idx]
+        t_best[idx] = t_enter[idx]
+        size = box.hi - box.lo
+        for a in range(3):
+            sel = axis == a
+            if not sel.any():
+                continue
+            positive = d[idx[sel], a] < 0  # ray travelling towards -a hits the +a face
+            u_axis, v_axis = [(1, 2), (0, 2), (0, 1)][a]
+            for sign in (False, True):
+                m = positive == sign
+                if not m.any():
+                    continue
+                face = 2 * a + int(sign)
+                tex = self.textures[box.textures[face]]
+                q = P[sel][m]
+                # 1 texture image spans the face's longer side
+                span = max(size[u_axis], size[v_axis])
+                uu = (q[:, u_axis] - box.lo[u_axis]) / span * (tex.shape[1] - 1)
+                vv = (box.hi[v_axis] - q[:, v_axis]) / span * (tex.shape[0] - 1)
+                colour[idx[np.flatnonzero(sel)[m]]] = self._sample(tex, uu, vv)
+
+    @staticmethod
+    def _sample(tex: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Bilinear texture lookups; cv2.remap wants a 2-D map under 32767 a side."""
+        n = x.size
+        cols = 4096
+        rows = -(-n // cols)
+        mx = np.zeros(rows * cols, np.float32)
+        my = np.zeros(rows * cols, np.float32)
+        mx[:n], my[:n] = x, y
+        out = cv2.remap(
+            tex,
+            mx.reshape(rows, cols),
+            my.reshape(rows, cols),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REFLECT,
+        )
+        return out.reshape(-1, 3)[:n]
+
+
+def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
+    """Hamilton quaternion (w, x, y, z), COLMAP's convention."""
+    K = (
+        np.array(
+            [
+                [R[0, 0] - R[1, 1] - R[2, 2], 0, 0, 0],
+                [R[1, 0] + R[0, 1], R[1, 1] - R[0, 0] - R[2, 2], 0, 0],
+                [R[2, 0] + R[0, 2], R[2, 1] + R[1, 2], R[2, 2] - R[0, 0] - R[1, 1], 0],
+                [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], R[0, 0] + R[1, 1] + R[2, 2]],
+            ]
+        )
+        / 3.0
+    )
+    vals, vecs = np.linalg.eigh(K)
+    q = vecs[[3, 0, 1, 2], np.argmax(vals)]
+    return q if q[0] >= 0 else -q
+
+
+def write_gt(cams: list[Camera], gt: Path) -> None:
+    gt.mkdir(parents=True, exist_ok=True)
+    with open(gt / "cameras.txt", "w") as f:
+        f.write("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
+        for i, c in enumerate(cams, 1):
+            fx, fy, cx, cy = c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]
+            f.write(f"{i} PINHOLE {c.width} {c.height} {fx:.10g} {fy:.10g} {cx:.10g} {cy:.10g}\n")
+    with open(gt / "images.txt", "w") as f:
+        f.write(
+            "# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n# POINTS2D[] as (X, Y, POINT3D_ID)\n"
+        )
+        for i, c in enumerate(cams, 1):
+            q = rotmat_to_qvec(c.R)
+            vals = " ".join(f"{v:.12g}" for v in (*q, *c.t))
+            f.write(f"{i} {vals} {i} {c.name}\n\n")
+    (gt / "points3D.txt").write_text("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n")
+
+
+def write_scene(
+    out: str | Path, n_aerial: int = 8, n_ground: int = 12, seed: int = 0, width: int = 640, height: int = 480
+) -> list[Camera]:
+    """Render a scene into ``out`` (images/, gt/, aerial.txt) and return its cameras."""
+    out = Path(out)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    scene = Scene(seed)
+    cams = scene.cameras(n_aerial, n_ground, width, height)
+    for c in cams:
+        img, _ = scene.render(c)
+        cv2.imwrite(str(out / "images" / c.name), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    write_gt(cams, out / "gt")
+    (out / "aerial.txt").write_text("".join(f"{c.name}\n" for c in cams if c.aerial))
+    return cams
