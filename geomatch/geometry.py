@@ -34,10 +34,10 @@ def sampson_distance(fundamental: torch.Tensor, pa: torch.Tensor, pb: torch.Tens
 
 
 class SampsonGrid:
-    """Sampson distance of every pair between two point sets, computed block by block.
+    """Sampson distance between any point of A and any point of B, from per-point terms.
 
-    The numerator is a rank-3 product and the denominator an outer sum, so a block of the
-    N x M matrix costs one small matmul and a few element-wise operations.
+    The epipolar lines and the denominators are computed once per point, so evaluating many
+    (i, j) candidate pairs costs a few element-wise operations each.
     """
 
     def __init__(self, fundamental: torch.Tensor, pa: torch.Tensor, pb: torch.Tensor) -> None:
@@ -47,10 +47,6 @@ class SampsonGrid:
         Ftxb = self.xb @ F  # (M, 3)
         self.den_a = self.Fxa[:, 0] ** 2 + self.Fxa[:, 1] ** 2
         self.den_b = Ftxb[:, 0] ** 2 + Ftxb[:, 1] ** 2
-
-    def block(self, rows: slice) -> torch.Tensor:
-        num = (self.Fxa[rows] @ self.xb.T) ** 2
-        return num / (self.den_a[rows, None] + self.den_b[None, :]).clamp_min(1e-12)
 
     def pairs(self, ia: torch.Tensor, jb: torch.Tensor) -> torch.Tensor:
         num = (self.Fxa[ia] * self.xb[jb]).sum(-1) ** 2

@@ -28,7 +28,7 @@ from .features.base import DenseHead, Extractor, ImageFeatures, SparseFeatures, 
 from .features.registry import build_dense_head, build_extractor, build_sparse_matcher
 from .geometry import estimate_fundamental, sampson_distance, scale_fundamental
 from .imageio import Prepared, image_key, prepare, read_image
-from .optimizer import GeoOptions, dense_mutual_nn, geometry_aware_matching
+from .optimizer import GeoOptions, dense_mutual_nn, first_unique, geometry_aware_matching
 from .refine import RefineOptions
 
 log = logging.getLogger(__name__)
@@ -350,11 +350,7 @@ def _merge(
     keep = torch.arange(pa.shape[0], device=pa.device)
     for pts in (pa, pb):
         q = torch.floor(pts[keep] / radius).long()
-        key = q[:, 0] * 1_000_003 + q[:, 1]
-        _, inverse = torch.unique(key, return_inverse=True)
-        pos = torch.arange(key.numel(), device=key.device)
-        first = torch.full((int(inverse.max()) + 1,), key.numel(), device=key.device, dtype=torch.long)
-        first = first.scatter_reduce(0, inverse, pos, "amin")
+        _, first = first_unique(q[:, 0] * 1_000_003 + q[:, 1])
         keep = keep[torch.sort(first).values]
     return pa[keep], pb[keep], ps[keep]
 

@@ -108,28 +108,6 @@ class DualSoftmax:
         s = self._full.clone() if self._full is not None else self.similarity(rows)
         return s.mul_(2).sub_(self.row_lse[rows, None]).sub_(self.col_lse[None, :]).exp_()
 
-    def pairs(self, ia: torch.Tensor, jb: torch.Tensor) -> torch.Tensor:
-        s = (self.fa[ia] * self.fb[jb]).sum(-1) * self.inv_t
-        return torch.exp(2 * s - self.row_lse[ia] - self.col_lse[jb])
-
-
-def _stream_stats(ds: DualSoftmax) -> _Stats:
-    dev = ds.fa.device
-    row_max = torch.empty(ds.n, device=dev)
-    row_arg = torch.empty(ds.n, dtype=torch.long, device=dev)
-    col_max = torch.full((ds.m,), -math.inf, device=dev)
-    col_arg = torch.zeros(ds.m, dtype=torch.long, device=dev)
-    minimum = math.inf
-    for rows in ds.blocks():
-        v = ds.block(rows)
-        row_max[rows], row_arg[rows] = v.max(dim=1)
-        bmax, barg = v.max(dim=0)
-        better = bmax > col_max
-        col_max = torch.where(better, bmax, col_max)
-        col_arg = torch.where(better, barg + rows.start, col_arg)
-        minimum = min(minimum, float(v.min()))
-    return _Stats(row_max, row_arg, col_max, col_arg, minimum)
-
 
 def _mutual(stats: _Stats, threshold: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     ia = torch.arange(stats.row_max.shape[0], device=stats.row_max.device)
@@ -147,14 +125,15 @@ def _mutual_sparse(
     sel = keep.nonzero().squeeze(1)
     # exact ties would give one cell two partners: keep the first per row and per column
     if sel.numel():
-        _, first_row = _first_unique(ci[sel])
+        _, first_row = first_unique(ci[sel])
         sel = sel[first_row]
-        _, first_col = _first_unique(cj[sel])
+        _, first_col = first_unique(cj[sel])
         sel = sel[first_col]
     return sel
 
 
-def _first_unique(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def first_unique(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The unique values of ``x`` and, for each, the position of its first occurrence."""
     uniq, inverse = torch.unique(x, return_inverse=True)
     pos = torch.arange(x.numel(), device=x.device)
     first = torch.full((uniq.numel(),), x.numel(), dtype=torch.long, device=x.device)
@@ -167,7 +146,7 @@ def dense_mutual_nn(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Plain detector-free coarse matching: mutual nearest neighbours of P_c above ``threshold``."""
     ds = DualSoftmax(fa, fb, temperature, budget_mb)
-    return _mutual(_stream_stats(ds), threshold)
+    return _mutual(_stream_stats_topk(ds, 1)[0], threshold)
 
 
 def geometric_confidence(d: torch.Tensor, tau: float) -> torch.Tensor:
@@ -293,5 +272,5 @@ def _candidates(
     cj = torch.arange(cv.shape[1], device=cv.device)[None, :].expand_as(cidx)[ckeep]
     keys = torch.cat([ri * m + rj[rkeep], cidx[ckeep] * m + cj])
     values = torch.cat([rv[rkeep], cv[ckeep]])
-    keys, first = _first_unique(keys)
+    keys, first = first_unique(keys)
     return keys // m, keys % m, values[first]
