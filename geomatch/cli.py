@@ -9,7 +9,10 @@ from pathlib import Path
 
 from .imageio import ImageReadError, read_image
 from .matcher import DENSE_BACKBONES, METHODS, SPARSE_BACKBONES
+from .pipeline import RunOptions
 from .weights import WeightsNotFoundError
+
+DEMO_AERIAL, DEMO_GROUND = 3, 6
 
 EXIT_BAD_INPUT = 2
 
@@ -76,10 +79,74 @@ def cmd_match(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_options(args: argparse.Namespace) -> RunOptions:
+    from .pairs import read_pairs_file
+
+    opts = _matching_options(args)
+    matcher = {k: v for k, v in opts.items() if k not in ("method", "resize", "device")}
+    pairs_list = None
+    pairs = args.pairs
+    if Path(pairs).is_file():
+        pairs_list, pairs = read_pairs_file(Path(pairs).read_text()), "exhaustive"
+    aerial_names = None
+    if args.aerial_list is not None:
+        aerial_names = [ln.strip() for ln in args.aerial_list.read_text().splitlines() if ln.strip()]
+    return RunOptions(
+        method=args.method,
+        resize=args.resize or None,
+        device=args.device,
+        pairs=pairs,
+        pairs_list=pairs_list,
+        aerial_glob=args.aerial,
+        aerial_names=aerial_names,
+        tiling=args.tiling,
+        snap_radius=args.snap_radius,
+        mapper=args.mapper,
+        share_camera=False if args.camera == "per-image" else None,
+        matcher=matcher,
+    )
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .pipeline import run
+
+    try:
+        summary = run(args.images, args.out, _run_options(args))
+    except (ValueError, OSError) as e:  # PipelineError, PairSpecError, ImageReadError, bad device
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(format_summary(summary))
+    print(f"model: {args.out}/sparse/0 (binary + text), {args.out}/points.ply, {args.out}/summary.json")
+    return 0
+
+
+def format_summary(s: dict[str, object]) -> str:
+    t = s.get("timings", {})
+    total = f" in {t['total']:.0f}s" if isinstance(t, dict) and "total" in t else ""
+    return (
+        f"registered {s['registered']}/{s['images']} images, {s['points3D']} 3D points, "
+        f"mean track length {float(s['mean_track_length']):.2f}, "  # type: ignore[arg-type]
+        f"mean reprojection error {float(s['mean_reprojection_error']):.3f} px{total}"  # type: ignore[arg-type]
+    )
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate_run
+
+    try:
+        result = evaluate_run(args.out, args.gt)
+    except (ValueError, OSError) as e:
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(result.table())
+    print(f"-> {args.out}/eval.json")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
-    return run_demo(args.out, resize=args.resize)
+    return run_demo(args.out, args.aerial, args.ground, args.seed, args.method, args.resize)
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -115,8 +182,43 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--height", type=int, default=480)
     s.set_defaults(func=cmd_synth)
 
-    d = sub.add_parser("demo", help="match package-shipped photos warped by known homographies")
+    r = sub.add_parser("run", help="images to a sparse COLMAP model, in one process")
+    r.add_argument("images", type=Path, help="folder of images (searched recursively)")
+    r.add_argument("--out", type=Path, required=True)
+    air = r.add_mutually_exclusive_group()
+    air.add_argument("--aerial", default=None, metavar="GLOB", help="aerial images by name pattern")
+    air.add_argument(
+        "--aerial-list", type=Path, default=None, metavar="FILE", help="aerial names, one per line"
+    )
+    r.add_argument(
+        "--pairs",
+        default="exhaustive",
+        help="exhaustive | sequential:K | retrieval:K | a file of pairs (two names per line)",
+    )
+    r.add_argument(
+        "--tiling", choices=("auto", "on", "off"), default="auto", help="tile aerial x ground pairs"
+    )
+    r.add_argument(
+        "--snap-radius", type=float, default=1.5, help="keypoint consolidation radius, network px (0: off)"
+    )
+    r.add_argument("--mapper", choices=("incremental", "global"), default="incremental")
+    r.add_argument(
+        "--camera", choices=("auto", "per-image"), default="auto", help="auto: one camera per EXIF device"
+    )
+    _add_matching_options(r)
+    r.set_defaults(func=cmd_run)
+
+    e = sub.add_parser("eval", help="compare a run's model with ground truth")
+    e.add_argument("out", type=Path, help="the run's output folder")
+    e.add_argument("--gt", type=Path, required=True, help="ground-truth COLMAP model folder")
+    e.set_defaults(func=cmd_eval)
+
+    d = sub.add_parser("demo", help="synthetic air-to-ground scene -> run -> eval, in one command")
     d.add_argument("--out", type=Path, default=Path("geomatch-data/demo"))
+    d.add_argument("--aerial", type=int, default=DEMO_AERIAL)
+    d.add_argument("--ground", type=int, default=DEMO_GROUND)
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--method", choices=METHODS, default="geo")
     d.add_argument("--resize", type=int, default=640)
     d.set_defaults(func=cmd_demo)
     return parser

@@ -1,7 +1,5 @@
-"""``geomatch demo``: the pair matcher on photos shipped by scikit-image, warped by known homographies.
-
-Needs nothing but the installed package: it shows every method side by side with the ground
-truth, and writes the match pictures and the ``.npz`` files a user would get from ``geomatch match``.
+"""``geomatch demo``: the README's main job. Renders a synthetic air-to-ground scene with ground
+truth, runs the whole pipeline on it and evaluates the model, with nothing but the installed package.
 """
 
 from __future__ import annotations
@@ -9,44 +7,31 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
-
-from .homography import auc, corner_error, reprojection_errors, warped_pair
-from .matcher import METHODS, Matcher, MatcherConfig
-from .viz import save_matches
-
-DEMO_PAIRS = (("astronaut", 1), ("coffee", 2), ("rocket", 3))
+from .evaluate import evaluate_run
+from .pipeline import RunOptions, run
+from .synth import write_scene
 
 
-def run_demo(out: Path, resize: int = 640) -> int:
-    out.mkdir(parents=True, exist_ok=True)
-    pairs = [warped_pair(name, seed, strength=0.2) for name, seed in DEMO_PAIRS]
-    base = Matcher(MatcherConfig(resize=resize))
-    print(
-        f"geomatch demo: {len(pairs)} photo pairs warped by random homographies, resize {resize}, "
-        f"device {base.device}"
+def run_demo(
+    out: Path, n_aerial: int = 3, n_ground: int = 6, seed: int = 0, method: str = "geo", resize: int = 640
+) -> int:
+    t0 = time.perf_counter()
+    scene = out / "scene"
+    print(f"geomatch demo: rendering {n_aerial} aerial + {n_ground} ground images (seed {seed}) -> {scene}")
+    write_scene(scene, n_aerial, n_ground, seed)
+    aerial = [n for n in (scene / "aerial.txt").read_text().split() if n]
+    print(f"running the pipeline ({method}, aerial x ground pairs tiled) -> {out / 'run'}")
+    summary = run(
+        scene / "images", out / "run", RunOptions(method=method, resize=resize, aerial_names=aerial)
     )
-    print("| method | matches | within 3 px | precision | AUC@5px | s/pair |")
-    print("|---|---:|---:|---:|---:|---:|")
-    for method in METHODS:
-        matcher = base.derive(method=method)
-        n, good, errs, secs = 0, 0, [], 0.0
-        for p in pairs:
-            t0 = time.perf_counter()
-            r = matcher.match(p.image0, p.image1)
-            secs += time.perf_counter() - t0
-            e = reprojection_errors(p.H, r.keypoints0, r.keypoints1)
-            n += len(r)
-            good += int((e < 3).sum())
-            errs.append(corner_error(p.H, r.keypoints0, r.keypoints1, p.image0.shape[1], p.image0.shape[0]))
-            stem = f"{p.name.replace('#', '_')}_{method}"
-            r.save_npz(out / f"{stem}.npz")
-            save_matches(out / f"{stem}.png", p.image0, p.image1, r)
-        prec = good / max(n, 1)
-        print(
-            f"| {method} | {n / len(pairs):.0f} | {good / len(pairs):.0f} | {prec:.3f} "
-            f"| {100 * auc(np.array(errs), (5,))[0]:.1f} | {secs / len(pairs):.2f} |",
-            flush=True,
-        )
-    print(f"match pictures and .npz files: {out}/ (the first method's times include feature extraction)")
-    return 0
+    print("evaluating against the ground truth poses")
+    result = evaluate_run(out / "run", scene / "gt")
+    print(result.table())
+    t = summary["timings"]
+    res = out / "run"
+    print(
+        f"demo done in {time.perf_counter() - t0:.0f}s (matching {t['matching']:.0f}s over "
+        f"{summary['pairs']} pairs, {summary['tiled_pairs']} tiled; mapping {t['mapping']:.1f}s). "
+        f"Model: {res / 'sparse' / '0'}, {res / 'points.ply'}; database: {res / 'database.db'}"
+    )
+    return 0 if summary["registered"] == summary["images"] else 1

@@ -116,3 +116,16 @@ def scale_fundamental(fundamental: np.ndarray, to_a: np.ndarray, to_b: np.ndarra
     """F in new frames, given 3x3 maps ``to_a``/``to_b`` from the new frames into F's frames."""
     F = to_b.T @ fundamental @ to_a
     return F / np.linalg.norm(F)
+
+
+def fundamental_from_matches(pa: np.ndarray, pb: np.ndarray, threshold: float = 1.0) -> np.ndarray:
+    """MAGSAC++ F of numpy matches (x_b^T F x_a = 0); zeros when fewer than 8 matches."""
+    if len(pa) < MIN_POINTS:
+        return np.zeros((3, 3))
+    F, _ = estimate_fundamental(
+        torch.from_numpy(np.asarray(pa, np.float64)),
+        torch.from_numpy(np.asarray(pb, np.float64)),
+        "magsac",
+        threshold,
+    )
+    return np.zeros((3, 3)) if F is None else F.double().numpy()

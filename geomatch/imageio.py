@@ -57,7 +57,7 @@ def read_image(source: str | os.PathLike[str] | bytes) -> np.ndarray:
         Image.DecompressionBombWarning,
     ) as e:
         raise ImageReadError(f"{name}: not a readable image ({e})") from None
-    arr = np.asarray(rgb, dtype=np.uint8)
+    arr = np.array(rgb, dtype=np.uint8)  # writable: torch.from_numpy warns on read-only
     if arr.shape[0] < 16 or arr.shape[1] < 16:
         raise ImageReadError(f"{name}: {arr.shape[1]}x{arr.shape[0]} is too small to match (min 16x16)")
     return arr

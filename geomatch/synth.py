@@ -19,8 +19,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from PIL import Image
+from PIL.PngImagePlugin import PngInfo
 
 from .homography import photo
+from .metadata import dji_xmp, exif_for
 
 TEXTURES = (
     "astronaut",
@@ -134,13 +137,13 @@ class Scene:
         K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
         cams = []
         for i in range(n_aerial):
-            alt = rng.uniform(28, 40)
-            if i % 2 == 0:  # nadir, jittered
+            alt = rng.uniform(20, 30)
+            if i % 3 == 0:  # nadir, jittered
                 C = np.array([*rng.uniform(-6, 6, 2), alt])
                 target = C - np.array([*rng.uniform(-3, 3, 2), alt])
-            else:  # oblique: 35-55 degrees off nadir, looking at the scene
+            else:  # oblique: 45-60 degrees off nadir, looking at the scene
                 ang = rng.uniform(0, 2 * np.pi)
-                off = alt * np.tan(np.deg2rad(rng.uniform(35, 55)))
+                off = alt * np.tan(np.deg2rad(rng.uniform(45, 60)))
                 C = np.array([off * np.cos(ang), off * np.sin(ang), alt])
                 target = np.array([*rng.uniform(-4, 4, 2), 0.0])
             R, t = look_at(C, target)
@@ -280,6 +283,18 @@ def write_gt(cams: list[Camera], gt: Path) -> None:
     (gt / "points3D.txt").write_text("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n")
 
 
+def save_png(path: Path, image: np.ndarray, cam: Camera) -> None:
+    """PNG with the EXIF a camera would write (exact focal length, one device per capture type)
+    and, for aerial images, the DJI XMP a drone would (relative altitude, gimbal pitch)."""
+    info = PngInfo()
+    if cam.aerial:
+        pitch = float(np.degrees(np.arcsin(np.clip(cam.R[2, 2], -1, 1))))
+        info.add_itxt("XML:com.adobe.xmp", dji_xmp(float(cam.centre[2]), pitch))
+    model = "synth-drone" if cam.aerial else "synth-handheld"
+    exif = exif_for("geomatch", model, float(cam.K[0, 0]) / 100.0, 100.0)
+    Image.fromarray(image).save(path, exif=exif.tobytes(), pnginfo=info)
+
+
 def write_scene(
     out: str | Path, n_aerial: int = 8, n_ground: int = 12, seed: int = 0, width: int = 640, height: int = 480
 ) -> list[Camera]:
@@ -290,7 +305,7 @@ def write_scene(
     cams = scene.cameras(n_aerial, n_ground, width, height)
     for c in cams:
         img, _ = scene.render(c)
-        cv2.imwrite(str(out / "images" / c.name), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        save_png(out / "images" / c.name, img, c)
     write_gt(cams, out / "gt")
     (out / "aerial.txt").write_text("".join(f"{c.name}\n" for c in cams if c.aerial))
     return cams

@@ -1,0 +1,237 @@
+"""The COLMAP database writer: the only code that writes ``database.db``.
+
+Layout is COLMAP's own (pycolmap.Database), so COLMAP's GUI and command line read it: one camera
+per device (EXIF focal length as a prior, else COLMAP's 1.2 x max(width, height) guess), a
+trivial rig and a frame per image (what COLMAP's own importer writes since rigs exist),
+keypoints in COLMAP's convention (pixel centre at +0.5), raw matches and the verified two-view
+geometry of each pair.
+
+A pair is written in one transaction: both images' keypoint lists (append-only, see tracks.py),
+the matches and the two-view geometry. A pair already present is left untouched, so replaying
+a write after a crash is harmless.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from contextlib import closing
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from .metadata import ImageMeta
+from .tracks import snap, unique_matches
+
+CAMERA_MODEL = "SIMPLE_RADIAL"
+_DEVICES_TABLE = (
+    "CREATE TABLE IF NOT EXISTS geomatch_devices (device TEXT PRIMARY KEY, camera_id INTEGER NOT NULL)"
+)
+COLMAP_OFFSET = 0.5  # COLMAP pixel centres sit at +0.5 of ours (OpenCV's)
+
+
+@dataclass(frozen=True)
+class PairWrite:
+    name0: str
+    name1: str
+    matches: int  # written, after snapping and de-duplication
+    inliers: int  # of the verified two-view geometry
+    config: str  # COLMAP's two-view configuration name
+    skipped: bool = False  # already in the database: nothing written
+
+
+def default_focal(width: int, height: int) -> float:
+    return 1.2 * max(width, height)  # COLMAP's guess without EXIF
+
+
+class ColmapDatabase:
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.db = pycolmap.Database.open(str(self.path))
+        self._devices: dict[tuple[object, ...], int] = {}
+
+    def close(self) -> None:
+        self.db.close()
+
+    def __enter__(self) -> ColmapDatabase:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- cameras and images -------------------------------------------------------------------
+    def _camera_for(self, meta: ImageMeta, shared: bool) -> int:
+        """A device's images share one camera; without a device in EXIF each image gets its own
+        (COLMAP's default), since unrelated photos of one size need not share intrinsics."""
+        focal = meta.focal_px or default_focal(meta.width, meta.height)
+        if shared:
+            key: tuple[object, ...] = meta.device
+            if key in self._devices:
+                return self._devices[key]
+            known = self._stored_devices().get(repr(key))  # a camera written by an earlier run
+            if known is not None and self.db.exists_camera(known):
+                self._devices[key] = known
+                return known
+        cam = pycolmap.Camera.create_from_model_name(0, CAMERA_MODEL, focal, meta.width, meta.height)
+        cam.has_prior_focal_length = meta.focal_px is not None
+        with pycolmap.DatabaseTransaction(self.db):
+            cam_id = self.db.write_camera(cam)
+            cam.camera_id = cam_id
+            rig = pycolmap.Rig()
+            rig.add_ref_sensor(cam.sensor_id)
+            self.db.write_rig(rig)
+        if shared:
+            self._devices[meta.device] = cam_id
+            with closing(sqlite3.connect(self.path)) as con, con:
+                con.execute(_DEVICES_TABLE)
+                con.execute(
+                    "INSERT OR REPLACE INTO geomatch_devices VALUES (?, ?)", (repr(meta.device), cam_id)
+                )
+        return cam_id
+
+    def _stored_devices(self) -> dict[str, int]:
+        """Device -> camera id, kept in a table of our own (COLMAP ignores tables it does not know)
+        so that images added by a later run join their device's camera."""
+        with closing(sqlite3.connect(self.path)) as con, con:
+            con.execute(_DEVICES_TABLE)
+            return {d: int(c) for d, c in con.execute("SELECT device, camera_id FROM geomatch_devices")}
+
+    def add_image(self, name: str, meta: ImageMeta, share_camera: bool | None = None) -> int:
+        """Idempotent by name. ``share_camera`` None: share when EXIF names the device."""
+        if self.db.exists_image(name):
+            return int(self.db.read_image_with_name(name).image_id)
+        shared = meta.has_device if share_camera is None else share_camera
+        cam_id = self._camera_for(meta, shared)
+        rig_id = next(r.rig_id for r in self.db.read_all_rigs() if r.ref_sensor_id.id == cam_id)
+        with pycolmap.DatabaseTransaction(self.db):
+            image_id = self.db.write_image(pycolmap.Image(name=name, camera_id=cam_id))
+            image = self.db.read_image(image_id)
+            frame = pycolmap.Frame()
+            frame.rig_id = rig_id
+            frame.add_data_id(image.data_id)
+            self.db.write_frame(frame)
+        return int(image_id)
+
+    def image_ids(self) -> dict[str, int]:
+        return {im.name: int(im.image_id) for im in self.db.read_all_images()}
+
+    def camera(self, image_id: int) -> pycolmap.Camera:
+        return self.db.read_camera(self.db.read_image(image_id).camera_id)
+
+    def keypoints(self, image_id: int) -> np.ndarray:
+        """(N, 2) keypoints in OUR convention (pixel centres at integers)."""
+        if not self.db.exists_keypoints(image_id):
+            return np.zeros((0, 2), np.float32)
+        return self.db.read_keypoints(image_id)[:, :2] - COLMAP_OFFSET
+
+    # -- pairs -------------------------------------------------------------------------------
+    def has_pair(self, image_id0: int, image_id1: int) -> bool:
+        return bool(self.db.exists_matches(image_id0, image_id1))
+
+    def matched_pairs(self) -> set[tuple[int, int]]:
+        """Image id pairs (smaller first) that already have matches."""
+        out: set[tuple[int, int]] = set()
+        for pair_id in self.db.read_all_matches()[0]:
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            out.add((min(int(a), int(b)), max(int(a), int(b))))
+        return out
+
+    def write_pair(
+        self,
+        image_id0: int,
+        image_id1: int,
+        keypoints0: np.ndarray,
+        keypoints1: np.ndarray,
+        scores: np.ndarray,
+        radius0: float,
+        radius1: float,
+        options: pycolmap.TwoViewGeometryOptions | None = None,
+    ) -> PairWrite:
+        """Snap, de-duplicate, verify and write one pair, all or nothing; a no-op when present.
+
+        Points are in our convention (pixel centres at integers), best first is not required:
+        they are ordered by score here so the best match of a snapped cluster is the one kept.
+        """
+        name0 = self.db.read_image(image_id0).name
+        name1 = self.db.read_image(image_id1).name
+        if self.has_pair(image_id0, image_id1):
+            return PairWrite(name0, name1, 0, 0, "", skipped=True)
+        if image_id0 > image_id1:  # COLMAP stores pairs with the smaller id first
+            image_id0, image_id1 = image_id1, image_id0
+            keypoints0, keypoints1 = keypoints1, keypoints0
+            radius0, radius1 = radius1, radius0
+            name0, name1 = name1, name0
+        order = np.argsort(-np.asarray(scores), kind="stable")
+        p0 = np.asarray(keypoints0, np.float32)[order] + COLMAP_OFFSET
+        p1 = np.asarray(keypoints1, np.float32)[order] + COLMAP_OFFSET
+        kp0 = self.keypoints(image_id0) + COLMAP_OFFSET
+        kp1 = self.keypoints(image_id1) + COLMAP_OFFSET
+        i0, kp0_new = snap(kp0, p0, radius0)
+        i1, kp1_new = snap(kp1, p1, radius1)
+        keep = unique_matches(i0, i1)
+        matches = np.stack([i0[keep], i1[keep]], 1).astype(np.uint32)
+        # the new keypoints no match of this pair uses are dropped again (they would be orphans)
+        kp0_new, matches[:, 0] = _drop_unused(kp0_new, len(kp0), matches[:, 0])
+        kp1_new, matches[:, 1] = _drop_unused(kp1_new, len(kp1), matches[:, 1])
+        tvg = self._verify(image_id0, image_id1, kp0_new, kp1_new, matches, options)
+        with pycolmap.DatabaseTransaction(self.db):
+            for image_id, old, new in ((image_id0, kp0, kp0_new), (image_id1, kp1, kp1_new)):
+                if len(new) == len(old) and self.db.exists_keypoints(image_id):
+                    continue
+                if self.db.exists_keypoints(image_id):
+                    self.db.update_keypoints(image_id, new.astype(np.float32))
+                else:
+                    self.db.write_keypoints(image_id, new.astype(np.float32))
+            self.db.write_matches(image_id0, image_id1, matches)
+            self.db.write_two_view_geometry(image_id0, image_id1, tvg)
+        return PairWrite(name0, name1, len(matches), len(tvg.inlier_matches), _config_name(tvg.config))
+
+    def _verify(
+        self,
+        image_id0: int,
+        image_id1: int,
+        kp0: np.ndarray,
+        kp1: np.ndarray,
+        matches: np.ndarray,
+        options: pycolmap.TwoViewGeometryOptions | None,
+    ) -> pycolmap.TwoViewGeometry:
+        if len(matches) < 8:
+            tvg = pycolmap.TwoViewGeometry()
+            tvg.config = pycolmap.TwoViewGeometryConfiguration.DEGENERATE
+            return tvg
+        return pycolmap.estimate_two_view_geometry(
+            self.camera(image_id0),
+            kp0.astype(np.float64),
+            self.camera(image_id1),
+            kp1.astype(np.float64),
+            matches,
+            options or pycolmap.TwoViewGeometryOptions(),
+        )
+
+    def stats(self) -> dict[str, int]:
+        return {
+            "images": int(self.db.num_images()),
+            "cameras": int(self.db.num_cameras()),
+            "keypoints": int(self.db.num_keypoints()),
+            "matched_pairs": int(self.db.num_matched_image_pairs()),
+            "verified_pairs": int(self.db.num_verified_image_pairs()),
+            "matches": int(self.db.num_matches()),
+            "inlier_matches": int(self.db.num_inlier_matches()),
+        }
+
+
+def _drop_unused(points: np.ndarray, n_old: int, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Keep the old keypoints and only the new ones ``idx`` uses; renumber ``idx`` accordingly."""
+    used_new = np.unique(idx[idx >= n_old])
+    remap = np.arange(len(points))
+    remap[used_new] = n_old + np.arange(len(used_new))
+    return np.concatenate([points[:n_old], points[used_new]]), remap[idx].astype(np.uint32)
+
+
+def _config_name(config: object) -> str:
+    try:
+        return pycolmap.TwoViewGeometryConfiguration(int(config)).name  # type: ignore[call-overload]
+    except (TypeError, ValueError):
+        return str(config)

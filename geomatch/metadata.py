@@ -1,0 +1,122 @@
+"""What an image file says about its camera: EXIF focal length and device, DJI XMP altitude and pitch.
+
+The focal length becomes COLMAP's prior (``has_prior_focal_length``); make/model/size group
+images into one shared camera per device; relative altitude or gimbal pitch says whether an
+image is aerial, which decides tiling.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from PIL import Image
+
+AERIAL_MIN_ALTITUDE_M = 10.0  # relative altitude (above take-off) from which a photo is aerial
+AERIAL_MAX_PITCH_DEG = -30.0  # gimbal pitch at or below this (looking down) marks a photo aerial
+
+# EXIF tags (ExifIFD unless noted)
+_MAKE, _MODEL = 0x010F, 0x0110  # IFD0
+_EXIF_IFD = 0x8769
+_FOCAL, _FOCAL35 = 0x920A, 0xA405
+_FP_XRES, _FP_UNIT = 0xA20E, 0xA210
+_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # FocalPlaneResolutionUnit -> mm per unit
+
+
+@dataclass(frozen=True)
+class ImageMeta:
+    width: int
+    height: int
+    make: str = ""
+    model: str = ""
+    focal_px: float | None = None  # from EXIF, None when the file does not say
+    relative_altitude_m: float | None = None
+    gimbal_pitch_deg: float | None = None
+
+    @property
+    def device(self) -> tuple[str, str, int, int, float | None]:
+        """Images with the same device key share one COLMAP camera (and its intrinsics)."""
+        return (self.make, self.model, self.width, self.height, self.focal_px)
+
+    @property
+    def has_device(self) -> bool:
+        return bool(self.make or self.model) and self.focal_px is not None
+
+    @property
+    def aerial_hint(self) -> bool | None:
+        """True/False when the metadata decides it, None when it is silent."""
+        if self.relative_altitude_m is not None:
+            return self.relative_altitude_m >= AERIAL_MIN_ALTITUDE_M
+        if self.gimbal_pitch_deg is not None:
+            return self.gimbal_pitch_deg <= AERIAL_MAX_PITCH_DEG
+        return None
+
+
+def _xmp_value(xmp: str, key: str) -> float | None:
+    # attribute form (drone-dji:Key="1.0") and element form (<drone-dji:Key>1.0</drone-dji:Key>)
+    m = re.search(rf'{key}\s*=\s*"([-+0-9.eE]+)"', xmp) or re.search(rf"{key}>\s*([-+0-9.eE]+)\s*<", xmp)
+    try:
+        return float(m.group(1)) if m else None
+    except ValueError:
+        return None
+
+
+def _xmp_text(im: Image.Image) -> str:
+    for key in ("xmp", "XML:com.adobe.xmp"):
+        raw = im.info.get(key)
+        if raw:
+            return raw.decode("utf-8", "replace") if isinstance(raw, bytes) else str(raw)
+    return ""
+
+
+def read_metadata(path: str | Path) -> ImageMeta:
+    """Never raises on odd metadata: a field that cannot be read is simply absent."""
+    with Image.open(path) as im:
+        w, h = im.size
+        exif = im.getexif()
+        sub = exif.get_ifd(_EXIF_IFD) if exif else {}
+        make = str(exif.get(_MAKE, "")).strip("\x00 ") if exif else ""
+        model = str(exif.get(_MODEL, "")).strip("\x00 ") if exif else ""
+        focal = _focal_px(sub, w, h)
+        xmp = _xmp_text(im)
+    alt = _xmp_value(xmp, "RelativeAltitude") if xmp else None
+    pitch = _xmp_value(xmp, "GimbalPitchDegree") if xmp else None
+    return ImageMeta(w, h, make, model, focal, alt, pitch)
+
+
+def _focal_px(sub: dict[int, object], width: int, height: int) -> float | None:
+    try:
+        if _FOCAL in sub and _FP_XRES in sub:
+            mm_per_unit = _UNIT_MM.get(int(sub.get(_FP_UNIT, 2)))  # type: ignore[call-overload]
+            f_mm, px_per_unit = float(sub[_FOCAL]), float(sub[_FP_XRES])  # type: ignore[arg-type]
+            if mm_per_unit and f_mm > 0 and px_per_unit > 0:
+                return f_mm * px_per_unit / mm_per_unit
+        if _FOCAL35 in sub and float(sub[_FOCAL35]) > 0:  # type: ignore[arg-type]
+            # 35 mm equivalent: the long side of the 36 x 24 mm frame is the long side of the image
+            return float(sub[_FOCAL35]) / 36.0 * max(width, height)  # type: ignore[arg-type]
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return None
+
+
+def exif_for(make: str, model: str, focal_mm: float, px_per_mm: float) -> Image.Exif:
+    """EXIF block stating a focal length exactly (focal mm x focal-plane px/mm), for synthetic images."""
+    exif = Image.Exif()
+    exif[_MAKE] = make
+    exif[_MODEL] = model
+    sub = exif.get_ifd(_EXIF_IFD)
+    sub[_FOCAL] = focal_mm
+    sub[_FP_XRES] = px_per_mm
+    sub[_FP_UNIT] = 4
+    return exif
+
+
+def dji_xmp(relative_altitude: float, gimbal_pitch: float) -> str:
+    return (
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+        '<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '
+        f'drone-dji:RelativeAltitude="{relative_altitude:+.2f}" '
+        f'drone-dji:GimbalPitchDegree="{gimbal_pitch:+.1f}"/>'
+        "</rdf:RDF></x:xmpmeta>"
+    )

@@ -1,0 +1,121 @@
+"""Pair planning: which image pairs to match, and which of them to tile.
+
+Specs: ``exhaustive``; ``sequential:K`` (each image with the next K in name order, as video or a
+flight line is numbered); ``retrieval:K`` (each image with its K nearest neighbours by a global
+descriptor, see retrieval.py); or an explicit list. Global descriptors do not bridge the
+air-to-ground gap (that is the problem tiling solves), so ``retrieval:K`` keeps every
+aerial x ground pair as a candidate instead of trusting the ranking across views. A pair with
+exactly one aerial image is tiled when tiling is ``auto`` or ``on``.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class PairSpecError(ValueError):
+    """The pair specification is malformed or names unknown images."""
+
+
+@dataclass(frozen=True)
+class Pair:
+    name0: str
+    name1: str
+    tiled: bool = False  # exactly one side is aerial and tiling applies
+    aerial_first: bool = True  # for tiled pairs: which side is aerial
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.name0, self.name1)
+
+
+def parse_spec(spec: str) -> tuple[str, int]:
+    m = re.fullmatch(r"(exhaustive)|(sequential|retrieval):(\d+)", spec.strip())
+    if not m:
+        raise PairSpecError(f"bad pair spec {spec!r}: use exhaustive, sequential:K or retrieval:K")
+    if m.group(1):
+        return "exhaustive", 0
+    k = int(m.group(3))
+    if k < 1:
+        raise PairSpecError(f"bad pair spec {spec!r}: K must be at least 1")
+    return m.group(2), k
+
+
+def exhaustive(names: Sequence[str]) -> list[tuple[str, str]]:
+    return [(names[i], names[j]) for i in range(len(names)) for j in range(i + 1, len(names))]
+
+
+def sequential(names: Sequence[str], k: int) -> list[tuple[str, str]]:
+    return [(names[i], names[j]) for i in range(len(names)) for j in range(i + 1, min(len(names), i + k + 1))]
+
+
+def nearest_neighbours(descriptors: np.ndarray, names: Sequence[str], k: int) -> list[tuple[str, str]]:
+    """Each image with its k most similar (cosine) others; symmetric pairs counted once."""
+    d = np.asarray(descriptors, np.float64)
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    sim = d @ d.T
+    np.fill_diagonal(sim, -np.inf)
+    out: set[tuple[int, int]] = set()
+    for i in range(len(names)):
+        for j in np.argsort(-sim[i], kind="stable")[: min(k, len(names) - 1)]:
+            out.add((min(i, int(j)), max(i, int(j))))
+    return [(names[i], names[j]) for i, j in sorted(out)]
+
+
+def cross_view(names: Sequence[str], aerial: set[str]) -> list[tuple[str, str]]:
+    a = [n for n in names if n in aerial]
+    g = [n for n in names if n not in aerial]
+    return [(x, y) if x < y else (y, x) for x in a for y in g]
+
+
+def explicit(pairs: Iterable[Sequence[str]], names: Sequence[str]) -> list[tuple[str, str]]:
+    known = set(names)
+    out = []
+    for p in pairs:
+        if len(p) != 2:
+            raise PairSpecError(f"a pair has two image names, got {list(p)!r}")
+        a, b = str(p[0]), str(p[1])
+        for n in (a, b):
+            if n not in known:
+                raise PairSpecError(f"pair ({a}, {b}) names {n!r}, which is not among the images")
+        if a == b:
+            raise PairSpecError(f"pair ({a}, {b}) matches an image with itself")
+        out.append((a, b))
+    return out
+
+
+def read_pairs_file(text: str) -> list[list[str]]:
+    """hloc/COLMAP pairs format: one pair per line, two names separated by whitespace."""
+    rows = [line.split() for line in text.splitlines() if line.strip() and not line.startswith("#")]
+    return rows
+
+
+def finalize(raw: Iterable[tuple[str, str]], aerial: set[str], tiling: str = "auto") -> list[Pair]:
+    """Drop duplicates (either order), mark tiled pairs. ``tiling``: auto | on | off.
+
+    ``on`` tiles the first image of every pair that has no aerial side designated (forced);
+    ``auto`` tiles exactly the aerial x ground pairs.
+    """
+    if tiling not in ("auto", "on", "off"):
+        raise PairSpecError(f"tiling must be auto, on or off, not {tiling!r}")
+    seen: set[frozenset[str]] = set()
+    out = []
+    for a, b in raw:
+        key = frozenset((a, b))
+        if key in seen or a == b:
+            continue
+        seen.add(key)
+        a_air, b_air = a in aerial, b in aerial
+        if tiling == "off":
+            out.append(Pair(a, b))
+        elif a_air != b_air:
+            out.append(Pair(a, b, tiled=True, aerial_first=a_air))
+        elif tiling == "on":
+            out.append(Pair(a, b, tiled=True, aerial_first=True))
+        else:
+            out.append(Pair(a, b))
+    return out

@@ -1,0 +1,97 @@
+"""Reconstruction with COLMAP (pycolmap): verification of what is unverified, mapping, export.
+
+Pairs written by colmapdb.py are verified as they are written; ``verify`` catches pairs of a
+database filled by other means. Mapping is COLMAP's incremental mapper by default, its global
+mapper (GLOMAP's, merged into COLMAP 4) on request. The largest model is exported as
+``sparse/0`` (binary and text, so both COLMAP and tools that parse text read it), ``points.ply``
+and ``summary.json``; other models, if any, go to ``sparse/1`` ...
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import pycolmap
+
+from .metrics import sfm_stats
+
+log = logging.getLogger(__name__)
+MAPPERS = ("incremental", "global")
+
+
+def verify(database: Path) -> int:
+    """Verify matched pairs that have no two-view geometry yet; returns how many were verified."""
+    db = pycolmap.Database.open(str(database))
+    try:
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        pending = [pycolmap.pair_id_to_image_pair(p) for p in db.read_all_matches()[0]]
+        pending = [(a, b) for a, b in pending if not db.exists_two_view_geometry(a, b)]
+    finally:
+        db.close()
+    if pending:
+        with tempfile.TemporaryDirectory() as tmp:
+            pairs_path = Path(tmp) / "pairs.txt"
+            pairs_path.write_text("".join(f"{names[a]} {names[b]}\n" for a, b in pending))
+            pycolmap.verify_matches(str(database), str(pairs_path))
+    return len(pending)
+
+
+def reconstruct(
+    database: Path,
+    image_dir: Path,
+    out: Path,
+    mapper: str = "incremental",
+    min_model_size: int = 3,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Map, export the largest model and return (and write) the summary."""
+    if mapper not in MAPPERS:
+        raise ValueError(f"unknown mapper {mapper!r}; choose from {', '.join(MAPPERS)}")
+    verify(database)
+    work = out / ".mapping"
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    if mapper == "incremental":
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.min_model_size = min_model_size
+        opts.random_seed = seed
+        models = pycolmap.incremental_mapping(str(database), str(image_dir), str(work), opts)
+    else:
+        gopts = pycolmap.GlobalPipelineOptions()
+        if hasattr(gopts, "random_seed"):
+            gopts.random_seed = seed
+        models = pycolmap.global_mapping(str(database), str(image_dir), str(work), gopts)
+    db = pycolmap.Database.open(str(database))
+    try:
+        n_images = int(db.num_images())
+    finally:
+        db.close()
+    ranked = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
+    sparse = out / "sparse"
+    shutil.rmtree(sparse, ignore_errors=True)
+    for i, rec in enumerate(ranked):
+        d = sparse / str(i)
+        d.mkdir(parents=True)
+        rec.write_binary(str(d))
+        if i == 0:
+            rec.write_text(str(d))
+    shutil.rmtree(work, ignore_errors=True)
+    summary: dict[str, Any] = {"mapper": mapper, "models": len(ranked)}
+    if ranked:
+        best = ranked[0]
+        best.export_PLY(str(out / "points.ply"))
+        summary.update(sfm_stats(best, n_images))
+        summary["registered_names"] = sorted(im.name for im in best.images.values() if im.has_pose)
+    else:
+        (out / "points.ply").unlink(missing_ok=True)
+        summary.update(
+            registered=0, images=n_images, points3D=0, mean_track_length=0.0, mean_reprojection_error=0.0
+        )
+        summary["registered_names"] = []
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
