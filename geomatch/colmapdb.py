@@ -154,6 +154,11 @@ class ColmapDatabase:
         Points are in our convention (pixel centres at integers), best first is not required:
         they are ordered by score here so the best match of a snapped cluster is the one kept.
         """
+        if not (len(keypoints0) == len(keypoints1) == len(scores)):
+            raise ValueError(
+                f"pair ({image_id0}, {image_id1}): {len(keypoints0)}, {len(keypoints1)} keypoints and "
+                f"{len(scores)} scores; one of each per match"
+            )
         name0 = self.db.read_image(image_id0).name
         name1 = self.db.read_image(image_id1).name
         if self.has_pair(image_id0, image_id1):

@@ -13,6 +13,8 @@ from pathlib import Path
 
 from PIL import Image
 
+from .imageio import ImageReadError
+
 AERIAL_MIN_ALTITUDE_M = 10.0  # relative altitude (above take-off) from which a photo is aerial
 AERIAL_MAX_PITCH_DEG = -30.0  # gimbal pitch at or below this (looking down) marks a photo aerial
 
@@ -71,8 +73,12 @@ def _xmp_text(im: Image.Image) -> str:
 
 
 def read_metadata(path: str | Path) -> ImageMeta:
-    """Never raises on odd metadata: a field that cannot be read is simply absent."""
-    with Image.open(path) as im:
+    """Raises ImageReadError for a file that is not an image; odd metadata is simply absent."""
+    try:
+        im = Image.open(path)
+    except (OSError, ValueError) as e:
+        raise ImageReadError(f"{path}: not a readable image ({e})") from None
+    with im:
         w, h = im.size
         exif = im.getexif()
         sub = exif.get_ifd(_EXIF_IFD) if exif else {}

@@ -138,6 +138,8 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     opts = opts or RunOptions()
     image_dir, out = Path(image_dir), Path(out)
     t_start = time.perf_counter()
+    if opts.pairs_list is None:
+        pairing.parse_spec(opts.pairs)  # a bad spec fails before any work
     names = list_images(image_dir)
     metas = {n: read_metadata(image_dir / n) for n in names}
     aerial = aerial_set(names, metas, opts)

@@ -51,7 +51,7 @@ class Crop:
 
 def five_crops(width: int, height: int) -> list[Crop]:
     """The four quadrants and a centre crop of the same half-size."""
-    hw, hh = width // 2, height // 2
+    hw, hh = (width + 1) // 2, (height + 1) // 2  # odd sizes: quadrants overlap by a pixel, no gap
     return [
         Crop("top_left", 0, 0, hw, hh),
         Crop("top_right", width - hw, 0, hw, hh),

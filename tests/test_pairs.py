@@ -1,0 +1,92 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from geomatch import pairs
+from geomatch.metadata import ImageMeta, read_metadata
+from geomatch.pipeline import RunOptions, aerial_set
+from geomatch.retrieval import vlad
+from geomatch.synth import write_scene
+
+NAMES = ["a0.jpg", "a1.jpg", "g0.jpg", "g1.jpg", "g2.jpg"]
+
+
+def test_specs() -> None:
+    assert pairs.parse_spec("exhaustive") == ("exhaustive", 0)
+    assert pairs.parse_spec("sequential:3") == ("sequential", 3)
+    assert pairs.parse_spec("retrieval:10") == ("retrieval", 10)
+    for bad in ("exhaustive:2", "sequential", "retrieval:0", "nearest:3", ""):
+        with pytest.raises(pairs.PairSpecError):
+            pairs.parse_spec(bad)
+    assert len(pairs.exhaustive(NAMES)) == 10
+    assert pairs.sequential(NAMES, 2) == [
+        ("a0.jpg", "a1.jpg"),
+        ("a0.jpg", "g0.jpg"),
+        ("a1.jpg", "g0.jpg"),
+        ("a1.jpg", "g1.jpg"),
+        ("g0.jpg", "g1.jpg"),
+        ("g0.jpg", "g2.jpg"),
+        ("g1.jpg", "g2.jpg"),
+    ]
+
+
+def test_explicit_pairs_are_checked() -> None:
+    assert pairs.explicit([["a0.jpg", "g1.jpg"]], NAMES) == [("a0.jpg", "g1.jpg")]
+    with pytest.raises(pairs.PairSpecError, match="not among the images"):
+        pairs.explicit([["a0.jpg", "nope.jpg"]], NAMES)
+    with pytest.raises(pairs.PairSpecError, match="itself"):
+        pairs.explicit([["a0.jpg", "a0.jpg"]], NAMES)
+    assert pairs.read_pairs_file("# comment\na0.jpg g0.jpg\n\ng1.jpg g2.jpg\n") == [
+        ["a0.jpg", "g0.jpg"],
+        ["g1.jpg", "g2.jpg"],
+    ]
+
+
+def test_tiling_marks_aerial_x_ground_only() -> None:
+    aerial = {"a0.jpg", "a1.jpg"}
+    out = pairs.finalize(
+        [("a0.jpg", "a1.jpg"), ("g0.jpg", "a1.jpg"), ("a1.jpg", "g0.jpg"), ("g0.jpg", "g1.jpg")], aerial
+    )
+    assert [(p.key, p.tiled, p.aerial_first) for p in out] == [
+        (("a0.jpg", "a1.jpg"), False, True),
+        (("g0.jpg", "a1.jpg"), True, False),  # duplicate in the other order dropped
+        (("g0.jpg", "g1.jpg"), False, True),
+    ]
+    assert not any(p.tiled for p in pairs.finalize([("g0.jpg", "a1.jpg")], aerial, "off"))
+    assert all(p.tiled for p in pairs.finalize([("g0.jpg", "g1.jpg")], aerial, "on"))
+
+
+def test_retrieval_ranks_by_global_descriptor() -> None:
+    rng = np.random.default_rng(0)
+    centres = rng.normal(size=(2, 8, 16))  # two "places", each with its own descriptor distribution
+    local = []
+    for i in range(6):
+        place = centres[i % 2]
+        d = place[rng.integers(0, 8, 300)] + 0.1 * rng.normal(size=(300, 16))
+        local.append(d / np.linalg.norm(d, axis=1, keepdims=True))
+    g = vlad(local, words=8)
+    nn = pairs.nearest_neighbours(g, [f"i{i}" for i in range(6)], k=2)
+    assert all(int(a[1]) % 2 == int(b[1]) % 2 for a, b in nn)  # neighbours are from the same place
+    cross = pairs.cross_view(NAMES, {"a0.jpg", "a1.jpg"})
+    assert len(cross) == 6
+
+
+def test_aerial_from_synthetic_exif_and_xmp(tmp_path) -> None:
+    cams = write_scene(tmp_path, 2, 2, seed=3, width=96, height=72)
+    names = [c.name for c in cams]
+    metas = {n: read_metadata(tmp_path / "images" / n) for n in names}
+    for c in cams:
+        m = metas[c.name]
+        assert m.focal_px == pytest.approx(c.K[0, 0])
+        assert m.aerial_hint is (True if c.aerial else None)
+        assert m.model == ("synth-drone" if c.aerial else "synth-handheld")
+    inferred = aerial_set(names, metas, RunOptions())
+    assert inferred == {c.name for c in cams if c.aerial}
+    assert aerial_set(names, metas, RunOptions(aerial_glob="ground_0*")) == {"ground_00.png", "ground_01.png"}
+    with pytest.raises(ValueError, match="not in the folder"):
+        aerial_set(names, metas, RunOptions(aerial_names=["x.png"]))
+    # the rules: relative altitude decides, else gimbal pitch
+    assert ImageMeta(1, 1, relative_altitude_m=3.0, gimbal_pitch_deg=-90).aerial_hint is False
+    assert ImageMeta(1, 1, gimbal_pitch_deg=-45).aerial_hint is True
+    assert ImageMeta(1, 1, gimbal_pitch_deg=-5).aerial_hint is False
