@@ -10,6 +10,7 @@ matches only the new pairs.
 from __future__ import annotations
 
 import fnmatch
+import hashlib
 import json
 import logging
 import time
@@ -23,7 +24,7 @@ from tqdm import tqdm
 
 from . import pairs as pairing
 from .colmapdb import ColmapDatabase
-from .imageio import read_image
+from .imageio import image_key, read_image
 from .matcher import Matcher, config_from_options
 from .metadata import ImageMeta, read_metadata
 from .retrieval import vlad
@@ -53,6 +54,7 @@ class RunOptions:
     share_camera: bool | None = None  # None: one camera per EXIF device, else per image
     min_model_size: int = 3
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
+    match_cache: str | None = None  # folder of raw pair matches shared by runs (benchmarks, variants)
     progress: bool = True
 
 
@@ -166,16 +168,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         for p in bar:
             t0 = time.perf_counter()
             a, b = images[p.name0], images[p.name1]
-            if p.tiled:
-                r = (
-                    match_tiled(matcher, a, b, aerial_first=True)
-                    if p.aerial_first
-                    else match_tiled(matcher, b, a, aerial_first=False)
-                )
-                k0, k1, sc = r.keypoints0, r.keypoints1, r.scores
-            else:
-                m = matcher.match(a, b)
-                k0, k1, sc = m.keypoints0, m.keypoints1, m.scores
+            k0, k1, sc = _match(matcher, p, a, b, opts.match_cache)
             t1 = time.perf_counter()
             w = db.write_pair(
                 ids[p.name0],
@@ -215,3 +208,29 @@ def _radius(opts: RunOptions, image: np.ndarray) -> float:
         return 0.0
     long_side = max(image.shape[:2])
     return opts.snap_radius * (long_side / opts.resize if opts.resize else 1.0)
+
+
+def _match(
+    matcher: Matcher, p: pairing.Pair, a: np.ndarray, b: np.ndarray, cache: str | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    path = None
+    if cache:
+        h = hashlib.sha256(
+            repr((image_key(a), image_key(b), p.tiled, p.aerial_first, matcher.config)).encode()
+        )
+        path = Path(cache) / f"{h.hexdigest()[:32]}.npz"
+        if path.is_file():
+            with np.load(path) as z:
+                return z["k0"], z["k1"], z["scores"]
+    if p.tiled:
+        r = match_tiled(matcher, a, b, True) if p.aerial_first else match_tiled(matcher, b, a, False)
+        k0, k1, sc = r.keypoints0, r.keypoints1, r.scores
+    else:
+        m = matcher.match(a, b)
+        k0, k1, sc = m.keypoints0, m.keypoints1, m.scores
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, k0=k0, k1=k1, scores=sc)
+        tmp.replace(path)
+    return k0, k1, sc

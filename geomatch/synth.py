@@ -309,3 +309,39 @@ def write_scene(
     write_gt(cams, out / "gt")
     (out / "aerial.txt").write_text("".join(f"{c.name}\n" for c in cams if c.aerial))
     return cams
+
+
+def covisibility(scene: Scene, cams: list[Camera], stride: int = 8, scale: float = 0.25) -> np.ndarray:
+    """(N, N) fraction of camera i's pixels (on a ``stride`` grid of a ``scale``-sized render)
+    that camera j sees unoccluded: the ground truth for pair recall."""
+    small = [
+        Camera(
+            c.name,
+            np.diag([scale, scale, 1.0]) @ c.K,
+            c.R,
+            c.t,
+            max(1, round(c.width * scale)),
+            max(1, round(c.height * scale)),
+            c.aerial,
+        )
+        for c in cams
+    ]
+    depths = [scene.render(c, supersample=1)[1] for c in small]
+    n = len(cams)
+    out = np.eye(n)
+    for i, a in enumerate(small):
+        v, u = np.mgrid[0 : a.height : max(1, stride // 4), 0 : a.width : max(1, stride // 4)]
+        d = depths[i][v, u]
+        ok = np.isfinite(d)
+        pix = np.stack([u[ok] + 0.5, v[ok] + 0.5, np.ones(ok.sum())], 1)
+        X = (pix @ np.linalg.inv(a.K).T * d[ok, None] - a.t) @ a.R
+        for j, b in enumerate(small):
+            if i == j:
+                continue
+            uv, z = b.project(X)
+            ub, vb = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+            inside = (z > 0) & (ub >= 0) & (ub < b.width) & (vb >= 0) & (vb < b.height)
+            vis = inside.copy()
+            vis[inside] = np.abs(depths[j][vb[inside], ub[inside]] - z[inside]) < 0.02 * z[inside]
+            out[i, j] = vis.sum() / max(v.size, 1)
+    return out

@@ -6,7 +6,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from geomatch.synth import Scene, write_scene
+from geomatch.synth import Scene, covisibility, write_scene
 
 
 @pytest.fixture(scope="module")
@@ -65,3 +65,15 @@ def test_scene_files_and_colmap_model(tmp_path) -> None:
     assert all(1.5 <= c.centre[2] <= 2.0 for c in ground)
     # ground cameras look near-horizontally: the optical axis within 20 degrees of the horizon
     assert all(abs(np.degrees(np.arcsin(c.R[2, 2]))) < 20 for c in ground)
+
+
+def test_covisibility_ground_truth(scene: Scene) -> None:
+    cams = scene.cameras(2, 4, 200, 150)
+    cov = covisibility(scene, cams, scale=0.5)
+    assert cov.shape == (6, 6) and np.allclose(np.diag(cov), 1.0)
+    assert ((cov >= 0) & (cov <= 1)).all()
+    # what a ground camera sees, an aerial camera above the scene mostly sees too; not the reverse
+    ground = [i for i, c in enumerate(cams) if not c.aerial]
+    aerial = [i for i, c in enumerate(cams) if c.aerial]
+    assert max(cov[g, a] for g in ground for a in aerial) > 0.3
+    assert max(cov[a, g] for g in ground for a in aerial) < 0.3
