@@ -104,7 +104,10 @@ def estimate_fundamental(
         raise ValueError(f"unknown fundamental-matrix estimator {method!r} (magsac, 8point)")
     a = pa.detach().double().cpu().numpy()
     b = pb.detach().double().cpu().numpy()
-    F, mask = cv2.findFundamentalMat(a, b, cv2.USAC_MAGSAC, threshold, confidence, max_iters)
+    try:
+        F, mask = cv2.findFundamentalMat(a, b, cv2.USAC_MAGSAC, threshold, confidence, max_iters)
+    except cv2.error:  # OpenCV asserts on some degenerate inputs (all points on a line, duplicates)
+        F, mask = None, None
     if F is None or F.shape != (3, 3) or mask is None or int(mask.sum()) < MIN_POINTS:
         log.debug("MAGSAC failed on %d matches; falling back to the 8-point fit", n)
         return eight_point(pa, pb), torch.ones(n, dtype=torch.bool, device=pa.device)

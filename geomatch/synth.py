@@ -149,7 +149,8 @@ class Scene:
             R, t = look_at(C, target)
             cams.append(Camera(f"aerial_{i:02d}.png", K, R, t, width, height, True))
         for i in range(n_ground):
-            ang = 2 * np.pi * i / max(n_ground, 1) + rng.uniform(-0.15, 0.15)
+            # a walk around the scene: 30 degrees apart (closing the ring from 12 cameras on)
+            ang = min(2 * np.pi / max(n_ground, 1), np.pi / 6) * i + rng.uniform(-0.1, 0.1)
             radius = rng.uniform(0.8, 1.0) * self.extent * 0.85
             C = np.array([radius * np.cos(ang), radius * np.sin(ang), rng.uniform(1.5, 2.0)])
             target = np.array([*rng.uniform(-4, 4, 2), rng.uniform(0.0, 2.5)])

@@ -63,3 +63,14 @@ def test_eight_point_needs_eight_matches() -> None:
     assert estimate_fundamental(torch.from_numpy(x0), torch.from_numpy(x1)) == (None, None)
     with pytest.raises(ValueError, match="at least 8"):
         eight_point(torch.from_numpy(x0), torch.from_numpy(x1))
+
+
+def test_degenerate_input_does_not_raise() -> None:
+    """OpenCV's USAC asserts on some degenerate sets (seen on tiny crops' matches): fall back, never crash."""
+    import torch
+
+    from geomatch.geometry import estimate_fundamental
+
+    pa = torch.tensor([[float(i), 2.0 * i] for i in range(12)], dtype=torch.float64)  # collinear
+    F, mask = estimate_fundamental(pa, pa.clone(), "magsac", 1.0)
+    assert F is not None and mask is not None
