@@ -35,7 +35,7 @@ class EvalResult:
                 "ground-truth units"
             )
         else:
-            lines.append("could not align the model to ground truth (fewer than 3 registered images)")
+            lines.append("could not align the model to ground truth (too few registered images agree with it)")
         return "\n".join(lines)
 
 

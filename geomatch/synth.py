@@ -55,6 +55,37 @@ GROUND_TEXTURES = (
 SKY = np.array([200.0, 215.0, 235.0])
 
 
+def scribble(img: np.ndarray, rng: np.random.Generator, n: int, max_radius: int | None = None) -> None:
+    """Random coloured shapes drawn in place: unique, corner-rich marks at every scale."""
+    h, w = img.shape[:2]
+    max_radius = max_radius or w // 24
+    for _ in range(n):
+        colour = tuple(int(c) for c in rng.integers(0, 256, 3))
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        r = int(rng.integers(3, max(4, max_radius)))
+        kind = rng.integers(3)
+        if kind == 0:
+            cv2.circle(img, (x, y), r, colour, -1 if rng.random() < 0.6 else 2, cv2.LINE_AA)
+        elif kind == 1:
+            cv2.rectangle(img, (x, y), (x + r, y + int(rng.integers(3, 2 * r + 4))), colour, -1)
+        else:
+            pts = (np.array([x, y]) + rng.integers(-2 * r, 2 * r + 1, (3, 2))).astype(np.int32)
+            cv2.polylines(img, [pts], False, colour, int(rng.integers(1, 4)), cv2.LINE_AA)
+
+
+def unique_texture(src: np.ndarray, size: int, rng: np.random.Generator, shapes: int = 60) -> np.ndarray:
+    """A random window of a photo, colour-shifted and marked: no two surfaces of a scene share one."""
+    h, w = src.shape[:2]
+    side = int(rng.uniform(0.45, 0.9) * min(h, w))
+    y0, x0 = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
+    img = cv2.resize(src[y0 : y0 + side, x0 : x0 + side], (size, size), interpolation=cv2.INTER_AREA)
+    gain = rng.uniform(0.7, 1.2, 3)
+    img = np.clip(img.astype(np.float32) * gain + rng.uniform(-25, 25, 3), 0, 255).astype(np.uint8)
+    img = np.ascontiguousarray(img)
+    scribble(img, rng, shapes)
+    return img
+
+
 @dataclass(frozen=True)
 class Camera:
     name: str
@@ -99,7 +130,7 @@ class Scene:
         rng = np.random.default_rng(seed)
         self.rng = rng
         self.extent = extent
-        self.textures = [self._prep(photo(n)) for n in TEXTURES]
+        self.textures: list[np.ndarray] = []
         # the ground: a mosaic of photos, 4 m per photo, each tile flipped/rotated at random
         tiles_per_side = 6
         tile_px = 256
@@ -107,11 +138,10 @@ class Scene:
         for i in range(tiles_per_side):
             for j in range(tiles_per_side):
                 img = photo(GROUND_TEXTURES[rng.integers(len(GROUND_TEXTURES))])
-                img = cv2.resize(img, (tile_px, tile_px), interpolation=cv2.INTER_AREA)
-                img = np.rot90(img, rng.integers(4))
-                if rng.random() < 0.5:
-                    img = img[:, ::-1]
-                mosaic[i * tile_px : (i + 1) * tile_px, j * tile_px : (j + 1) * tile_px] = img
+                mosaic[i * tile_px : (i + 1) * tile_px, j * tile_px : (j + 1) * tile_px] = unique_texture(
+                    img, tile_px, rng, shapes=0
+                )
+        scribble(mosaic, rng, 900, max_radius=20)  # marks over tile borders too: no two places look alike
         self.ground = mosaic.astype(np.float32)
         self.ground_m_per_px = 2 * extent / mosaic.shape[0]
         self.boxes: list[Box] = []
@@ -123,12 +153,12 @@ class Scene:
             hi = np.array([c[0] + size[0] / 2, c[1] + size[1] / 2, height])
             if any(np.all(lo[:2] < b.hi[:2] + 1.0) and np.all(b.lo[:2] - 1.0 < hi[:2]) for b in self.boxes):
                 continue
-            faces = tuple(int(x) for x in rng.integers(len(self.textures), size=6))
-            self.boxes.append(Box(lo, hi, faces))
-
-    @staticmethod
-    def _prep(img: np.ndarray) -> np.ndarray:
-        return cv2.resize(img, (384, 384), interpolation=cv2.INTER_AREA).astype(np.float32)
+            faces = []
+            for _ in range(6):  # every face its own texture: repeated surfaces fool SfM
+                faces.append(len(self.textures))
+                src = photo(TEXTURES[rng.integers(len(TEXTURES))])
+                self.textures.append(unique_texture(src, 384, rng).astype(np.float32))
+            self.boxes.append(Box(lo, hi, tuple(faces)))
 
     # -- cameras -------------------------------------------------------------------------
     def cameras(self, n_aerial: int, n_ground: int, width: int, height: int) -> list[Camera]:
