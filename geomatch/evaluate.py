@@ -35,7 +35,9 @@ class EvalResult:
                 "ground-truth units"
             )
         else:
-            lines.append("could not align the model to ground truth (too few registered images agree with it)")
+            lines.append(
+                "could not align the model to ground truth (too few registered images agree with it)"
+            )
         return "\n".join(lines)
 
 

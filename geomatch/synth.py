@@ -40,17 +40,9 @@ TEXTURES = (
     "coins",
     "clock",
     "cell",
-)
-GROUND_TEXTURES = (
-    "hubble_deep_field",
-    "retina",
-    "immunohistochemistry",
-    "coffee",
-    "astronaut",
-    "rocket",
-    "chelsea",
-    "motorcycle_left",
-    "motorcycle_right",
+    "moon",
+    "grass",
+    "logo",
 )
 SKY = np.array([200.0, 215.0, 235.0])
 
@@ -73,12 +65,16 @@ def scribble(img: np.ndarray, rng: np.random.Generator, n: int, max_radius: int 
             cv2.polylines(img, [pts], False, colour, int(rng.integers(1, 4)), cv2.LINE_AA)
 
 
+def _patches(img: np.ndarray, n: int) -> list[np.ndarray]:
+    h, w = img.shape[:2]
+    return [
+        img[i * h // n : (i + 1) * h // n, j * w // n : (j + 1) * w // n] for i in range(n) for j in range(n)
+    ]
+
+
 def unique_texture(src: np.ndarray, size: int, rng: np.random.Generator, shapes: int = 60) -> np.ndarray:
-    """A random window of a photo, colour-shifted and marked: no two surfaces of a scene share one."""
-    h, w = src.shape[:2]
-    side = int(rng.uniform(0.45, 0.9) * min(h, w))
-    y0, x0 = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
-    img = cv2.resize(src[y0 : y0 + side, x0 : x0 + side], (size, size), interpolation=cv2.INTER_AREA)
+    """A photo patch, colour-shifted and marked with random shapes."""
+    img = cv2.resize(src, (size, size), interpolation=cv2.INTER_CUBIC)
     gain = rng.uniform(0.7, 1.2, 3)
     img = np.clip(img.astype(np.float32) * gain + rng.uniform(-25, 25, 3), 0, 255).astype(np.uint8)
     img = np.ascontiguousarray(img)
@@ -131,17 +127,19 @@ class Scene:
         self.rng = rng
         self.extent = extent
         self.textures: list[np.ndarray] = []
-        # the ground: a mosaic of photos, 4 m per photo, each tile flipped/rotated at random
+        # every surface gets its own patch: photos are cut into disjoint 3x3 patches and each patch is
+        # used once, so no two places in the scene share content (repeats fold SfM reconstructions)
+        pool = [p for name in TEXTURES for p in _patches(photo(name), 3)]
+        order = iter(rng.permutation(len(pool)))
         tiles_per_side = 6
         tile_px = 256
         mosaic = np.zeros((tiles_per_side * tile_px, tiles_per_side * tile_px, 3), np.uint8)
         for i in range(tiles_per_side):
             for j in range(tiles_per_side):
-                img = photo(GROUND_TEXTURES[rng.integers(len(GROUND_TEXTURES))])
                 mosaic[i * tile_px : (i + 1) * tile_px, j * tile_px : (j + 1) * tile_px] = unique_texture(
-                    img, tile_px, rng, shapes=0
+                    pool[next(order)], tile_px, rng, shapes=0
                 )
-        scribble(mosaic, rng, 900, max_radius=20)  # marks over tile borders too: no two places look alike
+        scribble(mosaic, rng, 900, max_radius=20)  # marks over tile borders too
         self.ground = mosaic.astype(np.float32)
         self.ground_m_per_px = 2 * extent / mosaic.shape[0]
         self.boxes: list[Box] = []
@@ -156,8 +154,7 @@ class Scene:
             faces = []
             for _ in range(6):  # every face its own texture: repeated surfaces fool SfM
                 faces.append(len(self.textures))
-                src = photo(TEXTURES[rng.integers(len(TEXTURES))])
-                self.textures.append(unique_texture(src, 384, rng).astype(np.float32))
+                self.textures.append(unique_texture(pool[next(order)], 384, rng).astype(np.float32))
             self.boxes.append(Box(lo, hi, tuple(faces)))
 
     # -- cameras -------------------------------------------------------------------------
