@@ -114,9 +114,6 @@ class ColmapDatabase:
             self.db.write_frame(frame)
         return int(image_id)
 
-    def image_ids(self) -> dict[str, int]:
-        return {im.name: int(im.image_id) for im in self.db.read_all_images()}
-
     def camera(self, image_id: int) -> pycolmap.Camera:
         return self.db.read_camera(self.db.read_image(image_id).camera_id)
 
@@ -183,12 +180,10 @@ class ColmapDatabase:
         tvg = self._verify(image_id0, image_id1, kp0_new, kp1_new, matches, options)
         with pycolmap.DatabaseTransaction(self.db):
             for image_id, old, new in ((image_id0, kp0, kp0_new), (image_id1, kp1, kp1_new)):
-                if len(new) == len(old) and self.db.exists_keypoints(image_id):
-                    continue
-                if self.db.exists_keypoints(image_id):
-                    self.db.update_keypoints(image_id, new.astype(np.float32))
-                else:
+                if not self.db.exists_keypoints(image_id):
                     self.db.write_keypoints(image_id, new.astype(np.float32))
+                elif len(new) > len(old):  # append-only: a longer list is the only possible change
+                    self.db.update_keypoints(image_id, new.astype(np.float32))
             self.db.write_matches(image_id0, image_id1, matches)
             self.db.write_two_view_geometry(image_id0, image_id1, tvg)
         return PairWrite(name0, name1, len(matches), len(tvg.inlier_matches), _config_name(tvg.config))

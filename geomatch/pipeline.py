@@ -12,7 +12,6 @@ from __future__ import annotations
 import fnmatch
 import hashlib
 import json
-import logging
 import time
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, field
@@ -31,7 +30,6 @@ from .retrieval import vlad
 from .sfm import reconstruct
 from .tiling import match_tiled
 
-log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
 
 
@@ -118,17 +116,21 @@ def plan_pairs(
             raw = pairing.sequential(names, k)
         else:
             assert matcher is not None and images is not None
-            raw = pairing.nearest_neighbours(global_descriptors(matcher, images, names), names, k)
+            raw = pairing.nearest_neighbours(
+                global_descriptors(matcher, images, names, opts.progress), names, k
+            )
             raw += pairing.cross_view(names, aerial)
     planned = pairing.finalize(raw, aerial, opts.tiling)
     # cache-friendly order: all pairs of one aerial image (its five crops) together
     return sorted(planned, key=lambda p: (not p.tiled, p.name0 if p.aerial_first else p.name1, p.key))
 
 
-def global_descriptors(matcher: Matcher, images: _Images, names: list[str]) -> np.ndarray:
+def global_descriptors(
+    matcher: Matcher, images: _Images, names: list[str], progress: bool = True
+) -> np.ndarray:
     sparse = matcher.derive(method="sparse")
     local = []
-    for n in tqdm(names, desc="retrieval", disable=not matcher.config.cache_images, leave=False):
+    for n in tqdm(names, desc="retrieval", disable=not progress, leave=False):
         feats = sparse.features(images[n])[sparse.config.sparse].sparse
         assert feats is not None
         local.append(feats.descriptors.float().cpu().numpy())

@@ -10,7 +10,6 @@ and ``summary.json``; other models, if any, go to ``sparse/1`` ...
 from __future__ import annotations
 
 import json
-import logging
 import shutil
 import tempfile
 from pathlib import Path
@@ -20,7 +19,6 @@ import pycolmap
 
 from .metrics import sfm_stats
 
-log = logging.getLogger(__name__)
 MAPPERS = ("incremental", "global")
 
 

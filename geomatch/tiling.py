@@ -11,6 +11,7 @@ higher-scoring, is kept), so the overlap of the centre crop with the quadrants a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
@@ -76,11 +77,16 @@ class TiledMatches:
     keypoints0: np.ndarray  # (N, 2) in the FIRST image's full frame
     keypoints1: np.ndarray
     scores: np.ndarray
-    F: np.ndarray  # x1^T F x0 = 0, zeros when it could not be fitted
     per_crop: dict[str, int]  # matches each crop contributed before merging
 
     def __len__(self) -> int:
         return int(self.keypoints0.shape[0])
+
+    @cached_property
+    def F(self) -> np.ndarray:
+        """x1^T F x0 = 0 over the merged matches (zeros when it cannot be fitted); fitted on first
+        use only, since the pipeline verifies pairs in the database writer instead."""
+        return fundamental_from_matches(self.keypoints0, self.keypoints1)
 
 
 def merge_matches(
@@ -128,4 +134,4 @@ def match_tiled(
         parts.append((crop.to_full(r.keypoints0), np.asarray(r.keypoints1, np.float64), r.scores))
     ka, ko, sc = merge_matches(parts, dedup_px)
     k0, k1 = (ka, ko) if aerial_first else (ko, ka)
-    return TiledMatches(k0, k1, sc, fundamental_from_matches(k0, k1), per_crop)
+    return TiledMatches(k0, k1, sc, per_crop)
