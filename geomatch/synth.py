@@ -110,10 +110,15 @@ class Box:
     textures: tuple[int, ...]  # texture index per face: -x, +x, -y, +y, -z, +z
 
 
-def look_at(centre: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def look_at(
+    centre: np.ndarray, target: np.ndarray, up: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """cam_from_world looking from ``centre`` at ``target``; ``up`` is the world direction that
+    appears upwards in the image (default: +z, or +y when looking straight down)."""
     f = target - centre
     f = f / np.linalg.norm(f)
-    up = np.array([0.0, 0.0, 1.0]) if abs(f[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    if up is None:
+        up = np.array([0.0, 0.0, 1.0]) if abs(f[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
     r = np.cross(f, up)
     r /= np.linalg.norm(r)
     d = np.cross(f, r)
@@ -122,10 +127,11 @@ def look_at(centre: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 class Scene:
-    def __init__(self, seed: int, extent: float = 24.0, n_boxes: int = 7) -> None:
+    def __init__(self, seed: int, extent: float = 24.0, n_boxes: int = 6) -> None:
         rng = np.random.default_rng(seed)
         self.rng = rng
         self.extent = extent
+        self.site = 0.3 * extent  # box centres within +-site metres of the origin
         self.textures: list[np.ndarray] = []
         # every surface gets its own patch: photos are cut into disjoint 3x3 patches and each patch is
         # used once, so no two places in the scene share content (repeats fold SfM reconstructions)
@@ -143,13 +149,17 @@ class Scene:
         self.ground = mosaic.astype(np.float32)
         self.ground_m_per_px = 2 * extent / mosaic.shape[0]
         self.boxes: list[Box] = []
-        while len(self.boxes) < n_boxes:
-            c = rng.uniform(-0.55 * extent, 0.55 * extent, 2)
-            size = rng.uniform(2.5, 6.0, 2)
-            height = rng.uniform(2.5, 7.0)
+        # a compact block of buildings (the site a drone and a walker both photograph); the
+        # cameras stand outside it, so no wall is closer to a ground camera than a few metres
+        tries = 0
+        while len(self.boxes) < n_boxes and tries < 10_000:
+            tries += 1
+            c = rng.uniform(-self.site, self.site, 2)
+            size = rng.uniform(2.5, 4.5, 2)
+            height = rng.uniform(3.0, 8.0)
             lo = np.array([c[0] - size[0] / 2, c[1] - size[1] / 2, 0.0])
             hi = np.array([c[0] + size[0] / 2, c[1] + size[1] / 2, height])
-            if any(np.all(lo[:2] < b.hi[:2] + 1.0) and np.all(b.lo[:2] - 1.0 < hi[:2]) for b in self.boxes):
+            if any(np.all(lo[:2] < b.hi[:2] + 1.5) and np.all(b.lo[:2] - 1.5 < hi[:2]) for b in self.boxes):
                 continue
             faces = []
             for _ in range(6):  # every face its own texture: repeated surfaces fool SfM
@@ -159,28 +169,49 @@ class Scene:
 
     # -- cameras -------------------------------------------------------------------------
     def cameras(self, n_aerial: int, n_ground: int, width: int, height: int) -> list[Camera]:
+        """Ground cameras walk around the site; the drone flies the same arc.
+
+        Ground: 1.5-2 m high, 20-23 m from the centre, 30 degrees apart (the whole ring from 12
+        cameras on), looking near-horizontally at the buildings. Aerial, cycling through three
+        kinds so that every kind appears from 3 images on: a low oblique (30-40 degrees below the
+        horizon, 21-25 m from the centre, 11-17 m up: the view that sees the walls the ground
+        cameras see, at about twice their distance, which tiling makes up for), a steep oblique
+        (55-65 degrees, 26-32 m) and a nadir view from 30-40 m. Obliques spread over the
+        walked arc; the nadir view is headed along it, as a drone flies its survey line.
+        """
         rng = self.rng
         f = 0.9 * width
         K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+        step = min(2 * np.pi / max(n_ground, 1), np.pi / 6)
+        arc = step * max(n_ground - 1, 0)
+        heading = arc / 2  # azimuth of the middle of the walked arc
+        n_oblique = sum(i % 3 != 2 for i in range(n_aerial))
+        azimuths = iter(
+            np.linspace(0.0, arc, n_oblique) if n_oblique > 1 else np.array([heading])
+        )
         cams = []
         for i in range(n_aerial):
-            alt = rng.uniform(20, 30)
-            if i % 3 == 0:  # nadir, jittered
-                C = np.array([*rng.uniform(-6, 6, 2), alt])
-                target = C - np.array([*rng.uniform(-3, 3, 2), alt])
-            else:  # oblique: 45-60 degrees off nadir, looking at the scene
-                ang = rng.uniform(0, 2 * np.pi)
-                off = alt * np.tan(np.deg2rad(rng.uniform(45, 60)))
-                C = np.array([off * np.cos(ang), off * np.sin(ang), alt])
-                target = np.array([*rng.uniform(-4, 4, 2), 0.0])
-            R, t = look_at(C, target)
+            target = np.array([*rng.uniform(-2, 2, 2), rng.uniform(0.0, 3.0)])
+            if i % 3 == 2:  # nadir, jittered, image top towards the site from the walked side
+                alt = rng.uniform(30, 40)
+                C = np.array([*rng.uniform(-4, 4, 2), alt])
+                away = np.array([np.cos(heading), np.sin(heading), 0.0])
+                R, t = look_at(C, np.array([C[0], C[1], 0.0]), up=-away)
+            else:
+                low = i % 3 == 0
+                elev = np.deg2rad(rng.uniform(30, 40) if low else rng.uniform(55, 65))
+                dist = rng.uniform(21, 25) if low else rng.uniform(26, 32)
+                ang = next(azimuths) + rng.uniform(-0.15, 0.15)
+                C = target + dist * np.array(
+                    [np.cos(elev) * np.cos(ang), np.cos(elev) * np.sin(ang), np.sin(elev)]
+                )
+                R, t = look_at(C, target)
             cams.append(Camera(f"aerial_{i:02d}.png", K, R, t, width, height, True))
         for i in range(n_ground):
-            # a walk around the scene: 30 degrees apart (closing the ring from 12 cameras on)
-            ang = min(2 * np.pi / max(n_ground, 1), np.pi / 6) * i + rng.uniform(-0.1, 0.1)
-            radius = rng.uniform(0.8, 1.0) * self.extent * 0.85
+            ang = step * i + rng.uniform(-0.1, 0.1)
+            radius = rng.uniform(20, 23)
             C = np.array([radius * np.cos(ang), radius * np.sin(ang), rng.uniform(1.5, 2.0)])
-            target = np.array([*rng.uniform(-4, 4, 2), rng.uniform(0.0, 2.5)])
+            target = np.array([*rng.uniform(-2.5, 2.5, 2), rng.uniform(1.5, 3.0)])
             R, t = look_at(C, target)
             cams.append(Camera(f"ground_{i:02d}.png", K, R, t, width, height, False))
         return cams
