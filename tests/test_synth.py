@@ -61,7 +61,7 @@ def test_scene_files_and_colmap_model(tmp_path) -> None:
         assert (cam.width, cam.height) == (160, 120)
     aerial = [c for c in cams if c.aerial]
     ground = [c for c in cams if not c.aerial]
-    assert all(20 <= c.centre[2] <= 30 for c in aerial)
+    assert all(c.centre[2] >= 10 for c in aerial)  # a drone's height, and what the XMP rule reads
     assert all(1.5 <= c.centre[2] <= 2.0 for c in ground)
     # ground cameras look near-horizontally: the optical axis within 20 degrees of the horizon
     assert all(abs(np.degrees(np.arcsin(c.R[2, 2]))) < 20 for c in ground)
@@ -72,8 +72,10 @@ def test_covisibility_ground_truth(scene: Scene) -> None:
     cov = covisibility(scene, cams, scale=0.5)
     assert cov.shape == (6, 6) and np.allclose(np.diag(cov), 1.0)
     assert ((cov >= 0) & (cov <= 1)).all()
-    # what a ground camera sees, an aerial camera above the scene mostly sees too; not the reverse
     ground = [i for i, c in enumerate(cams) if not c.aerial]
     aerial = [i for i, c in enumerate(cams) if c.aerial]
-    assert max(cov[g, a] for g in ground for a in aerial) > 0.3
-    assert max(cov[a, g] for g in ground for a in aerial) < 0.3
+    # the drone's low oblique sees the walls the ground cameras see; neighbours on the walk
+    # overlap, the two ends of a 90-degree walk hardly do
+    assert max(min(cov[a, g], cov[g, a]) for g in ground for a in aerial) > 0.2
+    assert min(cov[ground[0], ground[1]], cov[ground[1], ground[0]]) > 0.2
+    assert max(cov[ground[0], ground[-1]], cov[ground[-1], ground[0]]) < 0.1
