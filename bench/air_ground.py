@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -69,6 +70,7 @@ def main() -> None:
                 match_cache=str(scene / "matches" / method),
                 **extra,
             )
+            shutil.rmtree(out, ignore_errors=True)  # a fresh database; raw matches come from the cache
             t0 = time.perf_counter()
             s = run(scene / "images", out, opts)
             m = evaluate_run(out, scene / "gt").metrics
@@ -86,7 +88,7 @@ def main() -> None:
                 )
             )
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "table.json").write_text(json.dumps(rows, indent=2))
+    (OUT / f"table_a{args.aerial}_g{args.ground}.json").write_text(json.dumps(rows, indent=2))
     print_table(
         f"Air-to-ground, synthetic ({args.aerial} aerial + {args.ground} ground, resize {args.resize})",
         COLUMNS,
