@@ -66,6 +66,11 @@ class MatcherConfig:
     refine: RefineOptions = field(default_factory=RefineOptions)
     final_check: bool = True  # geo methods: drop final matches farther than tau from the fitted F
     dedup_radius: float = 2.0  # px at network input: a dense match this close to an anchor is the same
+    # geo: a pair whose final F is supported by fewer anchors than this gives no matches (0: off).
+    # The optimiser makes the dense matches agree with an F by construction, so on a pair that does
+    # not overlap they agree with a wrong F and pass any later verification; the anchors, which the
+    # optimiser does not shape, are the independent evidence. 15 is COLMAP's min_num_inliers.
+    min_anchor_support: int = 15
     cache_images: int = 16
 
     def __post_init__(self) -> None:
@@ -316,6 +321,15 @@ class Matcher:
                 keep = sampson_distance(F_net, pa, pb) <= cfg.geo.tau
                 stats["final_check_removed"] = int((~keep).sum())
                 pa, pb, ps = pa[keep], pb[keep], ps[keep]
+            if cfg.method == "geo" and anchors is not None and cfg.min_anchor_support > 0:
+                support = 0
+                if F_net is not None and anchors[0].shape[0]:
+                    d = sampson_distance(F_net, anchors[0].to(F_net.device), anchors[1].to(F_net.device))
+                    support = int((d <= cfg.geo.tau).sum())
+                stats["anchor_support"] = support
+                if support < cfg.min_anchor_support:
+                    stats["rejected"] = f"{support} anchors support the pair's F"
+                    pa, pb, ps = pa[:0], pb[:0], ps[:0]
         F = np.zeros((3, 3))
         if F_net is not None:
             F = scale_fundamental(F_net.double().cpu().numpy(), prep0.from_original(), prep1.from_original())

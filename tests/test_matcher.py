@@ -74,3 +74,16 @@ def test_match_pair_api_takes_paths_and_options(tmp_path, astronaut_pair: Warped
         match_pair(p0, p1, bogus=1)
     with pytest.raises(ValueError, match="unknown method"):
         match_pair(p0, p1, method="magic")
+
+
+def test_geo_gives_nothing_for_images_that_do_not_overlap(matcher: Matcher) -> None:
+    """Two unrelated photos: the optimiser alone would return matches that agree with a (wrong) F
+    by construction, which COLMAP's verification would then accept; the anchor gate drops them."""
+    from geomatch.homography import photo
+
+    a, b = photo("coffee"), photo("rocket")
+    geo = matcher.derive(method="geo")
+    r = geo.match(a, b)
+    assert len(r) == 0 and "rejected" in r.stats and r.stats["anchor_support"] < 15
+    ungated = geo.derive(min_anchor_support=0).match(a, b)
+    assert len(ungated) > 0 and "rejected" not in ungated.stats
