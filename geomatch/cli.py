@@ -221,6 +221,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--method", choices=METHODS, default="geo")
     d.add_argument("--resize", type=int, default=640)
     d.set_defaults(func=cmd_demo)
+
+    from service.cli import register as register_service  # serve, worker, keys, submit (imports lazily)
+
+    register_service(sub)
     return parser
 
 

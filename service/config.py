@@ -1,0 +1,60 @@
+"""Settings, all read from the environment so that the API, workers and the CLI of one
+deployment agree by sharing the same variables (docs/service.md lists them)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+
+def _int(name: str, default: int) -> int:
+    raw = os.environ.get(name, "").strip()
+    if not raw:
+        return default
+    try:
+        return int(raw)
+    except ValueError:
+        raise ValueError(f"{name}={raw!r}: expected an integer") from None
+
+
+@dataclass(frozen=True)
+class Settings:
+    home: Path  # GEOMATCH_HOME: every file of the service lives under it
+    database_url: str  # DATABASE_URL, default: SQLite file under home
+    redis_url: str | None  # REDIS_URL; None = embedded mode (jobs run in the API process)
+    redis_prefix: str = "geomatch:"  # GEOMATCH_REDIS_PREFIX: every Redis key (broker included)
+    queue: str = "geomatch"  # GEOMATCH_QUEUE: Celery queue of job steps (+ ".interactive")
+    max_upload_bytes: int = 200 * 1024 * 1024  # GEOMATCH_MAX_UPLOAD_MB, per file
+    # GEOMATCH_MAX_PIXELS: above it an image is a decompression bomb. The default is Pillow's own
+    # MAX_IMAGE_PIXELS: the workers' reader (geomatch.imageio) refuses larger images anyway.
+    max_pixels: int = 89_478_485
+    visibility_timeout_s: int = 3600  # GEOMATCH_VISIBILITY_TIMEOUT: redelivery of a dead worker's task
+    lock_timeout_s: int = 120  # GEOMATCH_LOCK_TIMEOUT: a dead writer's lock expires after this
+    device: str = "auto"  # GEOMATCH_DEVICE: where workers run the networks
+    feature_cache_mb: int = 20_000  # GEOMATCH_FEATURE_CACHE_MB: on-disk feature cache cap (0: off)
+    embedded_threads: int = 1  # GEOMATCH_EMBEDDED_THREADS: job threads of the embedded runner
+    render_timeout_s: int = 120  # GEOMATCH_RENDER_TIMEOUT: how long a matches.png request waits
+
+    @property
+    def embedded(self) -> bool:
+        return self.redis_url is None
+
+    @classmethod
+    def from_env(cls) -> Settings:
+        home = Path(os.environ.get("GEOMATCH_HOME", "geomatch-data")).resolve()
+        return cls(
+            home=home,
+            database_url=os.environ.get("DATABASE_URL") or f"sqlite:///{home / 'geomatch.sqlite'}",
+            redis_url=os.environ.get("REDIS_URL") or None,
+            redis_prefix=os.environ.get("GEOMATCH_REDIS_PREFIX", "geomatch:"),
+            queue=os.environ.get("GEOMATCH_QUEUE", "geomatch"),
+            max_upload_bytes=_int("GEOMATCH_MAX_UPLOAD_MB", 200) * 1024 * 1024,
+            max_pixels=_int("GEOMATCH_MAX_PIXELS", 89_478_485),
+            visibility_timeout_s=_int("GEOMATCH_VISIBILITY_TIMEOUT", 3600),
+            lock_timeout_s=_int("GEOMATCH_LOCK_TIMEOUT", 120),
+            device=os.environ.get("GEOMATCH_DEVICE", "auto"),
+            feature_cache_mb=_int("GEOMATCH_FEATURE_CACHE_MB", 20_000),
+            embedded_threads=max(1, _int("GEOMATCH_EMBEDDED_THREADS", 1)),
+            render_timeout_s=_int("GEOMATCH_RENDER_TIMEOUT", 120),
+        )

@@ -1,0 +1,44 @@
+"""Typed domain errors raised by the use cases. Each transport maps them to its own status
+(HTTP here, gRPC codes in the gRPC servicer) so the application layer never names a protocol."""
+
+from __future__ import annotations
+
+
+class DomainError(Exception):
+    """Base: ``message`` is meant for the client, as is."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.message = message
+
+
+class NotFound(DomainError):
+    """Unknown, deleted, or another tenant's resource: indistinguishable on purpose."""
+
+
+class Unauthenticated(DomainError):
+    pass
+
+
+class InvalidRequest(DomainError):
+    """The request is well-formed but its values do not make sense for this project."""
+
+
+class BadFile(DomainError):
+    """An uploaded file is not a usable image or has an unacceptable name."""
+
+
+class UnsupportedFormat(DomainError):
+    pass
+
+
+class TooLarge(DomainError):
+    """Bytes or pixels over a configured limit (decompression bombs land here)."""
+
+
+class Conflict(DomainError):
+    """The request contradicts the project's current state."""
+
+
+class Unavailable(DomainError):
+    """A dependency (workers, Redis) did not answer in time; retrying later may succeed."""

@@ -1,0 +1,120 @@
+"""Job state transitions, shared by the API (submit, cancel) and the workers (run, finish).
+
+Every transition is one conditional UPDATE, so concurrent workers, redelivered steps and a
+cancel racing a finish all settle on one answer: a terminal state is never left, a pair is
+counted once, and exactly one caller sees a job complete.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import select, update
+
+from .models import TERMINAL_STATES, Job, JobPair, now
+from .queue import ENTRY_STEP, JobQueue
+from .store import MetadataStore
+
+
+def get(store: MetadataStore, job_id: str) -> Job | None:
+    with store.session() as s:
+        return s.get(Job, job_id)
+
+
+def claim(store: MetadataStore, job_id: str) -> Job | None:
+    """Mark a job running (again, after a redelivery); None when it is gone or finished."""
+    with store.session() as s:
+        s.execute(
+            update(Job)
+            .where(Job.id == job_id, Job.state == "queued")
+            .values(state="running", started_at=now())
+        )
+        job = s.get(Job, job_id)
+        if job is None or job.state != "running":
+            return None
+        return job
+
+
+def is_active(store: MetadataStore, job_id: str) -> bool:
+    with store.session() as s:
+        return s.scalar(select(Job.state).where(Job.id == job_id)) == "running"
+
+
+def set_total(store: MetadataStore, job_id: str, total: int) -> None:
+    with store.session() as s:
+        s.execute(update(Job).where(Job.id == job_id).values(total=total))
+
+
+def mark_pair_done(store: MetadataStore, job_id: str, idx: int, matches: int, inliers: int) -> bool:
+    """True the first time only: the pair's row flips and the job's counter moves in one transaction."""
+    with store.session() as s:
+        flipped = s.execute(
+            update(JobPair)
+            .where(JobPair.job_id == job_id, JobPair.idx == idx, JobPair.done.is_(False))
+            .values(done=True, matches=matches, inliers=inliers)
+        ).rowcount
+        if flipped:
+            s.execute(update(Job).where(Job.id == job_id).values(done=Job.done + 1))
+        return bool(flipped)
+
+
+def finish_if_complete(store: MetadataStore, job_id: str, result: dict[str, Any] | None = None) -> bool:
+    with store.session() as s:
+        return bool(
+            s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state == "running", Job.planned.is_(True), Job.done >= Job.total)
+                .values(state="succeeded", finished_at=now(), result=result)
+            ).rowcount
+        )
+
+
+def succeed(store: MetadataStore, job_id: str, result: dict[str, Any] | None = None) -> bool:
+    with store.session() as s:
+        return bool(
+            s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state == "running")
+                .values(state="succeeded", finished_at=now(), result=result, done=Job.total)
+            ).rowcount
+        )
+
+
+def fail(store: MetadataStore, job_id: str, error: str) -> bool:
+    with store.session() as s:
+        return bool(
+            s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state.not_in(TERMINAL_STATES))
+                .values(state="failed", finished_at=now(), error=error[:4000])
+            ).rowcount
+        )
+
+
+def cancel(store: MetadataStore, job_id: str, reason: str | None = None) -> bool:
+    with store.session() as s:
+        return bool(
+            s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state.not_in(TERMINAL_STATES))
+                .values(state="cancelled", finished_at=now(), error=reason)
+            ).rowcount
+        )
+
+
+def release_followers(store: MetadataStore, queue: JobQueue, job_id: str) -> None:
+    """Start the jobs queued behind a finished job, or cancel them if it did not succeed.
+
+    Called at least once per finish (possibly more after a redelivery): starting a queued job
+    twice is harmless since every step is idempotent.
+    """
+    with store.session() as s:
+        state = s.scalar(select(Job.state).where(Job.id == job_id))
+        followers = s.scalars(select(Job).where(Job.after_job_id == job_id, Job.state == "queued")).all()
+        followers = [(f.id, f.kind) for f in followers]
+    for fid, kind in followers:
+        if state == "succeeded":
+            queue.enqueue(ENTRY_STEP[kind], fid)
+        elif state in TERMINAL_STATES:
+            cancel(store, fid, f"the job it waited for ({job_id}) ended {state}")
+            release_followers(store, queue, fid)

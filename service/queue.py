@@ -1,0 +1,31 @@
+"""What the application layer needs from a job queue, whatever runs the jobs.
+
+Two implementations: ``workers.celery_queue.CeleryQueue`` (Celery on Redis, ``geomatch worker``
+processes) and ``workers.local.LocalQueue`` (threads of the API process: the embedded default).
+Steps are named by string so that enqueuing never imports the code that runs them.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+PLAN_MATCH = "geomatch.plan_match"
+EXTRACT = "geomatch.extract"
+MATCH_PAIR = "geomatch.match_pair"
+RECONSTRUCT = "geomatch.reconstruct"
+RENDER_PAIR = "geomatch.render_pair"
+
+ENTRY_STEP = {"match": PLAN_MATCH, "reconstruct": RECONSTRUCT}  # job kind -> its first step
+
+
+class JobQueue(Protocol):
+    def enqueue(self, step: str, *args: Any) -> None:
+        """Run ``step(*args)`` at least once, eventually (steps are idempotent)."""
+
+    def call(self, step: str, *args: Any, timeout: float) -> Any:
+        """Run an interactive step now and return its result; raises TimeoutError."""
+
+    def ping(self) -> None:
+        """Raise if the queue cannot accept work."""
+
+    def close(self) -> None: ...

@@ -1,0 +1,100 @@
+"""File storage under the storage root (GEOMATCH_HOME): where each project's files live.
+
+Layout, one folder per project::
+
+    projects/<id>/images/<name>        the uploaded bytes, as uploaded
+    projects/<id>/database.db          the COLMAP database (written by one writer at a time)
+    projects/<id>/model/               sparse/0 ..., points.ply, summary.json, model.zip
+    projects/<id>/pictures/            match pictures, rendered on first request
+    features/                          the workers' feature cache (safe to delete)
+    tmp/                               uploads being validated; renamed into place when accepted
+
+Every file appears by rename from a temporary name on the same file system, so a reader never
+sees half a file and a crash leaves only temporaries behind.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import uuid
+from pathlib import Path
+
+
+class Storage:
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+
+    def ensure(self) -> None:
+        for d in (self.root / "projects", self.tmp_dir, self.features_dir):
+            d.mkdir(parents=True, exist_ok=True)
+
+    @property
+    def tmp_dir(self) -> Path:
+        return self.root / "tmp"
+
+    @property
+    def features_dir(self) -> Path:
+        return self.root / "features"
+
+    def project_dir(self, project_id: str) -> Path:
+        if not project_id.isalnum():  # ids are uuid hex; anything else never reaches the disk
+            raise ValueError(f"bad project id {project_id!r}")
+        return self.root / "projects" / project_id
+
+    def images_dir(self, project_id: str) -> Path:
+        return self.project_dir(project_id) / "images"
+
+    def image_path(self, project_id: str, name: str) -> Path:
+        return self.images_dir(project_id) / name
+
+    def database_path(self, project_id: str) -> Path:
+        return self.project_dir(project_id) / "database.db"
+
+    def model_dir(self, project_id: str) -> Path:
+        return self.project_dir(project_id) / "model"
+
+    def pictures_dir(self, project_id: str) -> Path:
+        return self.project_dir(project_id) / "pictures"
+
+    def writer_lock_path(self, project_id: str) -> Path:
+        return self.project_dir(project_id) / ".writer.lock"
+
+    def temp_file(self) -> tuple[int, Path]:
+        self.tmp_dir.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(dir=self.tmp_dir, prefix="upload-")
+        return fd, Path(name)
+
+    def work_dir(self, project_id: str, tag: str) -> Path:
+        """A fresh folder inside the project (same file system as its final place)."""
+        d = self.project_dir(project_id) / f".work-{tag}-{uuid.uuid4().hex[:8]}"
+        d.mkdir(parents=True)
+        return d
+
+    def replace_dir(self, src: Path, dst: Path) -> None:
+        """Put ``src`` at ``dst``; the old ``dst`` (if any) goes away after the swap."""
+        old = None
+        if dst.exists():
+            old = dst.with_name(f".old-{dst.name}-{uuid.uuid4().hex[:8]}")
+            os.replace(dst, old)
+        os.replace(src, dst)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+    def delete_project(self, project_id: str) -> None:
+        d = self.project_dir(project_id)
+        if d.exists():
+            trash = self.root / "tmp" / f"deleted-{project_id}-{uuid.uuid4().hex[:8]}"
+            trash.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(d, trash)  # gone from its place at once; the slow part happens after
+            shutil.rmtree(trash, ignore_errors=True)
+
+    def check_writable(self) -> None:
+        self.tmp_dir.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(dir=self.tmp_dir, prefix="ready-")
+        try:
+            os.write(fd, b"ok")
+        finally:
+            os.close(fd)
+            os.unlink(name)

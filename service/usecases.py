@@ -1,0 +1,576 @@
+"""The application layer: every operation the API offers, free of any transport.
+
+Routers (HTTP today, gRPC in issue 5) translate requests into these calls and the typed errors
+of ``service.errors`` into statuses. A use case validates everything before it stores or
+enqueues anything, so a rejected request leaves no trace.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import shutil
+import sqlite3
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import closing
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from . import auth, jobstate
+from .config import Settings
+from .errors import BadFile, Conflict, InvalidRequest, NotFound, TooLarge, Unavailable
+from .locks import LockFactory
+from .models import TERMINAL_STATES, Image, Job, Project
+from .queue import ENTRY_STEP, RENDER_PAIR, JobQueue
+from .storage import Storage
+from .store import MetadataStore
+from .validation import (
+    CAPTURES,
+    MAPPERS,
+    METHODS,
+    TILING,
+    ImageInfo,
+    check_image,
+    check_name,
+    check_pair_list,
+    check_pair_spec,
+)
+
+DEFAULTS: dict[str, Any] = {
+    "pairs": "exhaustive",
+    "method": "geo",
+    "resize": 640,
+    "tiling": "auto",
+    "snap_radius": 1.5,
+    "camera": "auto",
+    "mapper": "incremental",
+}
+MODEL_FILES = {"zip": "model.zip", "ply": "points.ply", "json": "summary.json"}
+_CHUNK = 1 << 20
+
+
+@dataclass(frozen=True)
+class Upload:
+    name: str | None
+    stream: BinaryIO
+
+
+@dataclass(frozen=True)
+class ProjectView:
+    id: str
+    name: str
+    config: dict[str, Any]
+    created_at: datetime
+    images: int
+    has_model: bool
+
+
+@dataclass(frozen=True)
+class ImageView:
+    id: str
+    name: str
+    width: int
+    height: int
+    capture: str
+    sha256: str
+    size_bytes: int
+    format: str
+    aerial: bool | None
+    created: bool = False  # False when an identical upload already existed
+
+
+@dataclass(frozen=True)
+class JobView:
+    id: str
+    project_id: str
+    kind: str
+    state: str
+    done: int
+    total: int
+    error: str | None
+    options: dict[str, Any]
+    result: dict[str, Any] | None
+    after_job_id: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+    @property
+    def terminal(self) -> bool:
+        return self.state in TERMINAL_STATES
+
+
+@dataclass(frozen=True)
+class MatchRequest:
+    pairs: str | list[list[str]] | None = None
+    method: str | None = None
+    resize: int | None = None
+    tiling: str | None = None
+    snap_radius: float | None = None
+    camera: str | None = None
+    reconstruct: bool = False  # queue a reconstruct job that starts when matching succeeds
+    mapper: str | None = None
+
+
+@dataclass
+class _Staged:
+    name: str
+    path: Path
+    sha256: str
+    size: int
+    info: ImageInfo
+
+
+@dataclass
+class Readiness:
+    ok: bool
+    checks: dict[str, str] = field(default_factory=dict)
+
+
+def check_config(config: dict[str, Any]) -> dict[str, Any]:
+    """Validated project config / match options; raises InvalidRequest naming the bad key."""
+    unknown = sorted(set(config) - set(DEFAULTS))
+    if unknown:
+        raise InvalidRequest(f"unknown option(s) {', '.join(unknown)}; known: {', '.join(DEFAULTS)}")
+    out: dict[str, Any] = {}
+    for k, v in config.items():
+        if v is None:
+            continue
+        if k == "pairs":
+            out[k] = check_pair_spec(v) if isinstance(v, str) else v
+        elif k == "method":
+            out[k] = _choice(k, v, METHODS)
+        elif k == "tiling":
+            out[k] = _choice(k, v, TILING)
+        elif k == "mapper":
+            out[k] = _choice(k, v, MAPPERS)
+        elif k == "camera":
+            out[k] = _choice(k, v, ("auto", "per-image"))
+        elif k == "resize":
+            if isinstance(v, bool) or not isinstance(v, int) or not (v == 0 or 64 <= v <= 8192):
+                raise InvalidRequest(f"resize must be 0 (full size) or an integer from 64 to 8192, not {v!r}")
+            out[k] = v
+        elif k == "snap_radius":
+            if isinstance(v, bool) or not isinstance(v, int | float) or not 0 <= v <= 50:
+                raise InvalidRequest(f"snap_radius must be a number from 0 to 50 (network pixels), not {v!r}")
+            out[k] = float(v)
+    return out
+
+
+def _choice(key: str, value: Any, allowed: Sequence[str]) -> str:
+    if value not in allowed:
+        raise InvalidRequest(f"{key} must be one of {', '.join(allowed)}, not {value!r}")
+    return str(value)
+
+
+class Service:
+    def __init__(
+        self,
+        settings: Settings,
+        store: MetadataStore,
+        storage: Storage,
+        queue: JobQueue,
+        locks: LockFactory,
+    ) -> None:
+        self.settings = settings
+        self.store = store
+        self.storage = storage
+        self.queue = queue
+        self.locks = locks
+        self.on_upload: Callable[[int, int], object] | None = None  # (new images, bytes): metrics
+
+    def authenticate(self, key: str | None) -> str:
+        """The tenant id of an API key (Unauthenticated otherwise)."""
+        return auth.authenticate(self.store, key)
+
+    # -- projects --------------------------------------------------------------------------
+    def create_project(self, tenant_id: str, name: str, config: dict[str, Any] | None = None) -> ProjectView:
+        name = (name or "").strip()
+        if not name or len(name) > 200:
+            raise InvalidRequest("project name must be 1 to 200 characters")
+        cfg = check_config(config or {})
+        if isinstance(cfg.get("pairs"), list):
+            raise InvalidRequest(
+                "a project's default pairs is a spec (exhaustive, sequential:K, retrieval:K)"
+            )
+        with self.store.session() as s:
+            p = Project(tenant_id=tenant_id, name=name, config=cfg)
+            s.add(p)
+            s.flush()
+            return self._project_view(s, p)
+
+    def list_projects(self, tenant_id: str) -> list[ProjectView]:
+        with self.store.session() as s:
+            rows = s.scalars(
+                select(Project).where(Project.tenant_id == tenant_id).order_by(Project.created_at)
+            ).all()
+            return [self._project_view(s, p) for p in rows]
+
+    def get_project(self, tenant_id: str, project_id: str) -> ProjectView:
+        with self.store.session() as s:
+            return self._project_view(s, self._project(s, tenant_id, project_id))
+
+    def delete_project(self, tenant_id: str, project_id: str) -> None:
+        with self.store.session() as s:
+            p = self._project(s, tenant_id, project_id)
+            jobs = s.scalars(select(Job.id).where(Job.project_id == p.id)).all()
+        for job_id in jobs:  # workers see their job gone or cancelled and stop
+            jobstate.cancel(self.store, job_id, "project deleted")
+        with self.store.session() as s:
+            s.delete(s.get(Project, project_id))
+        # the writer lock: a worker writing this project right now finishes before the files go
+        with self.locks.project(project_id):
+            self.storage.delete_project(project_id)
+
+    def _project(self, s: Session, tenant_id: str, project_id: str) -> Project:
+        p = s.get(Project, project_id)
+        if p is None or p.tenant_id != tenant_id:
+            raise NotFound(f"project {project_id} not found")
+        return p
+
+    def _project_view(self, s: Session, p: Project) -> ProjectView:
+        n = s.scalar(select(func.count()).select_from(Image).where(Image.project_id == p.id)) or 0
+        has_model = (self.storage.model_dir(p.id) / "summary.json").is_file()
+        return ProjectView(p.id, p.name, dict(p.config), p.created_at, int(n), has_model)
+
+    # -- images ----------------------------------------------------------------------------
+    def upload_images(
+        self, tenant_id: str, project_id: str, uploads: Sequence[Upload], capture: str = "auto"
+    ) -> list[ImageView]:
+        """All files or none: every file is validated before the first one is stored."""
+        capture = _choice("capture", capture, CAPTURES)
+        if not uploads:
+            raise InvalidRequest("no files: send one or more multipart fields named 'files'")
+        with self.store.session() as s:
+            self._project(s, tenant_id, project_id)
+        staged: list[_Staged] = []
+        moved: list[Path] = []
+        try:
+            seen: set[str] = set()
+            for up in uploads:
+                name = check_name(up.name)
+                if name in seen:
+                    raise BadFile(f"{name}: sent twice in one request")
+                seen.add(name)
+                staged.append(self._stage(name, up.stream))
+            try:
+                with self.store.session() as s:
+                    self._project(s, tenant_id, project_id)
+                    views = self._register(s, project_id, staged, capture, moved)
+            except IntegrityError:  # a concurrent upload took a name or the bytes first
+                raise Conflict(
+                    "another upload of the same name or bytes was committed concurrently; retry"
+                ) from None
+        except BaseException:
+            for path in moved:
+                path.unlink(missing_ok=True)
+            raise
+        finally:
+            for st in staged:
+                st.path.unlink(missing_ok=True)
+        new = [v for v in views if v.created]
+        if self.on_upload is not None and new:
+            self.on_upload(len(new), sum(v.size_bytes for v in new))
+        return views
+
+    def _stage(self, name: str, stream: BinaryIO) -> _Staged:
+        fd, tmp = self.storage.temp_file()
+        h, size = hashlib.sha256(), 0
+        try:
+            with os.fdopen(fd, "wb") as f:
+                while chunk := stream.read(_CHUNK):
+                    size += len(chunk)
+                    if size > self.settings.max_upload_bytes:
+                        raise TooLarge(
+                            f"{name}: larger than the upload limit of "
+                            f"{self.settings.max_upload_bytes // (1024 * 1024)} MiB"
+                        )
+                    h.update(chunk)
+                    f.write(chunk)
+            info = check_image(tmp, name, self.settings.max_pixels)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return _Staged(name, tmp, h.hexdigest(), size, info)
+
+    def _register(
+        self, s: Session, project_id: str, staged: list[_Staged], capture: str, moved: list[Path]
+    ) -> list[ImageView]:
+        shas = [st.sha256 for st in staged]
+        names = [st.name for st in staged]
+        by_sha = {
+            i.sha256: i
+            for i in s.scalars(select(Image).where(Image.project_id == project_id, Image.sha256.in_(shas)))
+        }
+        by_name = {
+            i.name: i
+            for i in s.scalars(select(Image).where(Image.project_id == project_id, Image.name.in_(names)))
+        }
+        views: list[ImageView] = []
+        new: list[tuple[_Staged, Image]] = []
+        for st in staged:
+            same = by_sha.get(st.sha256)
+            if same is not None:  # the same bytes again: idempotent, whatever the name
+                views.append(_image_view(same, created=False))
+                continue
+            if st.name in by_name:
+                raise Conflict(
+                    f"{st.name}: an image of this name with other content is already in the project"
+                )
+            img = Image(
+                project_id=project_id,
+                name=st.name,
+                sha256=st.sha256,
+                width=st.info.width,
+                height=st.info.height,
+                size_bytes=st.size,
+                format=st.info.format,
+                capture=capture,
+            )
+            by_sha[st.sha256] = img
+            new.append((st, img))
+            views.append(_image_view(img, created=True))
+        s.add_all([img for _, img in new])
+        s.flush()
+        images_dir = self.storage.images_dir(project_id)
+        images_dir.mkdir(parents=True, exist_ok=True)
+        for st, img in new:
+            dest = images_dir / img.name
+            os.replace(st.path, dest)
+            moved.append(dest)
+        return [_image_view(by_sha[v.sha256], created=v.created) for v in views]
+
+    def list_images(self, tenant_id: str, project_id: str) -> list[ImageView]:
+        with self.store.session() as s:
+            self._project(s, tenant_id, project_id)
+            rows = s.scalars(select(Image).where(Image.project_id == project_id).order_by(Image.name)).all()
+            return [_image_view(i) for i in rows]
+
+    # -- jobs ------------------------------------------------------------------------------
+    def start_match(
+        self, tenant_id: str, project_id: str, req: MatchRequest
+    ) -> tuple[JobView, JobView | None]:
+        with self.store.session() as s:
+            p = self._project(s, tenant_id, project_id)
+            names = set(s.scalars(select(Image.name).where(Image.project_id == project_id)))
+            if len(names) < 2:
+                raise InvalidRequest(f"the project has {len(names)} image(s); matching needs at least 2")
+            given = {
+                k: getattr(req, k)
+                for k in ("pairs", "method", "resize", "tiling", "snap_radius", "camera", "mapper")
+            }
+            opts = {**DEFAULTS, **check_config(dict(p.config)), **check_config(given)}
+            if isinstance(opts["pairs"], list):
+                opts["pairs"] = check_pair_list(opts["pairs"], names)
+            mapper = opts.pop("mapper")
+            job = Job(project_id=project_id, tenant_id=tenant_id, kind="match", options=opts)
+            s.add(job)
+            s.flush()
+            follower = None
+            if req.reconstruct:
+                follower = Job(
+                    project_id=project_id,
+                    tenant_id=tenant_id,
+                    kind="reconstruct",
+                    options={"mapper": mapper},
+                    total=1,
+                    after_job_id=job.id,
+                )
+                s.add(follower)
+                s.flush()
+            views = _job_view(job), _job_view(follower) if follower else None
+        self._enqueue(views[0])
+        return views
+
+    def start_reconstruct(self, tenant_id: str, project_id: str, mapper: str | None = None) -> JobView:
+        with self.store.session() as s:
+            p = self._project(s, tenant_id, project_id)
+            mapper = _choice("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"], MAPPERS)
+            matched = s.scalar(
+                select(func.count())
+                .select_from(Job)
+                .where(Job.project_id == project_id, Job.kind == "match", Job.state == "succeeded")
+            )
+            if not matched:
+                raise Conflict(
+                    "nothing to reconstruct yet: no match job of this project has succeeded "
+                    '(POST .../match first, or with "reconstruct": true to chain both)'
+                )
+            job = Job(
+                project_id=project_id,
+                tenant_id=tenant_id,
+                kind="reconstruct",
+                options={"mapper": mapper},
+                total=1,
+            )
+            s.add(job)
+            s.flush()
+            view = _job_view(job)
+        self._enqueue(view)
+        return view
+
+    def _enqueue(self, job: JobView) -> None:
+        try:
+            self.queue.enqueue(ENTRY_STEP[job.kind], job.id)
+        except Exception as e:
+            jobstate.fail(self.store, job.id, f"could not queue the job: {e}")
+            raise Unavailable(f"the job queue is not reachable ({e}); the job was not started") from None
+
+    def get_job(self, tenant_id: str, job_id: str) -> JobView:
+        with self.store.session() as s:
+            job = s.get(Job, job_id)
+            if job is None or job.tenant_id != tenant_id:
+                raise NotFound(f"job {job_id} not found")
+            return _job_view(job)
+
+    def cancel_job(self, tenant_id: str, job_id: str) -> JobView:
+        """Idempotent: a finished job is returned as it is."""
+        self.get_job(tenant_id, job_id)
+        if jobstate.cancel(self.store, job_id, "cancelled by the client"):
+            jobstate.release_followers(self.store, self.queue, job_id)
+        return self.get_job(tenant_id, job_id)
+
+    def watch_job(
+        self, tenant_id: str, job_id: str, interval_s: float = 0.5, heartbeat_s: float = 15.0
+    ) -> Iterator[JobView | None]:
+        """The job each time its state or progress changes, until it ends; None as a keep-alive."""
+        last: tuple[Any, ...] | None = None
+        quiet_since = time.monotonic()
+        while True:
+            job = self.get_job(tenant_id, job_id)
+            key = (job.state, job.done, job.total, job.error)
+            if key != last:
+                last = key
+                quiet_since = time.monotonic()
+                yield job
+                if job.terminal:
+                    return
+            elif time.monotonic() - quiet_since > heartbeat_s:
+                quiet_since = time.monotonic()
+                yield None
+            time.sleep(interval_s)
+
+    # -- outputs ---------------------------------------------------------------------------
+    def model_file(self, tenant_id: str, project_id: str, fmt: str) -> Path:
+        if fmt not in MODEL_FILES:
+            raise InvalidRequest(f"format must be one of {', '.join(MODEL_FILES)}, not {fmt!r}")
+        self.get_project(tenant_id, project_id)
+        path = self.storage.model_dir(project_id) / MODEL_FILES[fmt]
+        if not path.is_file():
+            if not (self.storage.model_dir(project_id) / "summary.json").is_file():
+                raise NotFound(f"project {project_id} has no model yet: POST .../reconstruct")
+            raise NotFound(f"the model of project {project_id} has no {fmt} (no 3D points)")
+        return path
+
+    def database_snapshot(self, tenant_id: str, project_id: str) -> Path:
+        """A consistent copy of the project's COLMAP database (SQLite's online backup), which the
+        caller deletes: the live file may be mid-transaction at any moment."""
+        self.get_project(tenant_id, project_id)
+        src = self.storage.database_path(project_id)
+        if not src.is_file():
+            raise NotFound(
+                f"project {project_id} has no COLMAP database yet: it is created by its first match job"
+            )
+        fd, tmp = self.storage.temp_file()
+        os.close(fd)
+        try:
+            with (
+                closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True, timeout=60)) as a,
+                closing(sqlite3.connect(tmp)) as b,
+            ):
+                a.backup(b)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return tmp
+
+    def matches_picture(self, tenant_id: str, project_id: str, name0: str, name1: str) -> Path:
+        with self.store.session() as s:
+            self._project(s, tenant_id, project_id)
+            known = set(
+                s.scalars(
+                    select(Image.name).where(Image.project_id == project_id, Image.name.in_([name0, name1]))
+                )
+            )
+        for n in (name0, name1):
+            if n not in known:
+                raise NotFound(f"image {n!r} not found in project {project_id}")
+        if name0 == name1:
+            raise InvalidRequest("a pair has two different images")
+        path = self.storage.pictures_dir(project_id) / picture_name(name0, name1)
+        if path.is_file():
+            return path
+        try:
+            out = self.queue.call(
+                RENDER_PAIR, project_id, name0, name1, timeout=self.settings.render_timeout_s
+            )
+        except TimeoutError:
+            raise Unavailable(
+                f"no worker drew the picture within {self.settings.render_timeout_s}s; retry later"
+            ) from None
+        if out.get("error") == "not_matched":
+            raise NotFound(f"pair ({name0}, {name1}) has not been matched in project {project_id}")
+        if out.get("error"):
+            raise Unavailable(f"drawing the picture failed: {out['error']}")
+        return path
+
+    # -- health ----------------------------------------------------------------------------
+    def readiness(self) -> Readiness:
+        r = Readiness(ok=True)
+        for name, check in (
+            ("database", self.store.ping),
+            ("queue", self.queue.ping),
+            ("storage", self.storage.check_writable),
+        ):
+            try:
+                check()
+                r.checks[name] = "ok"
+            except Exception as e:
+                r.ok = False
+                r.checks[name] = f"error: {e}"
+        r.checks["mode"] = "embedded" if self.settings.embedded else "redis"
+        return r
+
+
+def picture_name(name0: str, name1: str) -> str:
+    return hashlib.sha256(f"{name0}\0{name1}".encode()).hexdigest()[:32] + ".png"
+
+
+def _image_view(i: Image, created: bool = False) -> ImageView:
+    return ImageView(
+        i.id, i.name, i.width, i.height, i.capture, i.sha256, i.size_bytes, i.format, i.aerial, created
+    )
+
+
+def _job_view(j: Job) -> JobView:
+    return JobView(
+        id=j.id,
+        project_id=j.project_id,
+        kind=j.kind,
+        state=j.state,
+        done=j.done,
+        total=j.total,
+        error=j.error,
+        options=dict(j.options or {}),
+        result=j.result,
+        after_job_id=j.after_job_id,
+        created_at=j.created_at,
+        started_at=j.started_at,
+        finished_at=j.finished_at,
+    )
+
+
+def remove_quietly(path: Path) -> None:
+    with contextlib.suppress(OSError):
+        if path.is_dir():
+            shutil.rmtree(path)
+        else:
+            path.unlink()

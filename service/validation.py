@@ -1,0 +1,114 @@
+"""Checks on what clients send, done in the API before anything is stored or queued.
+
+Image checks use Pillow only (the library's ``read_image`` would pull torch into the API): the
+header gives the size, which is checked against the pixel limit BEFORE any decoding, so a
+decompression bomb costs nothing; then the whole file is decoded once, which catches truncated
+and corrupt files. The pair grammar is ``geomatch.pairs.parse_spec``'s (a test keeps them equal).
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from PIL import Image
+
+from .errors import BadFile, InvalidRequest, TooLarge, UnsupportedFormat
+
+# what the pipeline reads (geomatch.pipeline.IMAGE_SUFFIXES); MPO is how Pillow names many camera JPEGs
+FORMATS = {"JPEG": "jpeg", "MPO": "jpeg", "PNG": "png", "TIFF": "tiff", "BMP": "bmp", "WEBP": "webp"}
+MIN_SIDE = 16  # the matcher's minimum (geomatch.imageio)
+MAX_NAME = 200
+METHODS = ("sparse", "dense", "concat", "geo-noanchor", "geo")  # geomatch.matcher.METHODS
+MAPPERS = ("incremental", "global")  # geomatch.sfm.MAPPERS
+TILING = ("auto", "on", "off")
+CAPTURES = ("aerial", "ground", "auto")
+_SPEC = re.compile(r"(exhaustive)|(sequential|retrieval):(\d+)")
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    width: int
+    height: int
+    format: str
+
+
+def check_name(name: str | None) -> str:
+    """A plain file name: it becomes a path component under the project and COLMAP's image name."""
+    if name is None or not name.strip():
+        raise BadFile("a file has no name")
+    if "/" in name or "\\" in name:
+        raise BadFile(f"file name {name!r} contains a path separator; send plain file names")
+    if ".." in name:
+        raise BadFile(f"file name {name!r} contains '..'")
+    if name.startswith("."):
+        raise BadFile(f"file name {name!r} starts with a dot")
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
+        raise BadFile(f"file name {name!r} contains control characters")
+    if len(name) > MAX_NAME:
+        raise BadFile(f"file name is {len(name)} characters long; at most {MAX_NAME}")
+    if name != name.strip():
+        raise BadFile(f"file name {name!r} starts or ends with white space")
+    return name
+
+
+def check_image(path: Path, name: str, max_pixels: int) -> ImageInfo:
+    """Raise BadFile / UnsupportedFormat / TooLarge with a message naming ``name``, else describe it."""
+    if path.stat().st_size == 0:
+        raise BadFile(f"{name}: empty file (0 bytes)")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                width, height, fmt = im.width, im.height, im.format or "?"
+                if fmt not in FORMATS:
+                    accepted = ", ".join(sorted(set(FORMATS.values())))
+                    raise UnsupportedFormat(f"{name}: {fmt} images are not accepted; send {accepted}")
+                if width * height > max_pixels:
+                    raise TooLarge(
+                        f"{name}: {width}x{height} = {width * height} pixels exceeds the limit of "
+                        f"{max_pixels} (decompression bomb guard)"
+                    )
+                im.load()  # decodes everything: truncated or corrupt data fails here
+    except (BadFile, UnsupportedFormat, TooLarge):
+        raise
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+        raise TooLarge(
+            f"{name}: exceeds the limit of {max_pixels} pixels (decompression bomb guard; {e})"
+        ) from None
+    except Exception as e:  # Pillow raises OSError, SyntaxError, ValueError, struct.error ...
+        reason = "truncated or corrupt image data" if "truncat" in str(e).lower() else "not a readable image"
+        raise BadFile(f"{name}: {reason} ({e})") from None
+    if width < MIN_SIDE or height < MIN_SIDE:
+        raise BadFile(f"{name}: {width}x{height} is too small to match (at least {MIN_SIDE}x{MIN_SIDE})")
+    return ImageInfo(width, height, FORMATS[fmt])
+
+
+def check_pair_spec(spec: str) -> str:
+    m = _SPEC.fullmatch(spec.strip())
+    if not m or (m.group(3) is not None and int(m.group(3)) < 1):
+        raise InvalidRequest(
+            f"bad pairs {spec!r}: use exhaustive, sequential:K, retrieval:K (K >= 1) or a list of name pairs"
+        )
+    return spec.strip()
+
+
+def check_pair_list(pairs: list[list[str]], names: set[str]) -> list[list[str]]:
+    if not pairs:
+        raise InvalidRequest("the pair list is empty")
+    out = []
+    for p in pairs:
+        if len(p) != 2:
+            raise InvalidRequest(f"a pair has two image names, got {p!r}")
+        a, b = p
+        for n in (a, b):
+            if n not in names:
+                raise InvalidRequest(
+                    f"pair [{a!r}, {b!r}] names {n!r}, which is not an image of this project"
+                )
+        if a == b:
+            raise InvalidRequest(f"pair [{a!r}, {b!r}] matches an image with itself")
+        out.append([a, b])
+    return out

@@ -1,0 +1,167 @@
+"""Real processes for the service tests: `geomatch serve` (uvicorn) on a free loopback port,
+`geomatch worker` (Celery) processes, keys made with `geomatch keys create`.
+
+Each deployment gets its own GEOMATCH_HOME, Redis key prefix and queue name, so test runs (and
+deployments within one run) sharing one Redis never see each other's messages or locks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+GEOMATCH = str(Path(sys.executable).parent / "geomatch")
+TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Deployment:
+    def __init__(self, root: Path, redis_url: str | None, **env: str) -> None:
+        self.root = root
+        self.home = root / "home"
+        self.uid = uuid.uuid4().hex[:10]
+        self.redis_url = redis_url
+        self.prefix = f"gmtest-{self.uid}:"
+        base = {
+            k: v
+            for k, v in os.environ.items()
+            if not k.startswith(("GEOMATCH_", "REDIS_URL", "DATABASE_URL"))
+        }
+        self.env = {
+            **base,
+            "GEOMATCH_HOME": str(self.home),
+            "GEOMATCH_LOG_FORMAT": "text",
+            "GEOMATCH_QUEUE": f"gmtest-{self.uid}",
+            "GEOMATCH_REDIS_PREFIX": self.prefix,
+            **env,
+        }
+        if redis_url:
+            self.env["REDIS_URL"] = redis_url
+        self.server: subprocess.Popen[bytes] | None = None
+        self.workers: list[subprocess.Popen[bytes]] = []
+        self.url = ""
+        self.server_out = ""  # what `geomatch serve` printed before it was ready
+
+    # -- processes ---------------------------------------------------------------------------
+    def _spawn(self, args: list[str], log: str) -> subprocess.Popen[bytes]:
+        self.root.mkdir(parents=True, exist_ok=True)
+        out = (self.root / log).open("ab")
+        return subprocess.Popen(
+            [GEOMATCH, *args], env=self.env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True
+        )
+
+    def start_server(self, timeout: float = 120.0) -> str:
+        port = free_port()
+        self.server = self._spawn(["serve", "--host", "127.0.0.1", "--port", str(port)], "server.log")
+        self.url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.server.poll() is not None:
+                raise RuntimeError(f"geomatch serve exited with {self.server.returncode}:\n{self.logs()}")
+            with contextlib.suppress(httpx.HTTPError):
+                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                    self.server_out = (self.root / "server.log").read_text()
+                    return self.url
+            time.sleep(0.3)
+        raise RuntimeError(f"geomatch serve not ready after {timeout}s:\n{self.logs()}")
+
+    def start_worker(self) -> subprocess.Popen[bytes]:
+        w = self._spawn(["worker", "--concurrency", "1"], f"worker-{len(self.workers)}.log")
+        self.workers.append(w)
+        return w
+
+    @staticmethod
+    def kill(proc: subprocess.Popen[bytes], sig: int = signal.SIGKILL) -> None:
+        """The whole process group: a prefork worker's parent and its pool children alike."""
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=30)
+
+    def stop(self) -> None:
+        for p in [*self.workers, *([self.server] if self.server else [])]:
+            if p.poll() is None:
+                self.kill(p, signal.SIGTERM)
+            if p.poll() is None:
+                self.kill(p, signal.SIGKILL)
+        if self.redis_url:
+            import redis
+
+            r = redis.Redis.from_url(self.redis_url)
+            for k in r.scan_iter(f"{self.prefix}*", count=1000):
+                r.delete(k)
+
+    def logs(self, tail: int = 6000) -> str:
+        out = []
+        for f in sorted(self.root.glob("*.log")):
+            out.append(f"--- {f.name}\n{f.read_text(errors='replace')[-tail:]}")
+        return "\n".join(out)
+
+    # -- clients -----------------------------------------------------------------------------
+    def create_key(self, tenant: str) -> str:
+        r = subprocess.run([GEOMATCH, "keys", "create", tenant], env=self.env, capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        key = r.stdout.strip()
+        assert key.startswith("gm_"), r.stdout
+        return key
+
+    def client(self, key: str | None) -> httpx.Client:
+        headers = {"Authorization": f"Bearer {key}"} if key else {}
+        return httpx.Client(base_url=self.url, headers=headers, timeout=180)
+
+    def metadata(self, sql: str, *params: Any) -> list[tuple[Any, ...]]:
+        """Read the metadata store directly (SQLite under GEOMATCH_HOME)."""
+        with contextlib.closing(sqlite3.connect(self.home / "geomatch.sqlite", timeout=30)) as c:
+            return c.execute(sql, params).fetchall()
+
+
+def wait_job(c: httpx.Client, job_id: str, timeout: float = 600.0, until: Any = None) -> dict[str, Any]:
+    """Poll a job until it ends (or ``until(job)`` holds)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        job = c.get(f"/v1/jobs/{job_id}").json()
+        if job["state"] in TERMINAL or (until is not None and until(job)):
+            return job
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"job {job_id} still {job['state']} {job['progress']} after {timeout}s")
+        time.sleep(0.2)
+
+
+def sse_events(c: httpx.Client, job_id: str) -> Iterator[dict[str, Any]]:
+    """The `event: job` payloads of a job's server-sent event stream, until it closes."""
+    import json
+
+    with c.stream("GET", f"/v1/jobs/{job_id}/events", timeout=None) as r:
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
+        event, data = None, []
+        for line in r.iter_lines():
+            if line.startswith("event:"):
+                event = line[6:].strip()
+            elif line.startswith("data:"):
+                data.append(line[5:].strip())
+            elif line == "" and data:
+                if event == "job":
+                    yield json.loads("\n".join(data))
+                event, data = None, []
+
+
+def upload(c: httpx.Client, project_id: str, paths: list[Path], capture: str = "auto") -> httpx.Response:
+    files = [("files", (p.name, p.read_bytes(), "image/png")) for p in paths]
+    return c.post(f"/v1/projects/{project_id}/images", files=files, data={"capture": capture})

@@ -1,0 +1,215 @@
+"""Pieces of the service without servers: validation rules (and their agreement with the
+library), the torch-free import of the API, the on-disk feature store, and job state
+transitions on SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sqlalchemy import select
+
+from geomatch import steps
+from geomatch.homography import WarpedPair
+from geomatch.matcher import METHODS
+from geomatch.pairs import PairSpecError, parse_spec
+from geomatch.sfm import MAPPERS
+from service import jobstate, validation
+from service.errors import BadFile, InvalidRequest
+from service.models import Job, JobPair, Project, Tenant
+from service.store import MetadataStore
+
+
+def test_constants_agree_with_the_library() -> None:
+    assert validation.METHODS == METHODS
+    assert validation.MAPPERS == MAPPERS
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        "exhaustive",
+        "sequential:3",
+        "retrieval:10",
+        " exhaustive ",
+        "sequential:0",
+        "retrieval",
+        "nearest:3",
+        "x",
+        "",
+    ],
+)
+def test_pair_grammar_is_the_librarys(spec: str) -> None:
+    try:
+        parse_spec(spec)
+        library_ok = True
+    except PairSpecError:
+        library_ok = False
+    try:
+        validation.check_pair_spec(spec)
+        service_ok = True
+    except InvalidRequest:
+        service_ok = False
+    assert service_ok == library_ok
+
+
+@pytest.mark.parametrize("name", ["a.jpg", "DJI_0001.JPG", "photo 1.png", "é.png", "a.b.c.tif"])
+def test_names_accepted(name: str) -> None:
+    assert validation.check_name(name) == name
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        None,
+        "",
+        "  ",
+        "a/b.jpg",
+        "a\\b.jpg",
+        "..",
+        ".",
+        "x/../y.jpg",
+        "a..jpg",
+        ".hidden.png",
+        "a\0.png",
+        "x" * 300,
+    ],
+)
+def test_names_refused(name: str | None) -> None:
+    with pytest.raises(BadFile):
+        validation.check_name(name)
+
+
+def test_service_modules_do_not_import_torch() -> None:
+    code = (
+        "import sys, service.api, service.bootstrap, service.cli, workers.celery_queue, workers.local, "
+        "workers.tasks, workers.jobs; "
+        "print(sorted(m for m in ('torch', 'geomatch', 'cv2') if m in sys.modules))"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert r.stdout.strip() == "[]"
+
+
+# -- feature store -------------------------------------------------------------------------------
+def test_features_are_computed_once_across_processes(tmp_path: Path, astronaut_pair: WarpedPair) -> None:
+    """A second matcher (as in another worker process) reads the first one's features from disk:
+    no network pass, identical matches."""
+    store = steps.FeatureStore(tmp_path / "features")
+    a, b = astronaut_pair.image0, astronaut_pair.image1
+    first = steps.build_matcher(store, method="geo", resize=320, device="cpu")
+    r1 = first.match(a, b)
+    assert first.extract_calls == 4  # ALIKED and DISK for each image
+    files = sorted(p.relative_to(store.root) for p in store.root.rglob("*.pt"))
+    assert len(files) == 4 and {p.parts[0].split("-")[0] for p in files} == {"aliked", "disk+dense"}
+    second = steps.build_matcher(store, method="geo", resize=320, device="cpu")
+    r2 = second.match(a, b)
+    assert second.extract_calls == 0 and second.disk_hits == 4  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(r1.keypoints0, r2.keypoints0)
+    np.testing.assert_array_equal(r1.keypoints1, r2.keypoints1)
+    other_resolution = steps.build_matcher(store, method="geo", resize=256, device="cpu")
+    other_resolution.features(a)
+    assert other_resolution.extract_calls == 2  # resolution is part of the address
+
+
+def test_feature_store_prunes_least_recently_used(tmp_path: Path, astronaut_pair: WarpedPair) -> None:
+    store = steps.FeatureStore(tmp_path / "features")
+    m = steps.build_matcher(store, method="sparse", resize=256, device="cpu")
+    m.features(astronaut_pair.image0)
+    m.features(astronaut_pair.image1)
+    files = sorted(store.root.rglob("*.pt"), key=lambda p: p.stat().st_mtime)
+    assert len(files) == 2
+    assert store.prune(files[-1].stat().st_size) == 1
+    assert [p for p in files if p.exists()] == files[-1:]
+    torn = files[-1]
+    torn.write_bytes(b"not a checkpoint")  # a torn file is a miss, recomputed and rewritten
+    again = steps.build_matcher(store, method="sparse", resize=256, device="cpu")
+    again.features(astronaut_pair.image1)
+    assert again.extract_calls == 1 and torn.stat().st_size > 100
+    off = steps.FeatureStore(tmp_path / "off", max_bytes=0)
+    steps.build_matcher(off, method="sparse", resize=256, device="cpu").features(astronaut_pair.image0)
+    assert not (tmp_path / "off").exists()
+
+
+# -- job state on both metadata backends ----------------------------------------------------------
+def _postgres_url() -> str | None:
+    try:
+        import psycopg
+
+        with psycopg.connect(
+            "postgresql://postgres@127.0.0.1:5432/postgres", connect_timeout=2, autocommit=True
+        ):
+            return "postgresql://postgres@127.0.0.1:5432/postgres"
+    except Exception:
+        return None
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[MetadataStore]:
+    if request.param == "sqlite":
+        s = MetadataStore(f"sqlite:///{tmp_path / 'meta.sqlite'}")
+        s.create_all()
+        yield s
+        s.dispose()
+        return
+    admin = _postgres_url()
+    if admin is None:
+        pytest.skip("no PostgreSQL on 127.0.0.1:5432")
+    import psycopg
+
+    name = f"gmtest_{uuid.uuid4().hex[:12]}"
+    with psycopg.connect(admin, autocommit=True) as c:
+        c.execute(f"CREATE DATABASE {name}")
+    s = MetadataStore(admin.rsplit("/", 1)[0] + f"/{name}")
+    try:
+        s.create_all()
+        yield s
+    finally:
+        s.dispose()
+        with psycopg.connect(admin, autocommit=True) as c:
+            c.execute(f"DROP DATABASE {name} WITH (FORCE)")
+
+
+def _match_job(store: MetadataStore, pairs: int) -> str:
+    with store.session() as s:
+        t = Tenant(name=f"t-{uuid.uuid4().hex[:6]}")
+        s.add(t)
+        s.flush()
+        p = Project(tenant_id=t.id, name="p", config={})
+        s.add(p)
+        s.flush()
+        j = Job(project_id=p.id, tenant_id=t.id, kind="match", options={})
+        s.add(j)
+        s.flush()
+        s.add_all(JobPair(job_id=j.id, idx=i, name0=f"{i}a", name1=f"{i}b") for i in range(pairs))
+        j.total, j.planned = pairs, True
+        return j.id
+
+
+def test_pairs_count_once_and_jobs_finish_once(store: MetadataStore) -> None:
+    job_id = _match_job(store, 2)
+    assert jobstate.claim(store, job_id) is not None
+    assert jobstate.mark_pair_done(store, job_id, 0, 10, 8)
+    assert not jobstate.mark_pair_done(store, job_id, 0, 10, 8)  # a redelivered step
+    assert not jobstate.finish_if_complete(store, job_id)
+    assert jobstate.mark_pair_done(store, job_id, 1, 5, 5)
+    assert jobstate.finish_if_complete(store, job_id)
+    assert not jobstate.finish_if_complete(store, job_id)  # exactly one caller sees the end
+    job = jobstate.get(store, job_id)
+    assert job is not None and (job.state, job.done, job.total) == ("succeeded", 2, 2)
+    assert jobstate.claim(store, job_id) is None  # finished jobs are not run again
+
+
+def test_terminal_states_are_final(store: MetadataStore) -> None:
+    job_id = _match_job(store, 1)
+    assert jobstate.cancel(store, job_id, "by test")
+    assert jobstate.claim(store, job_id) is None
+    assert not jobstate.fail(store, job_id, "too late")
+    jobstate.mark_pair_done(store, job_id, 0, 1, 1)
+    assert not jobstate.finish_if_complete(store, job_id)
+    with store.session() as s:
+        assert s.scalar(select(Job.state).where(Job.id == job_id)) == "cancelled"

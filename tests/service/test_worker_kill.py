@@ -1,0 +1,70 @@
+"""A worker SIGKILLed in the middle of a match job: nothing is lost, nothing is written twice.
+
+Its own deployment (server, queue and Redis prefix) so no other worker picks the job up. The
+visibility timeout is short (15 s) so that Redis hands the dead worker's unacknowledged steps to
+the new worker quickly; the lock timeout likewise, in case the kill lands inside a write.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pycolmap
+import pytest
+
+from .harness import Deployment, upload, wait_job
+
+GROUND = ["ground_00.png", "ground_01.png", "ground_02.png", "ground_03.png"]
+
+
+def test_killed_worker_loses_nothing_and_writes_nothing_twice(
+    tmp_path_factory: pytest.TempPathFactory, redis_url: str, scene: Path, tmp_path: Path
+) -> None:
+    d = Deployment(
+        tmp_path_factory.mktemp("kill"),
+        redis_url,
+        GEOMATCH_VISIBILITY_TIMEOUT="15",
+        GEOMATCH_LOCK_TIMEOUT="15",
+    )
+    try:
+        d.start_server()
+        first = d.start_worker()
+        key = d.create_key("kill")
+        c = d.client(key)
+        pid = c.post("/v1/projects", json={"name": "kill"}).json()["id"]
+        assert upload(c, pid, [scene / "images" / n for n in GROUND], "ground").status_code == 201
+        job_id = c.post(f"/v1/projects/{pid}/match", json={"resize": 320}).json()["job_id"]
+
+        job = wait_job(c, job_id, timeout=300, until=lambda j: j["progress"]["done"] >= 2)
+        Deployment.kill(first)  # SIGKILL to the worker and its pool child, mid-job
+        assert first.returncode is not None
+        job = c.get(f"/v1/jobs/{job_id}").json()
+        assert job["state"] == "running" and 2 <= job["progress"]["done"] < 6, job
+        time.sleep(3)
+        stalled = c.get(f"/v1/jobs/{job_id}").json()
+        assert stalled["state"] == "running" and stalled["progress"] == job["progress"]  # nobody works
+
+        d.start_worker()
+        job = wait_job(c, job_id, timeout=400)
+        assert job["state"] == "succeeded", (job, d.logs())
+        assert job["progress"] == {"done": 6, "total": 6}
+        assert d.metadata("SELECT count(*), sum(done) FROM job_pairs WHERE job_id = ?", job_id) == [(6, 6)]
+
+        r = c.get(f"/v1/projects/{pid}/database")
+        (tmp_path / "db.db").write_bytes(r.content)
+        db = pycolmap.Database.open(str(tmp_path / "db.db"))
+        try:
+            names = {im.image_id: im.name for im in db.read_all_images()}
+            pair_ids = db.read_all_matches()[0]
+            pairs = sorted(
+                tuple(sorted(names[i] for i in pycolmap.pair_id_to_image_pair(p))) for p in pair_ids
+            )
+            expected = sorted((a, b) for i, a in enumerate(GROUND) for b in GROUND[i + 1 :])
+            assert pairs == expected  # every pair, each exactly once
+            assert db.num_verified_image_pairs() == 6
+            assert db.num_images() == 4
+        finally:
+            db.close()
+    finally:
+        d.stop()

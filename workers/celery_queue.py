@@ -1,0 +1,43 @@
+"""JobQueue over Celery: what the API (and steps that queue further steps) use with REDIS_URL set.
+
+Steps are sent by name, so the API process never imports the step code (nor torch)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import redis
+from celery import Celery
+from celery.exceptions import TimeoutError as CeleryTimeout
+
+from service.config import Settings
+from service.queue import RENDER_PAIR
+
+from .celery_app import interactive_queue, make_app
+
+
+class CeleryQueue:
+    def __init__(self, settings: Settings, app: Celery | None = None) -> None:
+        self.settings = settings
+        self.app = app or make_app(settings)
+        assert settings.redis_url is not None
+        self._redis = redis.Redis.from_url(settings.redis_url, socket_timeout=5, socket_connect_timeout=5)
+
+    def enqueue(self, step: str, *args: Any) -> None:
+        queue = interactive_queue(self.settings) if step == RENDER_PAIR else self.settings.queue
+        self.app.send_task(step, args=list(args), queue=queue)
+
+    def call(self, step: str, *args: Any, timeout: float) -> Any:
+        r = self.app.send_task(step, args=list(args), queue=interactive_queue(self.settings), expires=timeout)
+        try:
+            return r.get(timeout=timeout, propagate=True)
+        except CeleryTimeout:
+            raise TimeoutError(f"{step} did not finish within {timeout}s") from None
+        finally:
+            r.forget()
+
+    def ping(self) -> None:
+        self._redis.ping()
+
+    def close(self) -> None:
+        self._redis.close()

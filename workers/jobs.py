@@ -1,0 +1,362 @@
+"""The steps of a job, whatever runs them (Celery worker processes or the embedded threads).
+
+A match job is ``plan_match`` -> ``extract`` per image -> ``match_pair`` per pair; a reconstruct
+job is one ``reconstruct``. Every step may run twice (redelivery after a worker died, a
+duplicate dispatch) and must then do nothing twice:
+
+- a pair already in the COLMAP database is not matched again, and ``write_pair`` is a no-op for
+  a pair that is there (both checked under the project's writer lock);
+- a pair counts towards progress when its ``job_pairs`` row flips to done, once;
+- the model is built in a fresh folder and swapped in whole.
+
+A step first checks that its job is still running: cancelled, failed or deleted jobs are skipped,
+which is how cancellation stops the pair steps still queued. The library is imported inside the
+steps only, so importing this module does not import torch.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sqlite3
+import time
+import zipfile
+from collections.abc import Callable
+from contextlib import closing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select, update
+
+from service import jobstate
+from service.config import Settings
+from service.locks import LockFactory
+from service.models import Image, Job, JobPair
+from service.queue import EXTRACT, MATCH_PAIR, PLAN_MATCH, RECONSTRUCT, RENDER_PAIR, JobQueue
+from service.storage import Storage
+from service.store import MetadataStore
+from service.usecases import picture_name
+
+from . import runtime
+
+log = logging.getLogger("geomatch.workers")
+
+
+class PermanentError(Exception):
+    """Retrying cannot help: the job fails at once."""
+
+
+@dataclass
+class Context:
+    settings: Settings
+    store: MetadataStore
+    storage: Storage
+    locks: LockFactory
+    queue: JobQueue
+
+
+def is_permanent(exc: BaseException) -> bool:
+    """Bad options, bad data and missing weights fail the job now; anything else (I/O, a busy
+    database, a lost connection, memory) is worth retrying, possibly on another worker."""
+    if isinstance(exc, PermanentError | ValueError | TypeError | LookupError | NotImplementedError):
+        return True
+    return any(c.__name__ == "WeightsNotFoundError" for c in type(exc).__mro__)
+
+
+# -- match jobs ---------------------------------------------------------------------------------
+def plan_match(ctx: Context, job_id: str) -> str:
+    job = jobstate.claim(ctx.store, job_id)
+    if job is None:
+        return "skipped"
+    if not job.planned:
+        _plan(ctx, job)
+    return _dispatch(ctx, job_id)
+
+
+def _plan(ctx: Context, job: Job) -> None:
+    from geomatch import steps
+    from geomatch.colmapdb import ColmapDatabase
+    from geomatch.metadata import read_metadata
+
+    t0 = time.perf_counter()
+    opts, pid = job.options, job.project_id
+    with ctx.store.session() as s:
+        rows = s.execute(
+            select(Image.name, Image.capture).where(Image.project_id == pid).order_by(Image.name)
+        ).all()
+    names = [n for n, _ in rows]
+    image_dir = ctx.storage.images_dir(pid)
+    metas = {n: read_metadata(image_dir / n) for n in names}
+    aerial = {n for n, c in rows if c == "aerial" or (c == "auto" and metas[n].aerial_hint)}
+    with ctx.store.session() as s:
+        for n in names:
+            s.execute(
+                update(Image).where(Image.project_id == pid, Image.name == n).values(aerial=n in aerial)
+            )
+    share_camera = False if opts.get("camera") == "per-image" else None
+    with ctx.locks.project(pid):
+        if not jobstate.is_active(ctx.store, job.id):
+            return
+        with ColmapDatabase(ctx.storage.database_path(pid)) as db:
+            ids = {n: db.add_image(n, metas[n], share_camera) for n in names}
+            matched = db.matched_pairs()
+    spec = opts["pairs"] if isinstance(opts["pairs"], str) else "exhaustive"
+    pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
+    matcher = runtime.matcher(ctx, opts) if spec.startswith("retrieval") and pairs_list is None else None
+    planned = steps.plan(image_dir, names, aerial, spec, pairs_list, opts.get("tiling", "auto"), matcher)
+    todo = [p for p in planned if tuple(sorted((ids[p.name0], ids[p.name1]))) not in matched]
+    with ctx.store.session() as s:
+        row = s.get(Job, job.id, with_for_update=True)
+        if row is None or row.planned:  # a duplicate of this step planned it first
+            return
+        s.add_all(
+            JobPair(
+                job_id=job.id, idx=i, name0=p.name0, name1=p.name1, tiled=p.tiled, aerial_first=p.aerial_first
+            )
+            for i, p in enumerate(todo)
+        )
+        row.total = len(todo)
+        row.planned = True
+    log.info(
+        "planned %d pairs (%d already matched, %d tiled) in %.1fs",
+        len(todo),
+        len(planned) - len(todo),
+        sum(p.tiled for p in todo),
+        time.perf_counter() - t0,
+        extra={"job_id": job.id, "project_id": pid},
+    )
+
+
+def _dispatch(ctx: Context, job_id: str) -> str:
+    """Queue the steps of every pair not done yet (again, after a redelivery: duplicates skip)."""
+    with ctx.store.session() as s:
+        pending = s.scalars(
+            select(JobPair).where(JobPair.job_id == job_id, JobPair.done.is_(False)).order_by(JobPair.idx)
+        ).all()
+    if not pending:
+        if jobstate.finish_if_complete(ctx.store, job_id):
+            jobstate.release_followers(ctx.store, ctx.queue, job_id)
+        return "nothing to match"
+    full: set[str] = set()
+    crops: set[str] = set()
+    for p in pending:
+        if p.tiled:
+            (crops if p.aerial_first else full).add(p.name0)
+            (full if p.aerial_first else crops).add(p.name1)
+        else:
+            full.update((p.name0, p.name1))
+    for name in sorted(full | crops):  # features first: the pair steps then find them on disk
+        ctx.queue.enqueue(EXTRACT, job_id, name, name in full, name in crops)
+    for p in pending:
+        ctx.queue.enqueue(MATCH_PAIR, job_id, p.idx)
+    return f"dispatched {len(pending)} pairs"
+
+
+def extract(ctx: Context, job_id: str, name: str, full: bool, crops: bool) -> str:
+    from geomatch import steps
+
+    job = jobstate.get(ctx.store, job_id)
+    if job is None or job.state != "running":
+        return "skipped"
+    image = runtime.image(ctx.storage.image_path(job.project_id, name))
+    n = steps.extract(runtime.matcher(ctx, job.options), image, full, crops)
+    return f"{n} feature entries"
+
+
+def match_pair(ctx: Context, job_id: str, idx: int) -> str:
+    from geomatch import steps
+    from geomatch.colmapdb import ColmapDatabase
+    from geomatch.pairs import Pair
+
+    job = jobstate.get(ctx.store, job_id)
+    if job is None or job.state != "running":
+        return "skipped"
+    with ctx.store.session() as s:
+        p = s.get(JobPair, (job_id, idx))
+    if p is None:
+        return "skipped"
+    pid, opts = job.project_id, job.options
+    db_path = ctx.storage.database_path(pid)
+    matches = inliers = 0
+    if not p.done:
+        with ctx.locks.project(pid), ColmapDatabase(db_path) as db:
+            id0, id1 = _image_id(db, p.name0), _image_id(db, p.name1)
+            present = db.has_pair(id0, id1)  # redelivered after its write, or matched by another job
+        if not present:
+            t0 = time.perf_counter()
+            a = runtime.image(ctx.storage.image_path(pid, p.name0))
+            b = runtime.image(ctx.storage.image_path(pid, p.name1))
+            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first)
+            k0, k1, sc = steps.match(runtime.matcher(ctx, opts), pair, a, b)
+            t1 = time.perf_counter()
+            resize = opts.get("resize") or None
+            radius = float(opts.get("snap_radius", 1.5))
+            with ctx.locks.project(pid):
+                if not jobstate.is_active(ctx.store, job_id):  # cancelled while matching: write nothing
+                    return "cancelled"
+                with ColmapDatabase(db_path) as db:
+                    w = db.write_pair(
+                        id0,
+                        id1,
+                        k0,
+                        k1,
+                        sc,
+                        steps.snap_radius(radius, resize, a),
+                        steps.snap_radius(radius, resize, b),
+                    )
+            matches, inliers = w.matches, w.inliers
+            log.info(
+                "pair %s x %s: %d matches, %d inliers (%s), match %.2fs write %.2fs",
+                p.name0,
+                p.name1,
+                w.matches,
+                w.inliers,
+                w.config or "present",
+                t1 - t0,
+                time.perf_counter() - t1,
+                extra={"job_id": job_id, "project_id": pid},
+            )
+    jobstate.mark_pair_done(ctx.store, job_id, idx, matches, inliers)
+    if jobstate.finish_if_complete(ctx.store, job_id):
+        log.info("match job succeeded", extra={"job_id": job_id, "project_id": pid})
+        jobstate.release_followers(ctx.store, ctx.queue, job_id)
+    return "done"
+
+
+def _image_id(db: Any, name: str) -> int:
+    if not db.db.exists_image(name):
+        raise PermanentError(f"image {name!r} is not in the COLMAP database")
+    return int(db.db.read_image_with_name(name).image_id)
+
+
+# -- reconstruct jobs ---------------------------------------------------------------------------
+def reconstruct(ctx: Context, job_id: str) -> str:
+    from geomatch.colmapdb import ColmapDatabase
+    from geomatch.sfm import reconstruct as sfm_reconstruct
+
+    job = jobstate.claim(ctx.store, job_id)
+    if job is None:
+        return "skipped"
+    pid = job.project_id
+    db_path = ctx.storage.database_path(pid)
+    if not db_path.is_file():
+        raise PermanentError("the project has no COLMAP database: run a match job first")
+    t0 = time.perf_counter()
+    work = ctx.storage.work_dir(pid, f"reconstruct-{job_id}")
+    try:
+        snapshot = work / "database.db"
+        with ctx.locks.project(pid):  # a consistent copy; matching may go on while we map
+            _sqlite_copy(db_path, snapshot)
+        out = work / "model"
+        summary = sfm_reconstruct(
+            snapshot, ctx.storage.images_dir(pid), out, job.options.get("mapper", "incremental")
+        )
+        with ColmapDatabase(snapshot) as db:
+            summary["database"] = db.stats()
+        summary["timings"] = {"mapping": round(time.perf_counter() - t0, 3)}
+        summary["job_id"] = job_id
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        _zip_model(out)
+        if not jobstate.is_active(ctx.store, job_id):
+            return "cancelled"
+        ctx.storage.replace_dir(out, ctx.storage.model_dir(pid))
+    finally:
+        import shutil
+
+        shutil.rmtree(work, ignore_errors=True)
+    jobstate.succeed(ctx.store, job_id, summary)
+    log.info(
+        "reconstructed: %s/%s images registered, %s points",
+        summary.get("registered"),
+        summary.get("images"),
+        summary.get("points3D"),
+        extra={"job_id": job_id, "project_id": pid},
+    )
+    jobstate.release_followers(ctx.store, ctx.queue, job_id)
+    return "done"
+
+
+def _sqlite_copy(src: Path, dst: Path) -> None:
+    with (
+        closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True, timeout=60)) as a,
+        closing(sqlite3.connect(dst)) as b,
+    ):
+        a.backup(b)
+
+
+def _zip_model(out: Path) -> None:
+    """model.zip: sparse/<i>/ (COLMAP binary, and text for sparse/0), points.ply, summary.json."""
+    tmp = out / "model.zip.tmp"
+    with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
+        for f in sorted((out / "sparse").rglob("*")):
+            if f.is_file():
+                z.write(f, f.relative_to(out).as_posix())
+        for name in ("points.ply", "summary.json"):
+            if (out / name).is_file():
+                z.write(out / name, name)
+    tmp.rename(out / "model.zip")
+
+
+# -- interactive --------------------------------------------------------------------------------
+def render_pair(ctx: Context, project_id: str, name0: str, name1: str) -> dict[str, Any]:
+    """Draw a matched pair from the COLMAP database: verified inliers red, other matches blue."""
+    import numpy as np
+
+    from geomatch.colmapdb import ColmapDatabase
+    from geomatch.matcher import MatchResult
+    from geomatch.viz import save_matches
+
+    db_path = ctx.storage.database_path(project_id)
+    if not db_path.is_file():
+        return {"error": "not_matched"}
+    with ctx.locks.project(project_id), ColmapDatabase(db_path) as db:
+        if not (db.db.exists_image(name0) and db.db.exists_image(name1)):
+            return {"error": "not_matched"}
+        id0, id1 = _image_id(db, name0), _image_id(db, name1)
+        if not db.has_pair(id0, id1):
+            return {"error": "not_matched"}
+        kp0, kp1 = db.keypoints(id0), db.keypoints(id1)
+        m = np.asarray(db.db.read_matches(id0, id1)).reshape(-1, 2)
+        inl = np.asarray(db.db.read_two_view_geometry(id0, id1).inlier_matches).reshape(-1, 2)
+    is_inlier = {(int(a), int(b)) for a, b in inl}
+    scores = np.array([1.0 if (int(a), int(b)) in is_inlier else 0.0 for a, b in m], np.float32)
+    a = runtime.image(ctx.storage.image_path(project_id, name0))
+    b = runtime.image(ctx.storage.image_path(project_id, name1))
+    result = MatchResult(
+        keypoints0=kp0[m[:, 0]].astype(np.float32),
+        keypoints1=kp1[m[:, 1]].astype(np.float32),
+        scores=scores,
+        F=np.zeros((3, 3)),
+        method=f"{len(inl)} verified (red) of",
+        image_sizes=((a.shape[1], a.shape[0]), (b.shape[1], b.shape[0])),
+    )
+    pictures = ctx.storage.pictures_dir(project_id)
+    pictures.mkdir(parents=True, exist_ok=True)
+    path = pictures / picture_name(name0, name1)
+    tmp = path.with_suffix(f".{time.monotonic_ns()}.png")
+    save_matches(tmp, a, b, result)
+    tmp.replace(path)
+    return {"path": str(path), "matches": len(m), "inliers": len(inl)}
+
+
+# -- failures -----------------------------------------------------------------------------------
+def on_failure(ctx: Context, step: str, args: tuple[Any, ...], exc: BaseException) -> None:
+    """A step gave up (permanent error or retries exhausted): its job fails with the reason."""
+    if step == RENDER_PAIR or not args:
+        return
+    job_id = str(args[0])
+    where = f"pair {args[1]}" if step == MATCH_PAIR and len(args) > 1 else step.split(".")[-1]
+    reason = str(exc) if isinstance(exc, PermanentError) else f"{type(exc).__name__}: {exc}"
+    if jobstate.fail(ctx.store, job_id, f"{where}: {reason}"):
+        log.error("job failed in %s: %s", where, exc, extra={"job_id": job_id})
+        jobstate.release_followers(ctx.store, ctx.queue, job_id)
+
+
+STEPS: dict[str, Callable[..., Any]] = {
+    PLAN_MATCH: plan_match,
+    EXTRACT: extract,
+    MATCH_PAIR: match_pair,
+    RECONSTRUCT: reconstruct,
+    RENDER_PAIR: render_pair,
+}

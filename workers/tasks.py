@@ -1,0 +1,68 @@
+"""The Celery tasks: one per job step, thin wrappers around ``workers.jobs``.
+
+Retry policy: a step that raises a transient error is retried (exponential backoff, 3 times),
+a permanent one (``jobs.is_permanent``) fails its job at once; a step that gave up fails its job
+through ``on_failure``. Each worker process builds its own context (database engine, Redis
+client) on first use, after the prefork pool has forked it.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import redis
+from celery import Celery, Task
+
+from service.config import Settings
+from service.locks import RedisLocks
+from service.queue import RENDER_PAIR
+from service.storage import Storage
+from service.store import MetadataStore
+
+from . import jobs
+from .celery_queue import CeleryQueue
+
+_context: tuple[int, jobs.Context] | None = None
+
+
+def context(app: Celery) -> jobs.Context:
+    global _context
+    if _context is None or _context[0] != os.getpid():
+        settings = Settings.from_env()
+        assert settings.redis_url is not None
+        store = MetadataStore(settings.database_url)
+        client = redis.Redis.from_url(settings.redis_url)
+        locks = RedisLocks(client, settings.redis_prefix, settings.lock_timeout_s)
+        _context = (
+            os.getpid(),
+            jobs.Context(settings, store, Storage(settings.home), locks, CeleryQueue(settings, app)),
+        )
+    return _context[1]
+
+
+def register(app: Celery) -> None:
+    class StepTask(Task):  # type: ignore[misc]
+        autoretry_for = (Exception,)
+        dont_autoretry_for = (jobs.PermanentError, ValueError, TypeError, LookupError, NotImplementedError)
+        max_retries = 3
+        retry_backoff = 2
+        retry_backoff_max = 60
+        retry_jitter = True
+        acks_late = True
+        reject_on_worker_lost = True
+
+        def on_failure(self, exc: BaseException, task_id: str, args: Any, kwargs: Any, einfo: Any) -> None:
+            jobs.on_failure(context(app), self.name, tuple(args), exc)
+
+    for name, fn in jobs.STEPS.items():
+
+        def run(self: Task, *args: Any, _fn: Any = fn) -> Any:
+            try:
+                return _fn(context(app), *args)
+            except Exception as e:  # e.g. missing weights (an OSError): fail now, not after 3 retries
+                if jobs.is_permanent(e) and not isinstance(e, StepTask.dont_autoretry_for):
+                    raise jobs.PermanentError(f"{type(e).__name__}: {e}") from e
+                raise
+
+        app.task(name=name, base=StepTask, bind=True, ignore_result=name != RENDER_PAIR)(run)
