@@ -24,7 +24,13 @@ $(STAMP): $(BIN)/python pyproject.toml
 	@$(BIN)/python -c "import torch; print('torch', torch.__version__, '(CUDA build)' if torch.version.cuda else '(CPU build)')"
 	touch $(STAMP)
 
-setup: $(STAMP)
+# The gRPC code is generated, never committed: again whenever the proto changes, with the venv's own
+# grpcio-tools so that it matches the installed protobuf (setup.py also generates it for wheels).
+GRPC_GEN := service/grpcapi/geomatch_pb2_grpc.py
+$(GRPC_GEN): $(STAMP) proto/geomatch/v1/geomatch.proto
+	$(BIN)/python -m service.grpcapi.codegen
+
+setup: $(STAMP) $(GRPC_GEN)
 
 demo: setup
 	$(BIN)/geomatch demo

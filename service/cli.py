@@ -20,13 +20,17 @@ KEY_FILE = "api-key.txt"
 
 
 def register(sub: Any) -> None:
+    from .grpcapi import cli as grpc_cli  # light: grpc is imported by its commands only
+
     s = sub.add_parser(
         "serve",
         help="run the HTTP API (embedded default: SQLite, local files, jobs in-process; REDIS_URL: Celery)",
     )
     s.add_argument("--host", default="127.0.0.1")
     s.add_argument("--port", type=int, default=8000)
+    grpc_cli.add_serve_options(s)
     s.set_defaults(func=cmd_serve)
+    grpc_cli.register(sub)
 
     w = sub.add_parser("worker", help="run a Celery worker for the service's jobs (needs REDIS_URL)")
     w.add_argument("--concurrency", type=int, default=1, help="steps run at once (one process each)")
@@ -59,6 +63,7 @@ def register(sub: Any) -> None:
     b.add_argument("--wait", action="store_true", help="wait for the model (implied by --out)")
     b.add_argument("--out", type=Path, help="unpack the model here: sparse/0/, points.ply, summary.json")
     b.add_argument("--no-progress", action="store_true")
+    grpc_cli.add_submit_options(b)
     b.set_defaults(func=cmd_submit)
 
 
@@ -79,6 +84,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
     logs.configure()
     settings = _settings()
     service = build_service(settings)
+    from .grpcapi.cli import start_beside_http
+
+    try:
+        grpc_server = start_beside_http(service, args)  # same Service: one job runner, one config
+    except SystemExit:
+        close_service(service)
+        raise
     base = f"http://{args.host}:{args.port}"
     if settings.embedded:
         key = embedded_key(service.store, settings.home)
@@ -101,6 +113,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     try:
         server.run()
     finally:
+        if grpc_server is not None:
+            grpc_server.stop()
         close_service(service)
     return 0
 
@@ -148,6 +162,9 @@ def cmd_worker(args: argparse.Namespace) -> int:
     Storage(settings.home).ensure()
     app = make_app(settings)
     register_tasks(app)
+    from workers.pairmatch import register as register_match_two  # gRPC MatchPair's step
+
+    register_match_two(app)
     app.worker_main(
         [
             "worker",
@@ -244,6 +261,10 @@ def _captures(files: list[Path], folder: Path, args: argparse.Namespace) -> dict
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
+    if args.grpc:
+        from .grpcapi.cli import cmd_submit as submit_grpc
+
+        return submit_grpc(args)
     import httpx
     from tqdm import tqdm
 

@@ -36,6 +36,10 @@ class TooLarge(DomainError):
     """Bytes or pixels over a configured limit (decompression bombs land here)."""
 
 
+class DecompressionBomb(TooLarge):
+    """Pixels over the limit: a bad image rather than a big upload (gRPC tells them apart)."""
+
+
 class Conflict(DomainError):
     """The request contradicts the project's current state."""
 

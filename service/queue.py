@@ -14,6 +14,7 @@ EXTRACT = "geomatch.extract"
 MATCH_PAIR = "geomatch.match_pair"
 RECONSTRUCT = "geomatch.reconstruct"
 RENDER_PAIR = "geomatch.render_pair"
+MATCH_TWO = "geomatch.match_two"  # interactive: two uploaded images, no project (gRPC MatchPair)
 
 ENTRY_STEP = {"match": PLAN_MATCH, "reconstruct": RECONSTRUCT}  # job kind -> its first step
 

@@ -13,13 +13,15 @@ import os
 import shutil
 import sqlite3
 import time
-from collections.abc import Callable, Iterator, Sequence
+import uuid
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import closing
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -29,7 +31,7 @@ from .config import Settings
 from .errors import BadFile, Conflict, InvalidRequest, NotFound, TooLarge, Unavailable
 from .locks import LockFactory
 from .models import TERMINAL_STATES, Image, Job, Project
-from .queue import ENTRY_STEP, RENDER_PAIR, JobQueue
+from .queue import ENTRY_STEP, MATCH_TWO, RENDER_PAIR, JobQueue
 from .storage import Storage
 from .store import MetadataStore
 from .validation import (
@@ -61,6 +63,7 @@ _CHUNK = 1 << 20
 class Upload:
     name: str | None
     stream: BinaryIO
+    capture: str | None = None  # this file's capture; None: the request's
 
 
 @dataclass(frozen=True)
@@ -120,6 +123,23 @@ class MatchRequest:
     mapper: str | None = None
 
 
+@dataclass(frozen=True)
+class PairMatches:
+    """Matches of two images in their original pixels, as ``geomatch.matcher.MatchResult``."""
+
+    keypoints0: np.ndarray  # (N, 2) float32
+    keypoints1: np.ndarray  # (N, 2) float32
+    scores: np.ndarray  # (N,) float32
+    F: np.ndarray  # (3, 3), x1^T F x0 = 0; zeros when it could not be fitted
+    sizes: tuple[tuple[int, int], tuple[int, int]]  # (width, height) of each image
+    method: str
+    tiled: bool
+    timings: dict[str, float]
+
+
+PAIR_OPTIONS = ("method", "resize", "tiling")  # what match_two accepts of DEFAULTS
+
+
 @dataclass
 class _Staged:
     name: str
@@ -127,6 +147,7 @@ class _Staged:
     sha256: str
     size: int
     info: ImageInfo
+    capture: str | None = None
 
 
 @dataclass
@@ -243,9 +264,10 @@ class Service:
 
     # -- images ----------------------------------------------------------------------------
     def upload_images(
-        self, tenant_id: str, project_id: str, uploads: Sequence[Upload], capture: str = "auto"
+        self, tenant_id: str, project_id: str, uploads: Iterable[Upload], capture: str = "auto"
     ) -> list[ImageView]:
-        """All files or none: every file is validated before the first one is stored."""
+        """All files or none: every file is validated before the first one is stored. ``uploads``
+        may be a stream (gRPC): each file is read to its end before the next is asked for."""
         capture = _choice("capture", capture, CAPTURES)
         if not uploads:
             raise InvalidRequest("no files: send one or more multipart fields named 'files'")
@@ -260,7 +282,11 @@ class Service:
                 if name in seen:
                     raise BadFile(f"{name}: sent twice in one request")
                 seen.add(name)
+                file_capture = None if up.capture is None else _choice("capture", up.capture, CAPTURES)
                 staged.append(self._stage(name, up.stream))
+                staged[-1].capture = file_capture
+            if not staged:
+                raise InvalidRequest("no images were sent")
             try:
                 with self.store.session() as s:
                     self._project(s, tenant_id, project_id)
@@ -333,7 +359,7 @@ class Service:
                 height=st.info.height,
                 size_bytes=st.size,
                 format=st.info.format,
-                capture=capture,
+                capture=st.capture or capture,
             )
             by_sha[st.sha256] = img
             new.append((st, img))
@@ -522,6 +548,56 @@ class Service:
             raise Unavailable(f"drawing the picture failed: {out['error']}")
         return path
 
+    # -- pairwise matching -----------------------------------------------------------------
+    def match_two(
+        self,
+        tenant_id: str,
+        uploads: Iterable[Upload],
+        options: dict[str, Any] | None = None,
+        timeout_s: float = 600.0,
+    ) -> PairMatches:
+        """Two images in, matches out, nothing kept. The images pass the upload checks, then the
+        queue's interactive path matches them where heavy work runs (a worker, or the embedded
+        runner), so this process never loads a network. ``timeout_s`` also reaches the worker,
+        which drops the pair once it has passed."""
+        opts = check_config(options or {})
+        extra = sorted(set(opts) - set(PAIR_OPTIONS))
+        if extra:
+            raise InvalidRequest(f"option(s) {', '.join(extra)} do not apply to a single pair")
+        opts = {k: opts.get(k, DEFAULTS[k]) for k in PAIR_OPTIONS}
+        work = self.storage.tmp_dir / f"pair-{uuid.uuid4().hex}"  # shared with the workers
+        work.mkdir(parents=True)
+        try:
+            captures: list[str] = []
+            for up in uploads:
+                if len(captures) == 2:
+                    raise InvalidRequest("a pair is two images; a third was sent")
+                name = check_name(up.name)
+                captures.append(_choice("capture", up.capture or "auto", CAPTURES))
+                os.replace(self._stage(name, up.stream).path, work / str(len(captures) - 1))
+            if len(captures) != 2:
+                raise InvalidRequest(f"a pair is two images; {len(captures)} were sent")
+            deadline = time.time() + timeout_s
+            try:
+                out = self.queue.call(MATCH_TWO, work.name, captures, opts, deadline, timeout=timeout_s)
+            except TimeoutError:
+                raise Unavailable(f"no worker matched the pair within {timeout_s:.0f}s") from None
+            if out.get("error"):
+                raise Unavailable(f"matching the pair failed: {out['error']}")
+            with np.load(work / out["file"]) as z:
+                return PairMatches(
+                    keypoints0=z["keypoints0"],
+                    keypoints1=z["keypoints1"],
+                    scores=z["scores"],
+                    F=z["F"],
+                    sizes=(_size(z["size0"]), _size(z["size1"])),
+                    method=str(z["method"]),
+                    tiled=bool(z["tiled"]),
+                    timings={k: float(v) for k, v in out.get("timings", {}).items()},
+                )
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+
     # -- health ----------------------------------------------------------------------------
     def readiness(self) -> Readiness:
         r = Readiness(ok=True)
@@ -542,6 +618,10 @@ class Service:
 
 def picture_name(name0: str, name1: str) -> str:
     return hashlib.sha256(f"{name0}\0{name1}".encode()).hexdigest()[:32] + ".png"
+
+
+def _size(a: np.ndarray) -> tuple[int, int]:
+    return int(a[0]), int(a[1])
 
 
 def _image_view(i: Image, created: bool = False) -> ImageView:

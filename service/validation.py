@@ -15,7 +15,7 @@ from pathlib import Path
 
 from PIL import Image
 
-from .errors import BadFile, InvalidRequest, TooLarge, UnsupportedFormat
+from .errors import BadFile, DecompressionBomb, InvalidRequest, TooLarge, UnsupportedFormat
 
 # what the pipeline reads (geomatch.pipeline.IMAGE_SUFFIXES); MPO is how Pillow names many camera JPEGs
 FORMATS = {"JPEG": "jpeg", "MPO": "jpeg", "PNG": "png", "TIFF": "tiff", "BMP": "bmp", "WEBP": "webp"}
@@ -67,7 +67,7 @@ def check_image(path: Path, name: str, max_pixels: int) -> ImageInfo:
                     accepted = ", ".join(sorted(set(FORMATS.values())))
                     raise UnsupportedFormat(f"{name}: {fmt} images are not accepted; send {accepted}")
                 if width * height > max_pixels:
-                    raise TooLarge(
+                    raise DecompressionBomb(
                         f"{name}: {width}x{height} = {width * height} pixels exceeds the limit of "
                         f"{max_pixels} (decompression bomb guard)"
                     )
@@ -75,7 +75,7 @@ def check_image(path: Path, name: str, max_pixels: int) -> ImageInfo:
     except (BadFile, UnsupportedFormat, TooLarge):
         raise
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
-        raise TooLarge(
+        raise DecompressionBomb(
             f"{name}: exceeds the limit of {max_pixels} pixels (decompression bomb guard; {e})"
         ) from None
     except Exception as e:  # Pillow raises OSError, SyntaxError, ValueError, struct.error ...

@@ -1,0 +1,143 @@
+"""Between messages and the use cases' views and requests: the gRPC twin of ``schemas.py``."""
+
+from __future__ import annotations
+
+import json
+import math
+from datetime import UTC, datetime
+from typing import Any
+
+from google.protobuf import struct_pb2, timestamp_pb2
+
+from ..usecases import ImageView, JobView, MatchRequest, PairMatches, ProjectView
+from .framing import CAPTURES
+from .pb import pb2
+
+CONFIG_FIELDS = ("pairs", "method", "resize", "tiling", "snap_radius", "camera", "mapper")
+CAPTURE_ENUM = {"auto": pb2.CAPTURE_AUTO, "aerial": pb2.CAPTURE_AERIAL, "ground": pb2.CAPTURE_GROUND}
+JOB_KINDS = {"match": pb2.JOB_KIND_MATCH, "reconstruct": pb2.JOB_KIND_RECONSTRUCT}
+JOB_STATES = {
+    "queued": pb2.JOB_STATE_QUEUED,
+    "running": pb2.JOB_STATE_RUNNING,
+    "succeeded": pb2.JOB_STATE_SUCCEEDED,
+    "failed": pb2.JOB_STATE_FAILED,
+    "cancelled": pb2.JOB_STATE_CANCELLED,
+}
+MODEL_FORMATS = {
+    pb2.MODEL_FORMAT_UNSPECIFIED: "zip",
+    pb2.MODEL_FORMAT_ZIP: "zip",
+    pb2.MODEL_FORMAT_PLY: "ply",
+    pb2.MODEL_FORMAT_JSON: "json",
+}
+assert set(CAPTURES.values()) == set(CAPTURE_ENUM)
+
+
+def optional_fields(msg: Any, names: tuple[str, ...]) -> dict[str, Any]:
+    """The ``optional`` fields the client set: unset means "the default", not zero or empty."""
+    return {n: getattr(msg, n) for n in names if msg.HasField(n)}
+
+
+def timestamp(t: datetime | None) -> timestamp_pb2.Timestamp | None:
+    if t is None:
+        return None
+    ts = timestamp_pb2.Timestamp()
+    ts.FromDatetime(t if t.tzinfo else t.replace(tzinfo=UTC))
+    return ts
+
+
+def struct(d: dict[str, Any] | None) -> struct_pb2.Struct | None:
+    """JSON values as a Struct (numbers become doubles there; non-finite ones become null)."""
+    if d is None:
+        return None
+    s = struct_pb2.Struct()
+    s.update(json.loads(json.dumps(d, default=str), parse_constant=lambda c: None))
+    return s
+
+
+def project(p: ProjectView) -> pb2.Project:
+    known = {k: v for k, v in p.config.items() if k in CONFIG_FIELDS}
+    return pb2.Project(
+        id=p.id,
+        name=p.name,
+        config=pb2.ProjectConfig(**known),
+        created_at=timestamp(p.created_at),
+        images=p.images,
+        has_model=p.has_model,
+    )
+
+
+def image(i: ImageView) -> pb2.Image:
+    msg = pb2.Image(
+        id=i.id,
+        name=i.name,
+        width=i.width,
+        height=i.height,
+        capture=CAPTURE_ENUM.get(i.capture, pb2.CAPTURE_UNSPECIFIED),
+        sha256=i.sha256,
+        size_bytes=i.size_bytes,
+        format=i.format,
+        created=i.created,
+    )
+    if i.aerial is not None:
+        msg.aerial = i.aerial
+    return msg
+
+
+def job(j: JobView) -> pb2.Job:
+    msg = pb2.Job(
+        id=j.id,
+        project_id=j.project_id,
+        kind=JOB_KINDS.get(j.kind, pb2.JOB_KIND_UNSPECIFIED),
+        state=JOB_STATES.get(j.state, pb2.JOB_STATE_UNSPECIFIED),
+        progress=pb2.Progress(done=j.done, total=j.total),
+        options=struct(j.options),
+        result=struct(j.result),
+        created_at=timestamp(j.created_at),
+        started_at=timestamp(j.started_at),
+        finished_at=timestamp(j.finished_at),
+    )
+    if j.error is not None:
+        msg.error = j.error
+    if j.after_job_id is not None:
+        msg.after_job_id = j.after_job_id
+    return msg
+
+
+def match_request(req: pb2.SubmitMatchingRequest) -> MatchRequest:
+    pairs: str | list[list[str]] | None = None
+    which = req.WhichOneof("pairs")
+    if which == "pair_spec":
+        pairs = req.pair_spec
+    elif which == "pair_list":
+        pairs = [[p.name0, p.name1] for p in req.pair_list.pairs]
+    opts = optional_fields(req, ("method", "resize", "tiling", "snap_radius", "camera", "mapper"))
+    return MatchRequest(pairs=pairs, reconstruct=req.reconstruct, **opts)
+
+
+def model_summary(summary: dict[str, Any]) -> pb2.ModelSummary:
+    def number(key: str) -> float:
+        v = summary.get(key)
+        return float(v) if isinstance(v, int | float) and math.isfinite(v) else 0.0
+
+    return pb2.ModelSummary(
+        registered=int(number("registered")),
+        images=int(number("images")),
+        points3d=int(number("points3D")),
+        mean_track_length=number("mean_track_length"),
+        mean_reprojection_error=number("mean_reprojection_error"),
+        full=struct(summary),
+    )
+
+
+def pair_matches(m: PairMatches) -> pb2.MatchPairResponse:
+    return pb2.MatchPairResponse(
+        keypoints0=m.keypoints0.reshape(-1).tolist(),
+        keypoints1=m.keypoints1.reshape(-1).tolist(),
+        scores=m.scores.reshape(-1).tolist(),
+        fundamental=m.F.reshape(-1).tolist(),
+        size0=pb2.ImageSize(width=m.sizes[0][0], height=m.sizes[0][1]),
+        size1=pb2.ImageSize(width=m.sizes[1][0], height=m.sizes[1][1]),
+        method=m.method,
+        tiled=m.tiled,
+        timings=m.timings,
+    )

@@ -1,0 +1,184 @@
+"""``geomatch.v1.Matching``: each method translates its request, calls the use case the REST route
+for the same operation calls, and translates the answer. Nothing here decides anything the REST API
+would decide differently; what is gRPC's own is framing (``framing.py``), streaming responses and
+deadlines.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
+
+import grpc
+
+from ..errors import InvalidRequest, Unavailable
+from ..usecases import Service, Upload
+from . import convert
+from .framing import MAX_CHUNK, Messages, images
+from .pb import pb2, pb2_grpc
+from .status import rpc, rpc_stream
+
+WATCH_POLL_S = 0.5  # how often WatchJob reads the job (the SSE stream's interval)
+LIVENESS_S = 1.0  # how often a quiet WatchJob checks that its client is still there
+MATCH_PAIR_TIMEOUT_S = 600.0  # MatchPair without a deadline waits this long for a worker
+DEADLINE_MARGIN_S = 0.25  # left for the answer to travel back before the client's deadline
+
+
+class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
+    def __init__(self, service: Service) -> None:
+        self.service = service
+
+    # -- projects ----------------------------------------------------------------------------
+    @rpc
+    def CreateProject(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        config = convert.optional_fields(request.config, convert.CONFIG_FIELDS)
+        return convert.project(self.service.create_project(tenant_id, request.name, config))
+
+    @rpc
+    def GetProject(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        return convert.project(self.service.get_project(tenant_id, request.project_id))
+
+    @rpc
+    def ListProjects(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        return pb2.ListProjectsResponse(
+            projects=[convert.project(p) for p in self.service.list_projects(tenant_id)]
+        )
+
+    @rpc
+    def DeleteProject(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        self.service.delete_project(tenant_id, request.project_id)
+        return pb2.DeleteProjectResponse()
+
+    # -- images ------------------------------------------------------------------------------
+    @rpc
+    def UploadImages(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        messages = Messages(request_iterator, context.is_active)
+        first = messages.next()
+        if first is None or not first.project_id:
+            raise InvalidRequest("the first message of UploadImages must carry project_id")
+        messages.push_back(first)
+        uploads = images(messages, self.service.settings.max_upload_bytes, first.project_id)
+        views = self.service.upload_images(tenant_id, first.project_id, uploads)
+        return pb2.UploadImagesResponse(images=[convert.image(v) for v in views])
+
+    @rpc
+    def ListImages(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        views = self.service.list_images(tenant_id, request.project_id)
+        return pb2.ListImagesResponse(images=[convert.image(v) for v in views])
+
+    # -- jobs --------------------------------------------------------------------------------
+    @rpc
+    def SubmitMatching(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        job, follower = self.service.start_match(
+            tenant_id, request.project_id, convert.match_request(request)
+        )
+        out = pb2.SubmitMatchingResponse(job=convert.job(job))
+        if follower is not None:
+            out.reconstruct_job.CopyFrom(convert.job(follower))
+        return out
+
+    @rpc
+    def SubmitReconstruction(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        mapper = request.mapper if request.HasField("mapper") else None
+        return convert.job(self.service.start_reconstruct(tenant_id, request.project_id, mapper))
+
+    @rpc
+    def GetJob(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        return convert.job(self.service.get_job(tenant_id, request.job_id))
+
+    @rpc_stream
+    def WatchJob(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Iterator[Any]:
+        # watch_job yields None when nothing changed for LIVENESS_S: the moment to notice a client
+        # that went away (or whose deadline passed) and stop polling the store for it
+        for job in self.service.watch_job(
+            tenant_id, request.job_id, interval_s=WATCH_POLL_S, heartbeat_s=LIVENESS_S
+        ):
+            if not context.is_active():
+                return
+            if job is not None:
+                yield pb2.JobEvent(job=convert.job(job))
+
+    @rpc
+    def CancelJob(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        return convert.job(self.service.cancel_job(tenant_id, request.job_id))
+
+    # -- models ------------------------------------------------------------------------------
+    @rpc_stream
+    def GetModel(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Iterator[Any]:
+        fmt = convert.MODEL_FORMATS.get(request.format)
+        if fmt is None:
+            raise InvalidRequest(f"unknown model format {request.format}")
+        path = self.service.model_file(tenant_id, request.project_id, fmt)
+        # open first: a reconstruction that swaps the model folder meanwhile does not tear what
+        # this stream sends (the open file outlives the swap)
+        with path.open("rb") as f:
+            summary = _summary(f, fmt, path)
+            digest, size = _digest(f)
+            yield pb2.GetModelResponse(
+                info=pb2.ModelInfo(
+                    summary=convert.model_summary(summary),
+                    format=request.format or pb2.MODEL_FORMAT_ZIP,
+                    file_name=f"{request.project_id}-{path.name}",
+                    size=size,
+                    sha256=digest,
+                )
+            )
+            while chunk := f.read(MAX_CHUNK):
+                if not context.is_active():
+                    return
+                yield pb2.GetModelResponse(chunk=chunk)
+
+    # -- pairwise matching -------------------------------------------------------------------
+    @rpc
+    def MatchPair(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        messages = Messages(request_iterator, context.is_active)
+        options: dict[str, Any] = {}
+        first = messages.next()
+        if first is not None and first.WhichOneof("part") == "options":
+            options = convert.optional_fields(first.options, ("method", "resize", "tiling"))
+        elif first is not None:
+            messages.push_back(first)
+        uploads = (
+            up if up.name else Upload(f"image{i}", up.stream, up.capture)
+            for i, up in enumerate(images(messages, self.service.settings.max_upload_bytes))
+        )
+        remaining = context.time_remaining()
+        timeout = MATCH_PAIR_TIMEOUT_S if remaining is None else max(0.1, remaining - DEADLINE_MARGIN_S)
+        try:
+            matches = self.service.match_two(tenant_id, uploads, options, timeout_s=timeout)
+        except Unavailable:
+            left = context.time_remaining()
+            if left is not None and left <= 2 * DEADLINE_MARGIN_S:  # we stopped waiting for the deadline
+                context.abort(
+                    grpc.StatusCode.DEADLINE_EXCEEDED, "the pair was not matched within the deadline"
+                )
+            raise
+        return convert.pair_matches(matches)
+
+
+def _summary(f: IO[bytes], fmt: str, path: Path) -> dict[str, Any]:
+    """The summary that belongs to the bytes sent: from inside the zip, or the file beside."""
+    try:
+        if fmt == "zip":
+            with zipfile.ZipFile(f) as z:
+                return dict(json.loads(z.read("summary.json")))
+        if fmt == "json":
+            return dict(json.loads(f.read()))
+        return dict(json.loads((path.parent / "summary.json").read_text()))
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+        return {}
+    finally:
+        f.seek(0)
+
+
+def _digest(f: IO[bytes]) -> tuple[str, int]:
+    h, size = hashlib.sha256(), 0
+    while chunk := f.read(MAX_CHUNK):
+        h.update(chunk)
+        size += len(chunk)
+    f.seek(0)
+    return h.hexdigest(), size

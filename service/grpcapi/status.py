@@ -1,0 +1,124 @@
+"""Where domain errors become gRPC status codes, and where every call is authenticated.
+
+The one table of the gRPC side, as ``service/api.py`` holds the HTTP one. A method of the servicer
+is written as ``method(self, request, context, tenant_id)``; ``rpc`` (unary responses) and
+``rpc_stream`` (streamed responses) check the bearer key, hand the tenant in, and turn what the use
+cases raise into ``context.abort(code, message)``.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Callable, Iterator
+from typing import Any, NoReturn, TypeVar
+
+import grpc
+
+from .. import errors
+
+log = logging.getLogger("geomatch.service.grpc")
+
+CODES: dict[type[errors.DomainError], grpc.StatusCode] = {
+    errors.NotFound: grpc.StatusCode.NOT_FOUND,
+    errors.Unauthenticated: grpc.StatusCode.UNAUTHENTICATED,
+    errors.InvalidRequest: grpc.StatusCode.INVALID_ARGUMENT,
+    errors.BadFile: grpc.StatusCode.INVALID_ARGUMENT,
+    errors.UnsupportedFormat: grpc.StatusCode.INVALID_ARGUMENT,
+    # a bomb is a bad image; a big file is a limit (its own subclass first: the MRO decides)
+    errors.DecompressionBomb: grpc.StatusCode.INVALID_ARGUMENT,
+    errors.TooLarge: grpc.StatusCode.RESOURCE_EXHAUSTED,
+    errors.Conflict: grpc.StatusCode.FAILED_PRECONDITION,
+    errors.Unavailable: grpc.StatusCode.UNAVAILABLE,
+}
+
+
+class Malformed:
+    """What a request that does not parse becomes (see ``server.safe_deserializer``): gRPC's
+    default for those is INTERNAL, and inside a stream it ends the stream as if the client had
+    finished it, which would let half an upload through."""
+
+    def __init__(self, error: Exception) -> None:
+        self.error = error
+
+    @property
+    def message(self) -> str:
+        return f"malformed request: the message does not parse ({self.error})"
+
+
+def code_of(exc: errors.DomainError) -> grpc.StatusCode:
+    for cls in type(exc).__mro__:
+        if cls in CODES:
+            return CODES[cls]
+    return grpc.StatusCode.INVALID_ARGUMENT
+
+
+def bearer_key(context: grpc.ServicerContext) -> str | None:
+    for key, value in context.invocation_metadata() or ():
+        if key == "authorization" and isinstance(value, str):
+            scheme, _, token = value.strip().partition(" ")
+            if scheme.lower() == "bearer" and token.strip():
+                return token.strip()
+    return None
+
+
+def abort(context: grpc.ServicerContext, exc: errors.DomainError) -> NoReturn:
+    context.abort(code_of(exc), exc.message)
+    raise AssertionError("context.abort returned")  # it raises; this line tells type checkers so
+
+
+def _unexpected(context: grpc.ServicerContext, name: str, exc: Exception) -> NoReturn:
+    if not context.is_active():  # the client left (cancelled, deadline): nobody hears an answer
+        context.abort(grpc.StatusCode.CANCELLED, "the call ended before the server answered")
+    log.exception("%s failed", name)
+    context.abort(grpc.StatusCode.INTERNAL, f"{type(exc).__name__}: {exc}")
+    raise AssertionError("context.abort returned")
+
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _tenant(servicer: Any, request: Any, context: grpc.ServicerContext) -> str:
+    tenant_id = servicer.service.authenticate(bearer_key(context))
+    if isinstance(request, Malformed):
+        raise errors.InvalidRequest(request.message)
+    return str(tenant_id)
+
+
+def rpc(method: F) -> F:
+    @functools.wraps(method)
+    def wrapper(self: Any, request: Any, context: grpc.ServicerContext) -> Any:
+        try:
+            return method(self, request, context, _tenant(self, request, context))
+        except errors.DomainError as e:
+            abort(context, e)
+        except grpc.RpcError:  # reading a request stream the client abandoned
+            context.abort(grpc.StatusCode.CANCELLED, "the client cancelled the call")
+        except Exception as e:
+            if _is_abort(e):
+                raise
+            _unexpected(context, method.__name__, e)
+
+    return wrapper  # type: ignore[return-value]
+
+
+def rpc_stream(method: F) -> F:
+    @functools.wraps(method)
+    def wrapper(self: Any, request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
+        try:
+            yield from method(self, request, context, _tenant(self, request, context))
+        except errors.DomainError as e:
+            abort(context, e)
+        except grpc.RpcError:
+            context.abort(grpc.StatusCode.CANCELLED, "the client cancelled the call")
+        except Exception as e:
+            if _is_abort(e):
+                raise
+            _unexpected(context, method.__name__, e)
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _is_abort(exc: Exception) -> bool:
+    """``context.abort`` raises a bare Exception after setting the status: let it through."""
+    return type(exc) is Exception

@@ -1,0 +1,130 @@
+"""The interactive step behind gRPC MatchPair: match two images that belong to no project.
+
+The API stages both images (validated like uploads) in ``GEOMATCH_HOME/tmp/<work>/`` as ``0`` and
+``1``; this step matches them with the worker's cached networks (``runtime.matcher``: the same
+matcher, feature cache and device as job steps) and writes ``result.npz`` beside them. Paths travel
+as the folder's name, not as absolute paths, because a worker on another host may mount the storage
+root elsewhere. Nothing is retried or redelivered: the caller waits with a deadline, and work
+found past it is dropped (between stages too, so an abandoned pair costs at most one stage).
+
+How it is wired without touching the job steps: ``install_local`` adds the step to the embedded
+runner's table (the gRPC server calls it in embedded mode), and ``register`` adds a Celery task
+that stores its result (job steps ignore theirs) for ``geomatch worker``.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from typing import Any
+
+from celery import Celery
+
+from service.queue import MATCH_TWO
+
+from . import jobs, runtime
+
+log = logging.getLogger("geomatch.workers")
+_WORK = re.compile(r"pair-[0-9a-f]{32}")
+
+
+class DeadlinePassed(Exception):
+    pass
+
+
+def match_two(
+    ctx: jobs.Context, work: str, captures: list[str], options: dict[str, Any], deadline: float
+) -> dict[str, Any]:
+    """``{"file": "result.npz", "matches": N, "timings": {...}}``, or ``{"error": reason}``."""
+    if not _WORK.fullmatch(work):
+        return {"error": f"bad work folder {work!r}"}
+    folder = ctx.storage.tmp_dir / work
+    try:
+        return _match(ctx, folder, captures, options, deadline)
+    except DeadlinePassed:
+        return {"error": "the caller's deadline passed"}
+    except FileNotFoundError:  # the caller gave up and removed the folder
+        return {"error": "the images are gone (the caller gave up)"}
+    except Exception as e:  # answered, not raised: the caller maps it, nothing is retried
+        log.exception("match_two %s failed", work)
+        return {"error": f"{type(e).__name__}: {e}"}
+
+
+def _match(
+    ctx: jobs.Context, folder: Any, captures: list[str], options: dict[str, Any], deadline: float
+) -> dict[str, Any]:
+    import numpy as np
+
+    from geomatch import steps
+    from geomatch.imageio import read_image
+    from geomatch.metadata import read_metadata
+    from geomatch.pairs import finalize
+
+    def check() -> None:
+        if time.time() > deadline:
+            raise DeadlinePassed
+
+    t0 = time.perf_counter()
+    check()
+    paths = [folder / "0", folder / "1"]
+    aerial = {
+        str(i)
+        for i, (p, c) in enumerate(zip(paths, captures, strict=True))
+        if c == "aerial" or (c == "auto" and read_metadata(p).aerial_hint)
+    }
+    pair = finalize([("0", "1")], aerial, options.get("tiling", "auto"))[0]
+    a, b = read_image(paths[0]), read_image(paths[1])  # not runtime.image: these are read once
+    matcher = runtime.matcher(ctx, options)
+    t1 = time.perf_counter()
+    timings = {"read": t1 - t0}
+    for name, img in (("0", a), ("1", b)):  # features one image at a time: a deadline check between
+        check()
+        tiled_side = pair.tiled and (name == "0") == pair.aerial_first
+        steps.extract(matcher, img, full=not tiled_side, crops=tiled_side)
+        timings[f"features{name}"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
+    check()
+    if pair.tiled:
+        from geomatch.tiling import match_tiled
+
+        aerial_img, other = (a, b) if pair.aerial_first else (b, a)
+        tiled = match_tiled(matcher, aerial_img, other, pair.aerial_first)
+        k0, k1, sc, F = tiled.keypoints0, tiled.keypoints1, tiled.scores, tiled.F
+    else:
+        r = matcher.match(a, b)
+        k0, k1, sc, F = r.keypoints0, r.keypoints1, r.scores, r.F
+    timings["match"] = time.perf_counter() - t1
+    out = folder / "result.npz"
+    tmp = folder / "result.tmp.npz"
+    np.savez(
+        tmp,
+        keypoints0=np.asarray(k0, np.float32).reshape(-1, 2),
+        keypoints1=np.asarray(k1, np.float32).reshape(-1, 2),
+        scores=np.asarray(sc, np.float32).reshape(-1),
+        F=np.asarray(F, np.float64).reshape(3, 3),
+        size0=np.array([a.shape[1], a.shape[0]]),
+        size1=np.array([b.shape[1], b.shape[0]]),
+        method=np.array(options.get("method", "geo")),
+        tiled=np.array(pair.tiled),
+    )
+    tmp.replace(out)
+    timings["total"] = time.perf_counter() - t0
+    log.info("match_two %s: %d matches, tiled=%s, %.2fs", folder.name, len(sc), pair.tiled, timings["total"])
+    return {"file": out.name, "matches": len(sc), "timings": timings}
+
+
+def install_local() -> None:
+    """Make the embedded runner (``workers.local.LocalQueue.call``) know the step."""
+    jobs.STEPS.setdefault(MATCH_TWO, match_two)
+
+
+def register(app: Celery) -> None:
+    """The Celery task for ``geomatch worker``: acknowledged early and never retried (the caller
+    is waiting; a redelivery after its deadline would be wasted), result stored for the caller."""
+    from .tasks import context
+
+    def run(work: str, captures: list[str], options: dict[str, Any], deadline: float) -> dict[str, Any]:
+        return match_two(context(app), work, captures, options, deadline)
+
+    app.task(name=MATCH_TWO, ignore_result=False, acks_late=False, max_retries=0)(run)
