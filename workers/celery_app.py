@@ -3,7 +3,8 @@
 - ``task_acks_late`` + ``task_reject_on_worker_lost``: a step is acknowledged after it ran, so a
   worker killed mid-step (SIGKILL, OOM, a lost node) leaves its message to be delivered again.
   On Redis an unacknowledged message returns after ``visibility_timeout`` (GEOMATCH_VISIBILITY_TIMEOUT),
-  which must exceed the longest step; a child process dying under a live worker is requeued at once.
+  which must exceed the longest step (workers sweep for such messages every few seconds); a child
+  process dying under a live worker is requeued at once.
 - ``worker_prefetch_multiplier=1``: a worker holds one message beyond the one it runs, so a long
   pair does not starve other workers.
 - Every key (queues, unacked sets, results) starts with GEOMATCH_REDIS_PREFIX, so deployments,
@@ -44,6 +45,10 @@ def make_app(settings: Settings) -> Celery:
         broker_transport_options={
             "global_keyprefix": settings.redis_prefix,
             "visibility_timeout": settings.visibility_timeout_s,
+            # look for expired unacknowledged messages every few seconds (kombu's default sweep is
+            # ~100 s), so a dead worker's step returns soon after its visibility timeout
+            "unacked_restore_interval": max(1, min(10, settings.visibility_timeout_s // 3)),
+            "unacked_restore_throttle": 1,
         },
         result_backend_transport_options={"global_keyprefix": settings.redis_prefix},
         broker_connection_retry_on_startup=True,

@@ -95,17 +95,17 @@ def _plan(ctx: Context, job: Job) -> None:
                 update(Image).where(Image.project_id == pid, Image.name == n).values(aerial=n in aerial)
             )
     share_camera = False if opts.get("camera") == "per-image" else None
+    spec = opts["pairs"] if isinstance(opts["pairs"], str) else "exhaustive"
+    pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
+    matcher = runtime.matcher(ctx, opts) if spec.startswith("retrieval") and pairs_list is None else None
+    planned = steps.plan(image_dir, names, aerial, spec, pairs_list, opts.get("tiling", "auto"), matcher)
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
             return
         with ColmapDatabase(ctx.storage.database_path(pid)) as db:
             ids = {n: db.add_image(n, metas[n], share_camera) for n in names}
-            matched = db.matched_pairs()
-    spec = opts["pairs"] if isinstance(opts["pairs"], str) else "exhaustive"
-    pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
-    matcher = runtime.matcher(ctx, opts) if spec.startswith("retrieval") and pairs_list is None else None
-    planned = steps.plan(image_dir, names, aerial, spec, pairs_list, opts.get("tiling", "auto"), matcher)
-    todo = [p for p in planned if tuple(sorted((ids[p.name0], ids[p.name1]))) not in matched]
+            # has_pair, not matched_pairs(): a pair stored with zero matches is matched too
+            todo = [p for p in planned if not db.has_pair(ids[p.name0], ids[p.name1])]
     with ctx.store.session() as s:
         row = s.get(Job, job.id, with_for_update=True)
         if row is None or row.planned:  # a duplicate of this step planned it first

@@ -167,9 +167,12 @@ class GrpcClient:
         images: Iterable[ImageSource],
         on_bytes: Callable[[int], object] | None = None,
         timeout: float | None = None,
+        chunk_size: int = CHUNK,
     ) -> list[Any]:
         """One UploadImages stream: all the images are stored, or none."""
-        requests = image_messages(pb2.UploadImagesRequest, images, on_bytes, project_id=project_id)
+        requests = image_messages(
+            pb2.UploadImagesRequest, images, on_bytes, chunk_size, project_id=project_id
+        )
         reply = self.stub.UploadImages(requests, timeout=timeout, metadata=self.metadata)
         return list(reply.images)
 

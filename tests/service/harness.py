@@ -165,3 +165,21 @@ def sse_events(c: httpx.Client, job_id: str) -> Iterator[dict[str, Any]]:
 def upload(c: httpx.Client, project_id: str, paths: list[Path], capture: str = "auto") -> httpx.Response:
     files = [("files", (p.name, p.read_bytes(), "image/png")) for p in paths]
     return c.post(f"/v1/projects/{project_id}/images", files=files, data={"capture": capture})
+
+
+def database_pairs(c: httpx.Client, project_id: str, dest: Path) -> list[tuple[str, str]]:
+    """Every pair of the project's COLMAP database (downloaded over HTTP), as sorted name pairs,
+    including pairs stored with zero matches (pycolmap's read_all_matches leaves those out)."""
+    import pycolmap
+
+    r = c.get(f"/v1/projects/{project_id}/database")
+    assert r.status_code == 200, r.text
+    dest.write_bytes(r.content)
+    db = pycolmap.Database.open(str(dest))
+    try:
+        names = {im.image_id: im.name for im in db.read_all_images()}
+    finally:
+        db.close()
+    with contextlib.closing(sqlite3.connect(dest)) as con:
+        pair_ids = [int(p) for (p,) in con.execute("SELECT pair_id FROM matches")]
+    return sorted(tuple(sorted(names[i] for i in pycolmap.pair_id_to_image_pair(p))) for p in pair_ids)  # type: ignore[misc]

@@ -20,7 +20,7 @@ from typing import Any
 import pycolmap
 import pytest
 
-from .harness import GEOMATCH, Deployment, sse_events, upload, wait_job
+from .harness import GEOMATCH, Deployment, database_pairs, sse_events, upload, wait_job
 
 RESIZE = 480
 
@@ -106,15 +106,12 @@ def test_aerial_images_recognised_from_xmp(run: dict[str, Any]) -> None:
 
 
 def test_every_pair_once_in_the_database(run: dict[str, Any], tmp_path: Path) -> None:
-    r = run["client"].get(f"/v1/projects/{run['pid']}/database")
-    assert r.status_code == 200
-    (tmp_path / "db.db").write_bytes(r.content)
+    pairs = database_pairs(run["client"], run["pid"], tmp_path / "db.db")
+    names = run["images"]
+    assert pairs == sorted((a, b) for i, a in enumerate(names) for b in names[i + 1 :])
     db = pycolmap.Database.open(str(tmp_path / "db.db"))
     try:
         assert db.num_images() == 6
-        pairs = [pycolmap.pair_id_to_image_pair(p) for p in db.read_all_matches()[0]]
-        assert len(pairs) == len(set(pairs)) == 15
-        assert db.num_verified_image_pairs() == 15
         assert db.num_cameras() == 2  # one per EXIF device: the drone and the handheld camera
     finally:
         db.close()
@@ -168,7 +165,7 @@ def test_submit_batch_client(deployment: Deployment, key_a: str, scene: Path, tm
         (folder / n).write_bytes((scene / "images" / n).read_bytes())
     out = tmp_path / "model"
     args = ["submit", str(folder), "--server", deployment.url, "--key", key_a, "--aerial", "aerial_*"]
-    args += ["--resize", "320", "--pairs", "sequential:2", "--out", str(out), "--no-progress"]
+    args += ["--resize", str(RESIZE), "--out", str(out), "--no-progress"]
     r = subprocess.run(
         [GEOMATCH, *args],
         capture_output=True,
@@ -178,7 +175,7 @@ def test_submit_batch_client(deployment: Deployment, key_a: str, scene: Path, tm
     assert r.returncode == 0, r.stderr + deployment.logs()
     pid = r.stdout.strip().splitlines()[-1]
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["images"] == 3
+    assert summary["images"] == 3 and summary["registered"] >= 2, summary
     assert (out / "sparse" / "0" / "cameras.bin").is_file() and (out / "points.ply").is_file()
     c = deployment.client(key_a)
     images = c.get(f"/v1/projects/{pid}/images").json()["images"]
