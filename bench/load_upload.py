@@ -143,12 +143,12 @@ def main() -> int:
 
     ms = np.array(latencies) * 1000
     n = len(latencies)
-    mode = "existing server" if args.server else ("Redis mode" if args.redis else "embedded server")
+    mode = "existing server" if args.server else ("server in Redis mode" if args.redis else "embedded server")
     print(
         f"\nload_upload: {args.clients} concurrent clients x {args.uploads} uploads, "
         f"one {width}x{height} JPEG per request"
     )
-    print(f"({mb / n * 1000:.0f} kB on average) to a {mode} at {url}\n")
+    print(f"({mb / n * 1000:.0f} kB on average), {mode} at {url}\n")
     print("| requests | errors | p50 ms | p95 ms | max ms | req/s | MB/s | images stored |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     print(

@@ -53,20 +53,8 @@ Tenant = Annotated[str, Depends(tenant)]
 
 
 def job_out(j: JobView) -> JobOut:
-    return JobOut(
-        id=j.id,
-        project_id=j.project_id,
-        kind=j.kind,
-        state=j.state,
-        progress=Progress(done=j.done, total=j.total),
-        error=j.error,
-        options=j.options,
-        result=j.result,
-        after_job_id=j.after_job_id,
-        created_at=j.created_at,
-        started_at=j.started_at,
-        finished_at=j.finished_at,
-    )
+    fields = {k: getattr(j, k) for k in JobOut.model_fields if k != "progress"}
+    return JobOut(progress=Progress(done=j.done, total=j.total), **fields)
 
 
 # -- projects ------------------------------------------------------------------------------------

@@ -400,18 +400,7 @@ class Service:
             job = Job(project_id=project_id, tenant_id=tenant_id, kind="match", options=opts)
             s.add(job)
             s.flush()
-            follower = None
-            if req.reconstruct:
-                follower = Job(
-                    project_id=project_id,
-                    tenant_id=tenant_id,
-                    kind="reconstruct",
-                    options={"mapper": mapper},
-                    total=1,
-                    after_job_id=job.id,
-                )
-                s.add(follower)
-                s.flush()
+            follower = _reconstruct_job(s, project_id, tenant_id, mapper, job.id) if req.reconstruct else None
             views = _job_view(job), _job_view(follower) if follower else None
         self._enqueue(views[0])
         return views
@@ -430,16 +419,7 @@ class Service:
                     "nothing to reconstruct yet: no match job of this project has succeeded "
                     '(POST .../match first, or with "reconstruct": true to chain both)'
                 )
-            job = Job(
-                project_id=project_id,
-                tenant_id=tenant_id,
-                kind="reconstruct",
-                options={"mapper": mapper},
-                total=1,
-            )
-            s.add(job)
-            s.flush()
-            view = _job_view(job)
+            view = _job_view(_reconstruct_job(s, project_id, tenant_id, mapper))
         self._enqueue(view)
         return view
 
@@ -622,6 +602,22 @@ def picture_name(name0: str, name1: str) -> str:
 
 def _size(a: np.ndarray) -> tuple[int, int]:
     return int(a[0]), int(a[1])
+
+
+def _reconstruct_job(
+    s: Session, project_id: str, tenant_id: str, mapper: str, after: str | None = None
+) -> Job:
+    job = Job(
+        project_id=project_id,
+        tenant_id=tenant_id,
+        kind="reconstruct",
+        options={"mapper": mapper},
+        total=1,
+        after_job_id=after,
+    )
+    s.add(job)
+    s.flush()
+    return job
 
 
 def _image_view(i: Image, created: bool = False) -> ImageView:

@@ -213,3 +213,21 @@ def test_terminal_states_are_final(store: MetadataStore) -> None:
     assert not jobstate.finish_if_complete(store, job_id)
     with store.session() as s:
         assert s.scalar(select(Job.state).where(Job.id == job_id)) == "cancelled"
+
+
+def test_retry_policy() -> None:
+    """Bad data, bad options and missing weights fail a job at once; I/O and the like are retried."""
+    from geomatch.imageio import ImageReadError
+    from geomatch.weights import WeightsNotFoundError
+    from workers.jobs import PermanentError, is_permanent
+
+    for exc in (
+        ValueError("x"),
+        ImageReadError("x"),
+        PermanentError("x"),
+        WeightsNotFoundError("x"),
+        KeyError(1),
+    ):
+        assert is_permanent(exc), exc
+    for exc in (OSError("disk"), ConnectionError("redis"), RuntimeError("out of memory"), TimeoutError()):
+        assert not is_permanent(exc), exc
