@@ -28,12 +28,13 @@ STAMP = "geomatch_proto_sha256.txt"  # the proto's digest at generation time: st
 _STUB_IMPORT = re.compile(r"^from geomatch\.v1 import geomatch_pb2 as (\w+)$", re.MULTILINE)
 
 
-def proto_digest(proto_root: Path = PROTO_ROOT) -> str:
-    return hashlib.sha256((proto_root / PROTO).read_bytes()).hexdigest()
+def proto_digest(proto_root: Path | None = None) -> str:
+    return hashlib.sha256(((proto_root or PROTO_ROOT) / PROTO).read_bytes()).hexdigest()
 
 
-def generate(proto_root: Path = PROTO_ROOT, out_dir: Path = PACKAGE_DIR) -> list[Path]:
-    """Run protoc (grpcio-tools) and write the modules into ``out_dir``; returns their paths."""
+def generate(proto_root: Path | None = None, out_dir: Path | None = None) -> list[Path]:
+    """Run protoc (grpcio-tools) and write the modules into ``out_dir`` (default: this package)."""
+    proto_root, out_dir = proto_root or PROTO_ROOT, out_dir or PACKAGE_DIR
     try:
         import grpc_tools
         from grpc_tools import protoc

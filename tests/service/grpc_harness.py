@@ -39,9 +39,7 @@ class GrpcDeployment(Deployment):
             self.server = self._spawn(["grpc-serve", "--port", str(port)], "server.log")
         else:
             http = free_port()
-            self.server = self._spawn(
-                ["serve", "--port", str(http), "--grpc-port", str(port)], "server.log"
-            )
+            self.server = self._spawn(["serve", "--port", str(http), "--grpc-port", str(port)], "server.log")
             self.url = f"http://127.0.0.1:{http}"
         self.target = f"127.0.0.1:{port}"
         deadline = time.monotonic() + timeout
@@ -49,7 +47,9 @@ class GrpcDeployment(Deployment):
             stub = health_pb2_grpc.HealthStub(ch)
             while time.monotonic() < deadline:
                 if self.server.poll() is not None:
-                    raise RuntimeError(f"the gRPC server exited with {self.server.returncode}:\n{self.logs()}")
+                    raise RuntimeError(
+                        f"the gRPC server exited with {self.server.returncode}:\n{self.logs()}"
+                    )
                 with contextlib.suppress(grpc.RpcError):
                     r = stub.Check(health_pb2.HealthCheckRequest(service=""), timeout=2)
                     if r.status == health_pb2.HealthCheckResponse.SERVING:
@@ -71,7 +71,9 @@ class GrpcDeployment(Deployment):
         return rows, jobs, self.staged()
 
     def staged(self) -> list[str]:
-        return sorted(p.name for p in (self.home / "tmp").glob("*") if p.name.startswith(("upload-", "pair-")))
+        return sorted(
+            p.name for p in (self.home / "tmp").glob("*") if p.name.startswith(("upload-", "pair-"))
+        )
 
     def wait_unstaged(self, timeout: float = 30.0) -> list[str]:
         """Staged files of calls the server is still winding down go within ``timeout``."""
