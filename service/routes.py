@@ -6,14 +6,16 @@ runs those on its thread pool, so the event loop keeps serving other requests.
 
 from __future__ import annotations
 
+import asyncio
 import json
-from collections.abc import Iterator
+from collections.abc import AsyncIterator
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import FileResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.background import BackgroundTask
+from starlette.concurrency import run_in_threadpool
 
 from .errors import NotFound
 from .schemas import (
@@ -28,13 +30,14 @@ from .schemas import (
     ProjectOut,
     ReconstructIn,
 )
-from .usecases import JobView, MatchRequest, Service, Upload, remove_quietly
+from .usecases import JobView, JobWatch, MatchRequest, Service, Upload, remove_quietly
 
 _bearer = HTTPBearer(auto_error=False, description="an API key from `geomatch keys create TENANT`")
 ERRORS: dict[int | str, dict[str, object]] = {
     code: {"model": Error} for code in (400, 401, 404, 409, 413, 415, 422, 503)
 }
 router = APIRouter(prefix="/v1", responses=ERRORS)
+EVENTS_POLL_S = 0.5
 
 
 def service(request: Request) -> Service:
@@ -133,19 +136,27 @@ def cancel_job(job_id: str, svc: Svc, tenant_id: Tenant) -> JobOut:
         200: {"content": {"text/event-stream": {}}, "description": "`event: job` per change, until it ends"}
     },
 )
-def job_events(job_id: str, svc: Svc, tenant_id: Tenant) -> StreamingResponse:
-    svc.get_job(tenant_id, job_id)  # 404 before the stream starts
+async def job_events(job_id: str, svc: Svc, tenant_id: Tenant) -> StreamingResponse:
+    """Async on purpose: a watcher holds no worker thread while it waits, only for each poll."""
+    await run_in_threadpool(svc.get_job, tenant_id, job_id)  # 404 before the stream starts
+    watch = JobWatch(svc, tenant_id, job_id)
 
-    def stream() -> Iterator[str]:
+    async def stream() -> AsyncIterator[str]:
         yield "retry: 2000\n\n"
-        try:
-            for n, job in enumerate(svc.watch_job(tenant_id, job_id)):
-                if job is None:
-                    yield ": keep-alive\n\n"
-                    continue
+        n = 0
+        while not watch.finished:
+            try:
+                emit, job = await run_in_threadpool(watch.poll)
+            except NotFound as e:  # deleted while watched
+                yield f"event: error\ndata: {json.dumps({'detail': e.message})}\n\n"
+                return
+            if emit and job is None:
+                yield ": keep-alive\n\n"
+            elif emit and job is not None:
                 yield f"id: {n}\nevent: job\ndata: {job_out(job).model_dump_json()}\n\n"
-        except NotFound as e:  # deleted while watched
-            yield f"event: error\ndata: {json.dumps({'detail': e.message})}\n\n"
+                n += 1
+            if not watch.finished:
+                await asyncio.sleep(EVENTS_POLL_S)
 
     return StreamingResponse(
         stream(),

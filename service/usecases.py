@@ -448,21 +448,13 @@ class Service:
         self, tenant_id: str, job_id: str, interval_s: float = 0.5, heartbeat_s: float = 15.0
     ) -> Iterator[JobView | None]:
         """The job each time its state or progress changes, until it ends; None as a keep-alive."""
-        last: tuple[Any, ...] | None = None
-        quiet_since = time.monotonic()
-        while True:
-            job = self.get_job(tenant_id, job_id)
-            key = (job.state, job.done, job.total, job.error)
-            if key != last:
-                last = key
-                quiet_since = time.monotonic()
+        watch = JobWatch(self, tenant_id, job_id, heartbeat_s)
+        while not watch.finished:
+            emit, job = watch.poll()
+            if emit:
                 yield job
-                if job.terminal:
-                    return
-            elif time.monotonic() - quiet_since > heartbeat_s:
-                quiet_since = time.monotonic()
-                yield None
-            time.sleep(interval_s)
+            if not watch.finished:
+                time.sleep(interval_s)
 
     # -- outputs ---------------------------------------------------------------------------
     def model_file(self, tenant_id: str, project_id: str, fmt: str) -> Path:
@@ -594,6 +586,31 @@ class Service:
                 r.checks[name] = f"error: {e}"
         r.checks["mode"] = "embedded" if self.settings.embedded else "redis"
         return r
+
+
+class JobWatch:
+    """Change detection over a job, one poll at a time, so that a caller may wait between polls
+    however it likes (a thread sleeping in ``watch_job``, an event loop in the SSE route)."""
+
+    def __init__(self, service: Service, tenant_id: str, job_id: str, heartbeat_s: float = 15.0) -> None:
+        self.service, self.tenant_id, self.job_id, self.heartbeat_s = service, tenant_id, job_id, heartbeat_s
+        self.finished = False
+        self._last: tuple[Any, ...] | None = None
+        self._quiet_since = time.monotonic()
+
+    def poll(self) -> tuple[bool, JobView | None]:
+        """(True, job) when it changed, (True, None) when a keep-alive is due, else (False, None)."""
+        job = self.service.get_job(self.tenant_id, self.job_id)
+        key = (job.state, job.done, job.total, job.error)
+        now = time.monotonic()
+        if key != self._last:
+            self._last, self._quiet_since = key, now
+            self.finished = job.terminal
+            return True, job
+        if now - self._quiet_since > self.heartbeat_s:
+            self._quiet_since = now
+            return True, None
+        return False, None
 
 
 def picture_name(name0: str, name1: str) -> str:

@@ -13,7 +13,7 @@ import httpx
 import pytest
 from PIL import Image
 
-from .harness import GEOMATCH, Deployment, upload, wait_job
+from .harness import GEOMATCH, Deployment, sse_events, upload, wait_job
 
 
 def png_header_bomb(width: int = 50_000, height: int = 50_000) -> bytes:
@@ -106,6 +106,8 @@ def test_another_tenants_project_and_jobs_are_404(
     assert upload(b, project, [scene / "images" / "ground_02.png"]).status_code == 404
     assert state(deployment, project) == before
     assert wait_job(a, job_id)["state"] == "succeeded"  # B's cancel did not touch A's job
+    events = list(sse_events(a, job_id))  # a finished job: its final state, then the stream ends
+    assert [(e["state"], e["progress"]) for e in events] == [("succeeded", {"done": 1, "total": 1})]
 
 
 # -- bad uploads ---------------------------------------------------------------------------------

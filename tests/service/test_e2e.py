@@ -47,7 +47,7 @@ def run(
     events: list[dict[str, Any]] = []
     follower = threading.Thread(target=lambda: events.extend(sse_events(deployment.client(key_a), match_id)))
     follower.start()
-    match_job = wait_job(c, match_id)
+    match_job = wait_job(c, match_id, timeout=1800)  # ~3 min alone on 2 cores; generous for shared CPUs
     follower.join(timeout=30)
     t["match"] = time.perf_counter() - t1
     assert match_job["state"] == "succeeded", (match_job, deployment.logs())
