@@ -27,7 +27,13 @@ OUT = Path(__file__).parent / "out" / "synth_precision"
 
 
 def correct(
-    cam_a: Camera, depth_a: np.ndarray, cam_b: Camera, depth_b: np.ndarray, k0: np.ndarray, k1: np.ndarray, px: float
+    cam_a: Camera,
+    depth_a: np.ndarray,
+    cam_b: Camera,
+    depth_b: np.ndarray,
+    k0: np.ndarray,
+    k1: np.ndarray,
+    px: float,
 ) -> np.ndarray:
     """Boolean per match: consistent with the true geometry within ``px``."""
     if len(k0) == 0:

@@ -186,9 +186,7 @@ class Scene:
         arc = step * max(n_ground - 1, 0)
         heading = arc / 2  # azimuth of the middle of the walked arc
         n_oblique = sum(i % 3 != 2 for i in range(n_aerial))
-        azimuths = iter(
-            np.linspace(0.0, arc, n_oblique) if n_oblique > 1 else np.array([heading])
-        )
+        azimuths = iter(np.linspace(0.0, arc, n_oblique) if n_oblique > 1 else np.array([heading]))
         cams = []
         for i in range(n_aerial):
             target = np.array([*rng.uniform(-2, 2, 2), rng.uniform(0.0, 3.0)])

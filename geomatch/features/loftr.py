@@ -23,7 +23,7 @@ ENV_FILE = "GEOMATCH_LOFTR_WEIGHTS"
 
 def load_loftr(weights: str | os.PathLike[str] | None = None) -> LoFTR:
     """Build LoFTR and load a checkpoint: ``weights``, $GEOMATCH_LOFTR_WEIGHTS, or the weights folder."""
-    explicit = weights if weights is not None else os.environ.get(ENV_FILE)
+    explicit = weights if weights is not None else (os.environ.get(ENV_FILE) or None)  # "" = unset
     path = weight_path(DEFAULT_FILE, explicit)
     ckpt = torch.load(str(path), map_location="cpu", weights_only=True)
     state = ckpt.get("state_dict", ckpt) if isinstance(ckpt, dict) else None
