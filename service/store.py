@@ -14,6 +14,7 @@ from typing import Any
 
 from sqlalchemy import create_engine, event, text
 from sqlalchemy.engine import Engine
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 from .models import Base
@@ -41,7 +42,12 @@ class MetadataStore:
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
 
     def create_all(self) -> None:
-        Base.metadata.create_all(self.engine)
+        """Idempotent; an API and its workers starting together may race to create a table, and the
+        loser's second look finds it there."""
+        try:
+            Base.metadata.create_all(self.engine)
+        except DBAPIError:
+            Base.metadata.create_all(self.engine)
 
     @contextmanager
     def session(self) -> Iterator[Session]:

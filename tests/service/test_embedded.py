@@ -36,13 +36,13 @@ def test_embedded_default(tmp_path_factory: pytest.TempPathFactory, scene: Path,
 
         pid = c.post("/v1/projects", json={"name": "embedded", "config": {"resize": 320}}).json()["id"]
         assert upload(c, pid, [scene / "images" / n for n in GROUND[:3]], "ground").status_code == 201
-        accepted = c.post(f"/v1/projects/{pid}/match", json={"reconstruct": True}).json()
+        accepted = c.post(f"/v1/projects/{pid}/match", json={"reconstruct": True, "mapper": "global"}).json()
         match = wait_job(c, accepted["job_id"])
         assert match["state"] == "succeeded" and match["progress"] == {"done": 3, "total": 3}, d.logs()
         assert match["options"]["resize"] == 320  # the project's config
         recon = wait_job(c, accepted["reconstruct_job_id"])  # chained: started by the match's end
         assert recon["state"] == "succeeded", (recon, d.logs())
-        assert recon["result"]["images"] == 3
+        assert recon["result"]["images"] == 3 and recon["result"]["mapper"] == "global"
         assert c.get(f"/v1/projects/{pid}/model", params={"format": "json"}).json() == recon["result"]
 
         # a fourth image later: only its three pairs are matched
