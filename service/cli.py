@@ -50,15 +50,21 @@ def register(sub: Any) -> None:
 
     b = sub.add_parser("submit", help="batch client: upload a folder, match, reconstruct, download the model")
     b.add_argument("images", type=Path, help="folder of images (searched recursively; names must be unique)")
-    b.add_argument("--server", default=os.environ.get("GEOMATCH_SERVER", "http://127.0.0.1:8000"))
+    b.add_argument(
+        "--server",
+        default=os.environ.get("GEOMATCH_SERVER", "http://127.0.0.1:8000"),
+        help="API base URL (or $GEOMATCH_SERVER)",
+    )
     b.add_argument("--key", default=os.environ.get("GEOMATCH_KEY"), help="API key (or $GEOMATCH_KEY)")
     air = b.add_mutually_exclusive_group()
     air.add_argument("--aerial", metavar="GLOB", help="aerial images by name pattern (others: ground)")
     air.add_argument("--aerial-list", type=Path, metavar="FILE", help="aerial names, one per line")
     b.add_argument("--name", help="project name (default: the folder's name)")
     b.add_argument("--pairs", default=None, help="exhaustive | sequential:K | retrieval:K")
-    b.add_argument("--method", default=None)
-    b.add_argument("--resize", type=int, default=None)
+    b.add_argument("--method", default=None, help="matching method (default: the server's, geo)")
+    b.add_argument(
+        "--resize", type=int, default=None, help="longer side fed to the networks (server default 640)"
+    )
     b.add_argument("--mapper", default=None, help="incremental | global")
     b.add_argument("--wait", action="store_true", help="wait for the model (implied by --out)")
     b.add_argument("--out", type=Path, help="unpack the model here: sparse/0/, points.ply, summary.json")
