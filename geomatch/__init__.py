@@ -1,21 +1,34 @@
-"""geomatch: geometry-aware feature matching for Structure-from-Motion."""
+"""geomatch: geometry-aware feature matching for Structure-from-Motion.
 
-from .imageio import ImageReadError, read_image
-from .matcher import METHODS, Matcher, MatcherConfig, MatchResult, match_pair
-from .optimizer import GeoOptions
-from .refine import RefineOptions
-from .weights import WeightsNotFoundError
+The public names load lazily: the service's API process imports ``geomatch.pairs`` and friends
+without paying for torch, which only the matching code needs.
+"""
 
-__all__ = [
-    "METHODS",
-    "GeoOptions",
-    "ImageReadError",
-    "MatchResult",
-    "Matcher",
-    "MatcherConfig",
-    "RefineOptions",
-    "WeightsNotFoundError",
-    "match_pair",
-    "read_image",
-]
+from __future__ import annotations
+
+from importlib import import_module
+from typing import Any
+
+_EXPORTS = {
+    "ImageReadError": "imageio",
+    "read_image": "imageio",
+    "METHODS": "matcher",
+    "Matcher": "matcher",
+    "MatcherConfig": "matcher",
+    "MatchResult": "matcher",
+    "match_pair": "matcher",
+    "GeoOptions": "optimizer",
+    "RefineOptions": "refine",
+    "WeightsNotFoundError": "weights",
+}
+__all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'geomatch' has no attribute {name!r}")
+    value = getattr(import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value

@@ -19,6 +19,9 @@ import torch
 from PIL import Image
 
 MAX_PIXELS = 250_000_000  # beyond this a file is treated as a decompression bomb
+# Pillow's own guard warns above MAX_IMAGE_PIXELS (89.5 MP by default) and refuses twice that, which
+# would reject real 100-150 MP aerial frames; it is set to our limit so that the two agree.
+Image.MAX_IMAGE_PIXELS = MAX_PIXELS
 
 
 class ImageReadError(ValueError):

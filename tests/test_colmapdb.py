@@ -96,3 +96,18 @@ def test_a_failed_pair_write_leaves_nothing(tmp_path) -> None:
             db.write_pair(a, b, k0, k1[:10], np.ones(len(k0)), 1.5, 1.5)  # mismatched lengths
         assert not db.has_pair(a, b)
         assert db.db.num_keypoints() == 0
+
+
+def test_a_pair_with_no_matches_counts_as_matched(tmp_path) -> None:
+    """A matcher that found nothing answered: a rerun must not match the pair again."""
+    path = tmp_path / "database.db"
+    empty = np.zeros((0, 2), np.float32)
+    with ColmapDatabase(path) as db:
+        a = db.add_image("a.jpg", DRONE)
+        b = db.add_image("b.jpg", DRONE)
+        c = db.add_image("c.jpg", DRONE)
+        w = db.write_pair(c, a, empty, empty, np.zeros(0), 1.5, 1.5)
+        assert w.matches == 0 and not w.skipped
+        assert db.matched_pairs() == {(a, c)}
+        assert db.write_pair(a, c, empty, empty, np.zeros(0), 1.5, 1.5).skipped
+        assert (a, b) not in db.matched_pairs()
