@@ -17,13 +17,14 @@ from __future__ import annotations
 import logging
 import re
 import time
-from typing import Any
-
-from celery import Celery
+from typing import TYPE_CHECKING, Any
 
 from service.queue import MATCH_TWO
 
 from . import jobs, runtime
+
+if TYPE_CHECKING:
+    from celery import Celery
 
 log = logging.getLogger("geomatch.workers")
 _WORK = re.compile(r"pair-[0-9a-f]{32}")

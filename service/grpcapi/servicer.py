@@ -60,7 +60,8 @@ class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
         first = messages.next()
         if first is None or not first.project_id:
             raise InvalidRequest("the first message of UploadImages must carry project_id")
-        messages.push_back(first)
+        if first.WhichOneof("part") is not None:  # else a message that only names the project
+            messages.push_back(first)
         uploads = images(messages, self.service.settings.max_upload_bytes, first.project_id)
         views = self.service.upload_images(tenant_id, first.project_id, uploads)
         return pb2.UploadImagesResponse(images=[convert.image(v) for v in views])

@@ -43,6 +43,17 @@ from .test_api import _bad_files
 # the ground truth.
 RESIZE, METHOD = 480, "sparse"
 PAIR_RESIZE = 320
+# Every ground pair, both aerial images, and for each aerial image its two best ground partners
+# (measured) rather than all eight aerial x ground pairs: those are tiled (five matchings each),
+# and half of them connect the model as well as all of them.
+GROUND = [f"ground_0{i}.png" for i in range(4)]
+PAIRS = [(a, b) for i, a in enumerate(GROUND) for b in GROUND[i + 1 :]] + [
+    ("aerial_00.png", "aerial_01.png"),
+    ("aerial_00.png", "ground_00.png"),
+    ("aerial_00.png", "ground_01.png"),
+    ("aerial_01.png", "ground_02.png"),
+    ("aerial_01.png", "ground_03.png"),
+]
 MiB = 1024 * 1024
 METHODS = {
     "CreateProject",
@@ -128,7 +139,9 @@ def run(
     t["upload"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    accepted = a.submit_matching(p.id, resize=RESIZE, method=METHOD, reconstruct=True, mapper="incremental")
+    accepted = a.submit_matching(
+        p.id, pair_list=PAIRS, resize=RESIZE, method=METHOD, reconstruct=True, mapper="incremental"
+    )
     match_events = list(a.watch_job(accepted.job.id, timeout=1200))
     t["match"] = time.perf_counter() - t1
     t2 = time.perf_counter()
@@ -187,7 +200,7 @@ def test_watch_job_streams_progress_to_the_end(run: dict[str, Any]) -> None:
     assert running and running[0][0] == 0, seen  # at 0 of the total once planned
     dones = [d for d, _ in running]
     assert dones == sorted(dones) and len(set(dones)) >= 3, seen  # moves up, step by step
-    assert seen[-1] == (pb2.JOB_STATE_SUCCEEDED, 15, 15), seen  # 6 images, exhaustive
+    assert seen[-1] == (pb2.JOB_STATE_SUCCEEDED, len(PAIRS), len(PAIRS)), seen
     assert all(s != pb2.JOB_STATE_SUCCEEDED for s, _, _ in seen[:-1])  # the stream ends with the end
     recon = run["recon_events"]
     assert recon[0].kind == pb2.JOB_KIND_RECONSTRUCT and recon[0].after_job_id == events[-1].id
@@ -206,7 +219,7 @@ def test_model_download_registers_every_image(run: dict[str, Any]) -> None:
     assert info.summary.registered == 6 and info.summary.images == 6
     assert info.summary.points3d == rec.num_points3D() == summary["points3D"] > 0
     assert info.summary.mean_track_length == pytest.approx(summary["mean_track_length"])
-    assert to_dict(info.summary.full) == pytest.approx(to_dict(run["recon_events"][-1].result))
+    assert to_dict(info.summary.full) == to_dict(run["recon_events"][-1].result)
 
 
 def test_model_formats_and_project(run: dict[str, Any], a: GrpcClient, tmp_path: Path) -> None:
@@ -227,7 +240,7 @@ def test_capture_resolved_from_xmp(run: dict[str, Any], a: GrpcClient) -> None:
 
 
 def test_matching_again_matches_nothing_new_and_reconstruction(run: dict[str, Any], a: GrpcClient) -> None:
-    job = a.submit_matching(run["pid"], resize=RESIZE, method=METHOD).job
+    job = a.submit_matching(run["pid"], pair_list=PAIRS, resize=RESIZE, method=METHOD).job
     last = list(a.watch_job(job.id, timeout=120))[-1]
     assert last.state == pb2.JOB_STATE_SUCCEEDED and (last.progress.done, last.progress.total) == (0, 0)
     recon = a.submit_reconstruction(run["pid"], mapper="incremental")
@@ -444,9 +457,8 @@ def test_another_tenants_project_and_jobs_are_not_found(
         code, details = error_of(call)
         assert code == grpc.StatusCode.NOT_FOUND and "not found" in details, details
     assert dep.project_state(project) == before
-    assert (
-        list(a.watch_job(job.id, timeout=300))[-1].state == pb2.JOB_STATE_SUCCEEDED
-    )  # B's cancel did nothing
+    assert a.get_job(job.id).state != pb2.JOB_STATE_CANCELLED  # B's cancel did nothing
+    a.cancel_job(job.id)  # frees the worker (cancelling itself: test_cancel_job)
 
 
 # -- bad uploads: the REST list, each with its gRPC status ----------------------------------------------
@@ -639,9 +651,8 @@ def test_client_cancelling_mid_upload_leaves_nothing(
     while len(dep.staged()) < 2 and time.monotonic() < deadline:
         time.sleep(0.05)
     assert len(dep.staged()) == 2, dep.staged()
-    call.cancel()
+    assert call.cancel() and call.code() == grpc.StatusCode.CANCELLED
     release.set()
-    assert code_of(call.result) == grpc.StatusCode.CANCELLED
     assert dep.wait_unstaged() == [] and dep.project_state(project) == before
 
 
