@@ -622,6 +622,13 @@ def test_cancel_job(a: GrpcClient, scene: Path) -> None:
     job = a.submit_matching(p).job
     watch = a.watch_job(job.id, timeout=120)
     assert next(watch).id == job.id
+    # a watch's deadline ends it (the job goes on: three images at 320 px take longer than this)
+    t0 = time.monotonic()
+    assert code_of(lambda: list(a.watch_job(job.id, timeout=1.0))) == grpc.StatusCode.DEADLINE_EXCEEDED
+    assert time.monotonic() - t0 < 5 and a.get_job(job.id).state in (
+        pb2.JOB_STATE_QUEUED,
+        pb2.JOB_STATE_RUNNING,
+    )
     cancelled = a.cancel_job(job.id)
     assert cancelled.state == pb2.JOB_STATE_CANCELLED and "cancelled" in cancelled.error
     assert list(watch)[-1].state == pb2.JOB_STATE_CANCELLED  # the open stream ends with it
@@ -653,6 +660,26 @@ def test_client_cancelling_mid_upload_leaves_nothing(
     assert len(dep.staged()) == 2, dep.staged()
     assert call.cancel() and call.code() == grpc.StatusCode.CANCELLED
     release.set()
+    assert dep.wait_unstaged() == [] and dep.project_state(project) == before
+
+
+def test_upload_past_its_deadline_leaves_nothing(
+    a: GrpcClient, dep: GrpcDeployment, project: str, scene: Path
+) -> None:
+    before = dep.project_state(project)
+    png = (scene / "images" / "aerial_01.png").read_bytes()
+    stop = threading.Event()
+
+    def messages() -> Iterator[Any]:
+        yield pb2.UploadImagesRequest(project_id=project, image=header("late.png", size=len(png)))
+        yield pb2.UploadImagesRequest(chunk=png[:1000])
+        stop.wait(10)  # the rest never comes in time
+
+    try:
+        code = code_of(lambda: a.stub.UploadImages(messages(), metadata=a.metadata, timeout=1.0))
+    finally:
+        stop.set()
+    assert code == grpc.StatusCode.DEADLINE_EXCEEDED
     assert dep.wait_unstaged() == [] and dep.project_state(project) == before
 
 
