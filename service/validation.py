@@ -80,7 +80,8 @@ def check_image(path: Path, name: str, max_pixels: int) -> ImageInfo:
         ) from None
     except Exception as e:  # Pillow raises OSError, SyntaxError, ValueError, struct.error ...
         reason = "truncated or corrupt image data" if "truncat" in str(e).lower() else "not a readable image"
-        raise BadFile(f"{name}: {reason} ({e})") from None
+        detail = str(e).replace(str(path), name)  # the staging path is the server's business
+        raise BadFile(f"{name}: {reason} ({detail})") from None
     if width < MIN_SIDE or height < MIN_SIDE:
         raise BadFile(f"{name}: {width}x{height} is too small to match (at least {MIN_SIDE}x{MIN_SIDE})")
     return ImageInfo(width, height, FORMATS[fmt])

@@ -159,6 +159,7 @@ def test_bad_upload_is_refused_and_nothing_stored(
     )
     assert r.status_code == status, (label, r.status_code, r.text)
     assert message in r.json()["detail"], (label, r.json())
+    assert "upload-" not in r.json()["detail"], r.json()  # no server-side staging path leaks out
     assert state(deployment, project) == before, label
 
 
