@@ -231,6 +231,20 @@ def cmd_keys_revoke(args: argparse.Namespace) -> int:
 
 
 # -- submit ----------------------------------------------------------------------------------------
+def submit_inputs(args: argparse.Namespace) -> tuple[list[Path], dict[Path, str]] | int:
+    """The images to send and their capture types, or the exit code of a bad request: shared by
+    the HTTP and the gRPC batch clients so that both refuse the same input the same way."""
+    if not args.key:
+        print("geomatch: error: no API key: pass --key or set GEOMATCH_KEY", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        files = _collect(args.images)
+        return files, _captures(files, args.images, args)
+    except (ValueError, OSError) as e:
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
 def _collect(folder: Path) -> list[Path]:
     if not folder.is_dir():
         raise ValueError(f"{folder}: not a directory")
@@ -276,15 +290,10 @@ def cmd_submit(args: argparse.Namespace) -> int:
 
     from .client import ApiError, Client
 
-    if not args.key:
-        print("geomatch: error: no API key: pass --key or set GEOMATCH_KEY", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    try:
-        files = _collect(args.images)
-        captures = _captures(files, args.images, args)
-    except (ValueError, OSError) as e:
-        print(f"geomatch: error: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    inputs = submit_inputs(args)
+    if isinstance(inputs, int):
+        return inputs
+    files, captures = inputs
     wait = args.wait or args.out is not None
     client = Client(args.server, args.key)
     quiet = args.no_progress

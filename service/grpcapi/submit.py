@@ -19,7 +19,7 @@ from typing import Any
 
 import grpc
 
-from ..cli import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_UNREACHABLE, _captures, _collect
+from ..cli import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_UNREACHABLE, submit_inputs
 from .client import GrpcClient, ImageSource, to_dict
 from .pb import pb2
 
@@ -71,15 +71,10 @@ def _upload(client: GrpcClient, pid: str, batch: list[ImageSource], bar: Any) ->
 def submit(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    if not args.key:
-        print("geomatch: error: no API key: pass --key or set GEOMATCH_KEY", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    try:
-        files = _collect(args.images)
-        captures = _captures(files, args.images, args)
-    except (ValueError, OSError) as e:
-        print(f"geomatch: error: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    inputs = submit_inputs(args)
+    if isinstance(inputs, int):
+        return inputs
+    files, captures = inputs
     wait = args.wait or args.out is not None
     quiet = args.no_progress
     server = args.grpc_server
