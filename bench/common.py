@@ -21,7 +21,8 @@ def parse_variants(variants: str | None, methods: str) -> list[tuple[str, str, d
         method, *kvs = spec.split()
         options = {k: _value(v) for k, v in (kv.split("=", 1) for kv in kvs)}
         cfg = config_from_options(method=method, **options)
-        overrides = {k: getattr(cfg, k) for k in ("geo", "refine", "final_check", "dedup_radius", "dense")}
+        named = set(options) | {"geo", "refine"}  # optimizer/refinement fields travel inside these two
+        overrides = {k: getattr(cfg, k) for k in cfg.__dataclass_fields__ if k in named and k != "method"}
         out.append((spec.strip(), method, overrides))
     return out
 

@@ -33,7 +33,7 @@ def main() -> None:
 
     pairs = warped_pairs(args.pairs, args.seed, args.strength)
     rows = []
-    base = Matcher(MatcherConfig(resize=args.resize))
+    base = Matcher(MatcherConfig(resize=args.resize, cache_anchors_mb=4096))
     for label, method, options in parse_variants(args.variants, args.methods):
         matcher = base.derive(method=method, **options)
         n_all, n_good, errs, t = [], [], [], 0.0

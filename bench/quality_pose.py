@@ -91,7 +91,7 @@ def main() -> None:
     print(f"reference: {len(regs)}/{len(list(args.images.iterdir()))} images registered by COLMAP SIFT")
     pairs = list(itertools.combinations(regs, 2))
     pixels = {im.name: read_image(args.images / im.name) for im in regs}
-    base = Matcher(MatcherConfig(resize=args.resize))
+    base = Matcher(MatcherConfig(resize=args.resize, cache_anchors_mb=4096))
     rows = []
     for label, method, options in parse_variants(args.variants, args.methods):
         m = base.derive(method=method, **options)

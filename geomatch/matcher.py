@@ -24,18 +24,26 @@ from typing import Any
 import numpy as np
 import torch
 
-from .features.base import DenseHead, Extractor, ImageFeatures, SparseFeatures, SparseMatcher
+from .features.base import DenseHead, Extractor, ImageFeatures, SparseFeatures, SparseMatch, SparseMatcher
 from .features.registry import build_dense_head, build_extractor, build_sparse_matcher
 from .geometry import estimate_fundamental, sampson_distance, scale_fundamental
 from .imageio import Prepared, image_key, prepare, read_image
-from .optimizer import GeoOptions, dense_mutual_nn, first_unique, geometry_aware_matching
+from .optimizer import (
+    Assignment,
+    GeoOptions,
+    dense_mutual_nn,
+    first_unique,
+    geometry_aware_matching,
+    mutual_nn,
+    optimise,
+)
 from .refine import RefineOptions
 
 log = logging.getLogger(__name__)
 
 METHODS = ("sparse", "dense", "concat", "geo-noanchor", "geo")
 SPARSE_BACKBONES = ("aliked", "disk")
-DENSE_BACKBONES = ("disk", "aliked", "loftr")
+DENSE_BACKBONES = ("disk", "aliked", "loftr", "lightglue")
 
 
 def resolve_device(name: str = "auto") -> torch.device:
@@ -60,6 +68,12 @@ class MatcherConfig:
     dense: str = "disk"
     max_keypoints: int = 2048
     lightglue_threshold: float = 0.1
+    # LightGlue's adaptive depth (early exit) and width (point pruning) confidences: speed settings
+    # that cost the anchors accuracy on hard pairs; -1 turns them off (LightGlue's own defaults are
+    # 0.95 / 0.99). Without point pruning LightGlue's soft assignment covers every keypoint, which
+    # the ``lightglue`` dense branch needs. Chosen by measurement: docs/benchmarks.md.
+    lightglue_depth_confidence: float = -1.0
+    lightglue_width_confidence: float = -1.0
     dense_temperature: float | None = None  # None: the head's own (0.02 descriptor maps, 0.1 LoFTR)
     loftr_weights: str | None = None
     geo: GeoOptions = field(default_factory=GeoOptions)
@@ -72,6 +86,7 @@ class MatcherConfig:
     # optimiser does not shape, are the independent evidence. 15 is COLMAP's min_num_inliers.
     min_anchor_support: int = 15
     cache_images: int = 16
+    cache_anchors_mb: float = 256.0  # recent pairs' LightGlue output (soft assignments included)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -82,12 +97,23 @@ class MatcherConfig:
             raise ValueError(f"unknown dense backbone {self.dense!r}; choose from {DENSE_BACKBONES}")
 
     @property
-    def needs_sparse(self) -> bool:
+    def uses_anchors(self) -> bool:
         return self.method in ("sparse", "concat", "geo")
+
+    @property
+    def needs_sparse(self) -> bool:
+        """A LightGlue pass: for the anchors, or as the dense branch itself (``dense=lightglue``)."""
+        return self.uses_anchors or (self.needs_dense and self.dense == "lightglue")
 
     @property
     def needs_dense(self) -> bool:
         return self.method != "sparse"
+
+    @property
+    def dense_maps(self) -> bool:
+        """Whether the dense branch needs per-image dense maps (all dense backbones but LightGlue's
+        soft assignment, which is computed per pair from the keypoints)."""
+        return self.needs_dense and self.dense != "lightglue"
 
 
 @dataclass
@@ -153,7 +179,7 @@ class Matcher:
         self.extract_calls = 0
         # anchors of recent pairs: re-matching a pair with other optimizer options (ablations,
         # a retried task) does not run LightGlue again
-        self._anchors: OrderedDict[tuple[str, str, int | None], tuple[torch.Tensor, ...]] = OrderedDict()
+        self._anchors: OrderedDict[tuple[str, str, int | None], SparseMatch] = OrderedDict()
 
     def derive(self, **overrides: Any) -> Matcher:
         """A matcher with other options that shares this one's networks and feature cache.
@@ -200,7 +226,7 @@ class Matcher:
         passes: dict[str, bool] = {}
         if cfg.needs_sparse:
             passes[cfg.sparse] = False
-        if cfg.needs_dense:
+        if cfg.dense_maps:
             passes[cfg.dense] = True
         return list(passes.items())
 
@@ -232,16 +258,15 @@ class Matcher:
                 return prep
         return prepare(image, self.config.resize, self.device)
 
-    def _match_anchors(
-        self, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures
-    ) -> tuple[torch.Tensor, ...]:
+    def _match_anchors(self, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures) -> SparseMatch:
         ak = (key0, key1, self.config.resize)
         if ak in self._anchors:
             self._anchors.move_to_end(ak)
             return self._anchors[ak]
         out = self.sparse_matcher.match(sa, sb)
         self._anchors[ak] = out
-        while len(self._anchors) > 4 * self.config.cache_images:
+        budget = self.config.cache_anchors_mb * 2**20
+        while self._anchors and sum(v.nbytes() for v in self._anchors.values()) > budget:
             self._anchors.popitem(last=False)
         return out
 
@@ -262,50 +287,24 @@ class Matcher:
         parts_b: list[torch.Tensor] = []
         parts_s: list[torch.Tensor] = []
         anchors = None
+        lg: SparseMatch | None = None
         if cfg.needs_sparse:
             sa, sb = f0[cfg.sparse].sparse, f1[cfg.sparse].sparse
             assert sa is not None and sb is not None
             with timer("anchors"):
-                ia, ib, sc = self._match_anchors(key0, key1, sa, sb)
-            anchors = (sa.keypoints[ia].float(), sb.keypoints[ib].float(), sc)
-            stats["anchors"] = int(ia.numel())
+                lg = self._match_anchors(key0, key1, sa, sb)
+            if cfg.uses_anchors:
+                anchors = (sa.keypoints[lg.idx_a].float(), sb.keypoints[lg.idx_b].float(), lg.scores)
+                stats["anchors"] = int(lg.idx_a.numel())
 
-        F_prior = None
-        if cfg.needs_dense:
-            da, db = f0[cfg.dense].dense, f1[cfg.dense].dense
-            assert da is not None and db is not None
-            head = self.dense_head
-            with timer("dense_coarse"):
-                pair = head.coarse_pair(da, db)
-                if cfg.dense_temperature is not None:
-                    pair.temperature = cfg.dense_temperature
-            stats["coarse_cells"] = (int(pair.feats_a.shape[0]), int(pair.feats_b.shape[0]))
-            if cfg.method in ("dense", "concat"):
-                with timer("dense_coarse"):
-                    ci, cj, conf = dense_mutual_nn(
-                        pair.feats_a,
-                        pair.feats_b,
-                        pair.temperature,
-                        cfg.geo.theta_c,
-                        cfg.geo.memory_budget_mb,
-                    )
-            else:
-                geo = cfg.geo if cfg.method == "geo" else replace(cfg.geo, use_anchors=False)
-                with timer("optimizer"):
-                    cm = geometry_aware_matching(
-                        pair.feats_a, pair.feats_b, pair.grid_a, pair.grid_b, pair.temperature, anchors, geo
-                    )
-                ci, cj, conf = cm.idx_a, cm.idx_b, cm.confidence
-                # the refinement's epipolar prior needs a precise F: the anchors' (keypoint
-                # precision), not the rounds' fits on 8-px cell centres
-                if cm.init == "anchors":
-                    F_prior = cm.initial_fundamental
-                stats.update(init=cm.init, history=cm.history, candidates=cm.candidates)
-            stats["coarse_matches"] = int(ci.numel())
-            with timer("refine"):
-                ref = head.refine(da, db, pair, ci, cj, F_prior)
-            dense_a, dense_b, dense_s = ref.points_a, ref.points_b, conf.float()
-        if cfg.method in ("sparse", "concat", "geo") and anchors is not None:
+        if cfg.needs_dense and cfg.dense == "lightglue":
+            assert lg is not None
+            dense_a, dense_b, dense_s = self._dense_from_assignment(
+                lg, f0[cfg.sparse].sparse, f1[cfg.sparse].sparse, anchors, stats, timer
+            )
+        elif cfg.needs_dense:
+            dense_a, dense_b, dense_s = self._dense_from_maps(f0, f1, anchors, stats, timer)
+        if cfg.uses_anchors and anchors is not None:
             parts_a.append(anchors[0])
             parts_b.append(anchors[1])
             parts_s.append(anchors[2].float())
@@ -345,6 +344,83 @@ class Matcher:
             stats=stats,
         )
 
+
+    def _dense_from_maps(
+        self,
+        f0: dict[str, ImageFeatures],
+        f1: dict[str, ImageFeatures],
+        anchors: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
+        stats: dict[str, Any],
+        timer: _Timer,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Detector-free branch on per-image dense maps: coarse cells, rounds, window refinement."""
+        cfg = self.config
+        da, db = f0[cfg.dense].dense, f1[cfg.dense].dense
+        assert da is not None and db is not None
+        head = self.dense_head
+        F_prior = None
+        with timer("dense_coarse"):
+            pair = head.coarse_pair(da, db)
+            if cfg.dense_temperature is not None:
+                pair.temperature = cfg.dense_temperature
+        stats["coarse_cells"] = (int(pair.feats_a.shape[0]), int(pair.feats_b.shape[0]))
+        if cfg.method in ("dense", "concat"):
+            with timer("dense_coarse"):
+                ci, cj, conf = dense_mutual_nn(
+                    pair.feats_a, pair.feats_b, pair.temperature, cfg.geo.theta_c, cfg.geo.memory_budget_mb
+                )
+        else:
+            geo = cfg.geo if cfg.method == "geo" else replace(cfg.geo, use_anchors=False)
+            with timer("optimizer"):
+                cm = geometry_aware_matching(
+                    pair.feats_a, pair.feats_b, pair.grid_a, pair.grid_b, pair.temperature, anchors, geo
+                )
+            ci, cj, conf = cm.idx_a, cm.idx_b, cm.confidence
+            # the refinement's epipolar prior needs a precise F: the anchors' (keypoint
+            # precision), not a fit on 8-px cell centres
+            if cm.init == "anchors":
+                F_prior = cm.initial_fundamental
+            stats.update(init=cm.init, history=cm.history, candidates=cm.candidates, refits=cm.refits_accepted)
+        stats["coarse_matches"] = int(ci.numel())
+        with timer("refine"):
+            ref = head.refine(da, db, pair, ci, cj, F_prior)
+        return ref.points_a, ref.points_b, conf.float()
+
+    def _dense_from_assignment(
+        self,
+        lg: SparseMatch,
+        sa: SparseFeatures | None,
+        sb: SparseFeatures | None,
+        anchors: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
+        stats: dict[str, Any],
+        timer: _Timer,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Keypoints as cells: LightGlue's soft assignment over every keypoint is P_c. The rounds
+        recover matches LightGlue was unsure of (repeated patterns, weak texture) that the
+        geometry confirms, at keypoint precision, so there is nothing to refine."""
+        cfg = self.config
+        assert sa is not None and sb is not None
+        if lg.assignment is None:
+            if sa.keypoints.shape[0] and sb.keypoints.shape[0]:
+                raise ValueError(
+                    "dense='lightglue' needs LightGlue's full soft assignment: "
+                    "set lightglue_width_confidence=-1 (no point pruning)"
+                )
+            z = torch.zeros(0, 2, device=self.device)
+            return z, z.clone(), torch.zeros(0, device=self.device)
+        source = Assignment(lg.assignment)
+        ga, gb = sa.keypoints.float(), sb.keypoints.float()
+        stats["coarse_cells"] = (source.n, source.m)
+        with timer("optimizer"):
+            if cfg.method in ("dense", "concat"):
+                ci, cj, conf = mutual_nn(source, cfg.geo.theta_c)
+            else:
+                geo = cfg.geo if cfg.method == "geo" else replace(cfg.geo, use_anchors=False)
+                cm = optimise(source, ga, gb, anchors, geo, geo.f_threshold)
+                ci, cj, conf = cm.idx_a, cm.idx_b, cm.confidence
+                stats.update(init=cm.init, history=cm.history, candidates=cm.candidates, refits=cm.refits_accepted)
+        stats["coarse_matches"] = int(ci.numel())
+        return ga[ci], gb[cj], conf.float()
 
 def _merge(
     parts_a: list[torch.Tensor],

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .geometry import SampsonGrid, estimate_fundamental
+from .geometry import SampsonGrid, estimate_fundamental, sampson_distance
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,14 @@ class GeoOptions:
     f_threshold_coarse: float = 3.0  # px, MAGSAC threshold on coarse cell centres (~sqrt(tau))
     memory_budget_mb: float = 256.0  # working memory of one streamed block
     candidates_per_line: int = 32  # entries kept per row and per column of the confidence matrix
+    # Anchored rounds (this project's reading; False restores the paper's rule: F refitted on the
+    # round's mutual-NN cells alone and always accepted). With anchors, a round's F is refitted on
+    # the anchors' inliers and the round's matches jointly, and accepted only while the anchors'
+    # truncated Sampson cost stays within (1 + anchor_slack) of the anchors' own fit: bad coarse
+    # matches can then never drag F off the keypoint-precise geometry of the anchors.
+    anchored: bool = True
+    anchor_slack: float = 0.05
+    stop_when_stable: bool = True  # end the rounds once F and the match set stop changing
 
 
 @dataclass
@@ -64,6 +72,7 @@ class CoarseMatches:
     initial_fundamental: torch.Tensor | None = (
         None  # F0; from keypoint-precise anchors when init == "anchors"
     )
+    refits_accepted: int = 0  # rounds whose refitted F was kept
 
 
 @dataclass
@@ -82,10 +91,11 @@ class DualSoftmax:
         self.fa, self.fb = fa.float(), fb.float()
         self.inv_t = 1.0 / temperature
         n, m = fa.shape[0], fb.shape[0]
+        self.device = self.fa.device
         temps = 5  # similarity, probabilities, Sampson numerator/denominator, mask
         self.rows = max(1, int(budget_mb * 2**20 / (max(m, 1) * 4 * temps)))
         self.n, self.m = n, m
-        dev = self.fa.device
+        dev = self.device
         self.row_lse = torch.empty(n, device=dev)
         self.col_lse = torch.full((m,), -math.inf, device=dev)
         # when the whole similarity matrix fits the budget it is computed once and kept
@@ -107,6 +117,26 @@ class DualSoftmax:
         """P0 for a row block: a fresh tensor the caller may modify."""
         s = self._full.clone() if self._full is not None else self.similarity(rows)
         return s.mul_(2).sub_(self.row_lse[rows, None]).sub_(self.col_lse[None, :]).exp_()
+
+
+class Assignment:
+    """A precomputed P_c (N x M) served like :class:`DualSoftmax`: e.g. LightGlue's soft assignment
+    over keypoints, whose rows and columns are keypoints instead of coarse cells."""
+
+    def __init__(self, p: torch.Tensor) -> None:
+        self.p = p.float()
+        self.n, self.m = p.shape
+        self.rows = max(self.n, 1)
+        self.device = p.device
+
+    def blocks(self) -> list[slice]:
+        return [slice(0, self.n)] if self.n else []
+
+    def block(self, rows: slice) -> torch.Tensor:
+        return self.p[rows].clone()
+
+
+Source = DualSoftmax | Assignment
 
 
 def _mutual(stats: _Stats, threshold: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -145,8 +175,12 @@ def dense_mutual_nn(
     fa: torch.Tensor, fb: torch.Tensor, temperature: float, threshold: float, budget_mb: float = 256.0
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Plain detector-free coarse matching: mutual nearest neighbours of P_c above ``threshold``."""
-    ds = DualSoftmax(fa, fb, temperature, budget_mb)
-    return _mutual(_stream_stats_topk(ds, 1)[0], threshold)
+    return mutual_nn(DualSoftmax(fa, fb, temperature, budget_mb), threshold)
+
+
+def mutual_nn(source: Source, threshold: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Mutual nearest neighbours of any P_c source above ``threshold``."""
+    return _mutual(_stream_stats_topk(source, 1)[0], threshold)
 
 
 def geometric_confidence(d: torch.Tensor, tau: float) -> torch.Tensor:
@@ -187,15 +221,28 @@ def geometry_aware_matching(
     anchors: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
     opts: GeoOptions | None = None,
 ) -> CoarseMatches:
-    """Coarse matches re-weighted by epipolar consistency.
+    """Coarse matches of two feature sets (dual-softmax P_c) re-weighted by epipolar consistency.
 
     ``anchors`` are (points_a, points_b, scores) from the detector-based matcher, in the same
     pixel frame as the grid cell centres ``grid_a`` (N, 2) and ``grid_b`` (M, 2).
     """
     opts = opts or GeoOptions()
-    ds = DualSoftmax(fa, fb, temperature, opts.memory_budget_mb)
+    source = DualSoftmax(fa, fb, temperature, opts.memory_budget_mb)
+    return optimise(source, grid_a, grid_b, anchors, opts, opts.f_threshold_coarse)
+
+
+def optimise(
+    source: Source,
+    grid_a: torch.Tensor,
+    grid_b: torch.Tensor,
+    anchors: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
+    opts: GeoOptions,
+    cell_threshold: float,
+) -> CoarseMatches:
+    """The rounds on any P_c source; ``cell_threshold`` (px) is the robust F threshold suited to
+    the precision of the cell positions (coarse cell centres: a few px; keypoints: about 1)."""
     k_line = max(1, opts.candidates_per_line)
-    stats0, top = _stream_stats_topk(ds, k_line)
+    stats0, top = _stream_stats_topk(source, k_line)
     initial = _mutual(stats0, opts.theta_iter)
     F, init = initial_fundamental(grid_a, grid_b, initial, anchors, opts)
     F0 = F
@@ -205,15 +252,18 @@ def geometry_aware_matching(
 
     tau = opts.tau
     ratio = 2.0 * torch.sigmoid(torch.tensor(max(tau, 0.0))).item()
-    ci, cj, p0 = _candidates(stats0, top, ratio**-opts.iterations, ds.m)
+    ci, cj, p0 = _candidates(stats0, top, ratio**-opts.iterations, source.m)
     ga, gb = grid_a.float(), grid_b.float()
     # the first round's matrix minimum is at least P_d's floor (0.5) times min(P0): below 1e-30 in
     # practice, so using that bound instead of the exact minimum changes no ranking
     floor = 0.5 * opts.w * stats0.minimum
+    guard = _AnchorGuard.build(F, anchors, opts) if opts.anchored and init == "anchors" else None
 
     history: list[int] = []
-    n, m = ds.n, ds.m
+    accepted = 0
+    n, m = source.n, source.m
     val = p0
+    previous: torch.Tensor | None = None
     for it in range(opts.iterations):
         d = SampsonGrid(F, ga, gb).pairs(ci, cj)
         val = val * geometric_confidence(d, tau) * opts.w
@@ -223,16 +273,63 @@ def geometry_aware_matching(
             val = val / val.max().clamp_min(1e-30)  # the matrix minimum is 0 from round 1 on
         sel = _mutual_sparse(ci, cj, val, n, m, opts.theta_iter)
         history.append(int(sel.numel()))
-        F_new, _ = estimate_fundamental(ga[ci[sel]], gb[cj[sel]], opts.f_estimator, opts.f_threshold_coarse)
-        if F_new is not None:
+        if guard is None:
+            F_new, _ = estimate_fundamental(ga[ci[sel]], gb[cj[sel]], opts.f_estimator, cell_threshold)
+            if F_new is not None:
+                F = F_new
+                accepted += 1
+            continue
+        if opts.stop_when_stable and previous is not None and torch.equal(previous, sel):
+            break
+        previous = sel
+        F_new, _ = estimate_fundamental(
+            torch.cat([guard.pa, ga[ci[sel]]]),
+            torch.cat([guard.pb, gb[cj[sel]]]),
+            opts.f_estimator,
+            cell_threshold,
+        )
+        if F_new is not None and guard.accepts(F_new):
             F = F_new
+            accepted += 1
     sel = _mutual_sparse(ci, cj, val, n, m, opts.theta_c)
-    return CoarseMatches(ci[sel], cj[sel], val[sel], F, init, history, int(ci.numel()), F0)
+    return CoarseMatches(ci[sel], cj[sel], val[sel], F, init, history, int(ci.numel()), F0, accepted)
 
 
-def _stream_stats_topk(ds: DualSoftmax, k: int) -> tuple[_Stats, dict[str, torch.Tensor]]:
+@dataclass
+class _AnchorGuard:
+    """The anchors' verdict on a candidate F: its truncated (MSAC) Sampson cost over the anchors
+    must stay within ``1 + slack`` of the cost of the anchors' own fit."""
+
+    pa: torch.Tensor  # anchor inliers of the initial F: always part of a refit
+    pb: torch.Tensor
+    all_a: torch.Tensor
+    all_b: torch.Tensor
+    tau: float
+    limit: float
+
+    @staticmethod
+    def build(
+        F0: torch.Tensor, anchors: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None, opts: GeoOptions
+    ) -> _AnchorGuard | None:
+        if anchors is None or anchors[0].shape[0] == 0:
+            return None
+        pa, pb = anchors[0].float(), anchors[1].float()
+        d = sampson_distance(F0.to(pa.device, pa.dtype), pa, pb)
+        inl = d <= opts.tau
+        cost = float(d.clamp(max=opts.tau).sum())
+        return _AnchorGuard(pa[inl], pb[inl], pa, pb, opts.tau, cost * (1.0 + opts.anchor_slack))
+
+    def cost(self, F: torch.Tensor) -> float:
+        d = sampson_distance(F.to(self.all_a.device, self.all_a.dtype), self.all_a, self.all_b)
+        return float(d.clamp(max=self.tau).sum())
+
+    def accepts(self, F: torch.Tensor) -> bool:
+        return self.cost(F) <= self.limit
+
+
+def _stream_stats_topk(ds: Source, k: int) -> tuple[_Stats, dict[str, torch.Tensor]]:
     """Row/column maxima of P0 plus each row's and each column's k largest entries, one pass."""
-    dev = ds.fa.device
+    dev = ds.device
     kr = min(k, ds.m)
     row_max = torch.empty(ds.n, device=dev)
     row_arg = torch.empty(ds.n, dtype=torch.long, device=dev)

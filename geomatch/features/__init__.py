@@ -8,6 +8,7 @@ from .base import (
     ImageFeatures,
     Refined,
     SparseFeatures,
+    SparseMatch,
     SparseMatcher,
 )
 
@@ -19,5 +20,6 @@ __all__ = [
     "ImageFeatures",
     "Refined",
     "SparseFeatures",
+    "SparseMatch",
     "SparseMatcher",
 ]

@@ -87,12 +87,28 @@ class Extractor(ABC):
         """
 
 
+@dataclass
+class SparseMatch:
+    """A detector-based matcher's verdict on a pair of keypoint sets."""
+
+    idx_a: torch.Tensor  # (K,) indices into a's keypoints
+    idx_b: torch.Tensor  # (K,) indices into b's keypoints
+    scores: torch.Tensor  # (K,) in [0, 1]
+    # (N_a, N_b) soft assignment over ALL keypoints, when the matcher computes one for every keypoint
+    # (LightGlue without point pruning): the optimizer's P_c with keypoints as cells
+    assignment: torch.Tensor | None = None
+
+    def nbytes(self) -> int:
+        ts = [self.idx_a, self.idx_b, self.scores] + ([self.assignment] if self.assignment is not None else [])
+        return sum(t.numel() * t.element_size() for t in ts)
+
+
 class SparseMatcher(ABC):
     name: str
 
     @abstractmethod
-    def match(self, a: SparseFeatures, b: SparseFeatures) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Indices into ``a`` and ``b`` keypoints, and a score in [0, 1] per match."""
+    def match(self, a: SparseFeatures, b: SparseFeatures) -> SparseMatch:
+        """Matches between ``a`` and ``b`` keypoints, with the soft assignment where available."""
 
 
 class DenseHead(ABC):

@@ -6,7 +6,7 @@ import torch
 from kornia.feature import LightGlue
 
 from ..weights import load_state_dict
-from .base import SparseFeatures, SparseMatcher
+from .base import SparseFeatures, SparseMatch, SparseMatcher
 
 CHECKPOINTS = {"aliked": "aliked_lightglue.pth", "disk": "disk_lightglue.pth"}
 
@@ -29,8 +29,8 @@ class LightGlueMatcher(SparseMatcher):
         features: str,
         device: torch.device,
         filter_threshold: float = 0.1,
-        depth_confidence: float = 0.95,
-        width_confidence: float = 0.99,
+        depth_confidence: float = -1.0,
+        width_confidence: float = -1.0,
         weights: str | None = None,
     ) -> None:
         if features not in CHECKPOINTS:
@@ -54,11 +54,11 @@ class LightGlueMatcher(SparseMatcher):
         self.net = net.eval().to(device)
 
     @torch.inference_mode()
-    def match(self, a: SparseFeatures, b: SparseFeatures) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def match(self, a: SparseFeatures, b: SparseFeatures) -> SparseMatch:
         dev = a.keypoints.device
         if a.keypoints.shape[0] == 0 or b.keypoints.shape[0] == 0:
             empty = torch.empty(0, dtype=torch.long, device=dev)
-            return empty, empty, torch.empty(0, device=dev)
+            return SparseMatch(empty, empty, torch.empty(0, device=dev))
         data = {
             "image0": {
                 "keypoints": a.keypoints[None],
@@ -73,4 +73,11 @@ class LightGlueMatcher(SparseMatcher):
         }
         out = self.net(data)
         matches, scores = out["matches"][0], out["scores"][0]
-        return matches[:, 0], matches[:, 1], scores.float()
+        # with point pruning the assignment covers only the points that survived: not a P_c
+        assignment = None
+        if self.net.conf.width_confidence <= 0 and "log_assignment" in out:
+            na, nb = a.keypoints.shape[0], b.keypoints.shape[0]
+            la = out["log_assignment"][0]
+            if la.shape == (na + 1, nb + 1):
+                assignment = la[:na, :nb].float().exp()
+        return SparseMatch(matches[:, 0], matches[:, 1], scores.float(), assignment)

@@ -31,7 +31,13 @@ def build_extractor(name: str, device: torch.device, config: MatcherConfig) -> E
 def build_sparse_matcher(config: MatcherConfig, device: torch.device) -> SparseMatcher:
     from .lightglue import LightGlueMatcher
 
-    return LightGlueMatcher(config.sparse, device, filter_threshold=config.lightglue_threshold)
+    return LightGlueMatcher(
+        config.sparse,
+        device,
+        filter_threshold=config.lightglue_threshold,
+        depth_confidence=config.lightglue_depth_confidence,
+        width_confidence=config.lightglue_width_confidence,
+    )
 
 
 def build_dense_head(config: MatcherConfig, extractor: Extractor) -> DenseHead:
