@@ -344,7 +344,6 @@ class Matcher:
             stats=stats,
         )
 
-
     def _dense_from_maps(
         self,
         f0: dict[str, ImageFeatures],
@@ -380,7 +379,9 @@ class Matcher:
             # precision), not a fit on 8-px cell centres
             if cm.init == "anchors":
                 F_prior = cm.initial_fundamental
-            stats.update(init=cm.init, history=cm.history, candidates=cm.candidates, refits=cm.refits_accepted)
+            stats.update(
+                init=cm.init, history=cm.history, candidates=cm.candidates, refits=cm.refits_accepted
+            )
         stats["coarse_matches"] = int(ci.numel())
         with timer("refine"):
             ref = head.refine(da, db, pair, ci, cj, F_prior)
@@ -418,9 +419,12 @@ class Matcher:
                 geo = cfg.geo if cfg.method == "geo" else replace(cfg.geo, use_anchors=False)
                 cm = optimise(source, ga, gb, anchors, geo, geo.f_threshold)
                 ci, cj, conf = cm.idx_a, cm.idx_b, cm.confidence
-                stats.update(init=cm.init, history=cm.history, candidates=cm.candidates, refits=cm.refits_accepted)
+                stats.update(
+                    init=cm.init, history=cm.history, candidates=cm.candidates, refits=cm.refits_accepted
+                )
         stats["coarse_matches"] = int(ci.numel())
         return ga[ci], gb[cj], conf.float()
+
 
 def _merge(
     parts_a: list[torch.Tensor],

@@ -200,7 +200,9 @@ def test_anchored_rounds_are_not_dragged_off_the_anchors(anchored: bool) -> None
     drifts to the wrong geometry; the anchored rounds refuse any F the anchors disagree with."""
     s = drift_scene()
     opts = GeoOptions(theta_c=0.01, anchored=anchored, stop_when_stable=False)
-    cm = geometry_aware_matching(s["fa"], s["fb"], s["ga"], s["gb"], TEMPERATURE, anchors_from(s, 20, 0.9), opts)
+    cm = geometry_aware_matching(
+        s["fa"], s["fb"], s["ga"], s["gb"], TEMPERATURE, anchors_from(s, 20, 0.9), opts
+    )
     true, wrong = classify(s, cm.idx_a, cm.idx_b)
     assert cm.init == "anchors"
     if anchored:

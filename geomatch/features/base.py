@@ -99,7 +99,9 @@ class SparseMatch:
     assignment: torch.Tensor | None = None
 
     def nbytes(self) -> int:
-        ts = [self.idx_a, self.idx_b, self.scores] + ([self.assignment] if self.assignment is not None else [])
+        ts = [self.idx_a, self.idx_b, self.scores] + (
+            [self.assignment] if self.assignment is not None else []
+        )
         return sum(t.numel() * t.element_size() for t in ts)
 
 
