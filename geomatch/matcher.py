@@ -197,7 +197,11 @@ class Matcher:
             return other  # networks built differently: nothing to share
         other._extractors = self._extractors
         other._cache = self._cache
-        if (a.sparse, a.lightglue_threshold) == (b.sparse, b.lightglue_threshold):
+
+        def lightglue(c: MatcherConfig) -> tuple[object, ...]:
+            return (c.sparse, c.lightglue_threshold, c.lightglue_depth_confidence, c.lightglue_width_confidence)
+
+        if lightglue(a) == lightglue(b):
             other._sparse = self._sparse
             other._anchors = self._anchors
         return other

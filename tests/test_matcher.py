@@ -87,3 +87,22 @@ def test_geo_gives_nothing_for_images_that_do_not_overlap(matcher: Matcher) -> N
     assert len(r) == 0 and "rejected" in r.stats and r.stats["anchor_support"] < 15
     ungated = geo.derive(min_anchor_support=0).match(a, b)
     assert len(ungated) > 0 and "rejected" not in ungated.stats
+
+
+def test_lightglue_assignment_branch_and_pruning_settings(matcher: Matcher, astronaut_pair: WarpedPair) -> None:
+    """dense=lightglue reads LightGlue's soft assignment (one LightGlue call serves anchors and the
+    dense branch, no dense-map pass); a matcher with pruning does not reuse unpruned anchors, and
+    the lightglue branch refuses pruning with a clear error instead of a silent partial P_c."""
+    m = matcher.derive(method="geo", dense="lightglue")
+    assert m.needed_extractors() == [("aliked", False)]
+    r = m.match(astronaut_pair.image0, astronaut_pair.image1)
+    err = reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)
+    assert r.stats["init"] == "anchors"
+    assert len(r) + r.stats.get("final_check_removed", 0) >= r.stats["anchors"]
+    assert (err < 3).mean() > 0.97
+    pruned = m.derive(lightglue_depth_confidence=0.95, lightglue_width_confidence=0.99)
+    assert pruned._anchors is not m._anchors and pruned._sparse is not m._sparse
+    with pytest.raises(ValueError, match="lightglue_width_confidence=-1"):
+        pruned.match(astronaut_pair.image0, astronaut_pair.image1)
+    same = m.derive(method="sparse")
+    assert same._anchors is m._anchors
