@@ -113,10 +113,8 @@ def precision_hits(pair: IndoorPair, k0: np.ndarray, k1: np.ndarray, px: float =
 
 
 def run_indoor(args: argparse.Namespace) -> None:
-    splits = {
-        "tuning": [int(s) for s in args.seeds.split(",")],
-        "test": [int(s) for s in args.test_seeds.split(",")],
-    }
+    seeds_of = {"tuning": args.seeds, "test": args.test_seeds}
+    splits = {name: [int(x) for x in seeds_of[name].split(",")] for name in args.splits.split(",")}
     base = Matcher(MatcherConfig(resize=args.resize))
     variants = parse_variants(args.variants, args.methods)
     report: dict[str, object] = {"pairs_per_seed": args.pairs_per_seed, "no_overlap": args.no_overlap}
@@ -204,6 +202,7 @@ def main() -> None:
     ap.add_argument("--set", choices=("indoor",), default=None, help="a synthetic set instead of --images")
     ap.add_argument("--seeds", default="0,1,2", help="indoor tuning split")
     ap.add_argument("--test-seeds", default="100,101,102", help="indoor test split")
+    ap.add_argument("--splits", default="tuning,test", help="indoor splits to run: tuning, test or both")
     ap.add_argument("--pairs-per-seed", type=int, default=10)
     ap.add_argument("--no-overlap", type=int, default=10, help="no-overlap pairs per split (0: none)")
     ap.add_argument("--per-pair", action="store_true", help="print every indoor pair")
