@@ -1,6 +1,8 @@
-"""Relative-pose accuracy of the five methods on real photos, against a COLMAP SIFT reference.
+"""Relative-pose accuracy of the five methods on real photos (against a COLMAP SIFT reference) or on
+synthetic indoor rooms (exact ground truth).
 
     python bench/quality_pose.py --images ../shared/data/real/sacre_coeur --resize 640
+    python bench/quality_pose.py --set indoor --methods sparse,geo --json bench/out/indoor.json
 
 The reference poses come from COLMAP's own pipeline (pycolmap: SIFT at full resolution,
 exhaustive matching, incremental mapping), which none of the compared methods takes part in; it
@@ -8,11 +10,21 @@ is computed once and cached under bench/out/. Every pair of registered images is
 each method, the relative pose is estimated from the matches with the reference intrinsics
 (essential matrix, MAGSAC, 1 px threshold), and the pose error max(angle(R), angle(t)) is
 summarised as AUC@5/10/20 degrees, as in the IMC / LoFTR protocol.
+
+``--set indoor`` renders wide-baseline pairs of synthetic rooms (geomatch.synth_indoor: rotation
+20-70 degrees, covisibility >= 10 %), a tuning split (``--seeds``) and a test split
+(``--test-seeds``), and scores them by the SuperGlue / LoFTR protocol (geomatch.pose: RANSAC
+essential matrix at 0.5 px). Match precision is pooled over a split: the fraction of all matches
+within 3 px of where image 0's depth, carried by the true pose, puts them in image 1, with
+occluded or out-of-view points counting as wrong. A no-overlap set per split (views of the same
+room that share no surface point) counts the pairs on which a method returns any match. Rendered
+pairs are cached under bench/out/indoor/.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import itertools
 import json
 import shutil
@@ -24,8 +36,10 @@ import numpy as np
 import pycolmap
 from common import parse_variants, print_table
 
-from geomatch import METHODS, Matcher, MatcherConfig, read_image
+from geomatch import METHODS, Matcher, MatcherConfig, read_image, synth_indoor
 from geomatch.homography import auc
+from geomatch.pose import pose_auc, relative_pose_error
+from geomatch.synth_indoor import IndoorPair, gt_matches, indoor_pairs, no_overlap_pairs
 
 OUT = Path(__file__).resolve().parent / "out"
 
@@ -73,9 +87,125 @@ def pose_error(rec: pycolmap.Reconstruction, im0, im1, k0: np.ndarray, k1: np.nd
     return max(err_r, err_t)
 
 
+FIELDS = ("image0", "image1", "K0", "K1", "R", "t", "depth0", "depth1", "covisibility", "rotation_deg")
+
+
+def cached_pairs(kind: str, seed: int, n: int) -> list[IndoorPair]:
+    """Rendered pairs from bench/out/indoor/ (rendered and saved on first use); the file name carries
+    a hash of the generator's source, so editing the generator never serves stale renders."""
+    source = hashlib.sha256(Path(synth_indoor.__file__).read_bytes()).hexdigest()[:10]
+    path = OUT / "indoor" / f"{kind}_seed{seed}_n{n}_{source}.npz"
+    if path.exists():
+        z = np.load(path)
+        return [IndoorPair(str(z["names"][i]), *(z[f][i] for f in FIELDS)) for i in range(len(z["names"]))]
+    pairs = (indoor_pairs if kind == "pairs" else no_overlap_pairs)(seed, n)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {f: np.stack([np.asarray(getattr(p, f)) for p in pairs]) for f in FIELDS}
+    np.savez_compressed(path, names=np.array([p.name for p in pairs]), **arrays)
+    return pairs
+
+
+def precision_hits(pair: IndoorPair, k0: np.ndarray, k1: np.ndarray, px: float = 3.0) -> int:
+    if len(k0) == 0:
+        return 0
+    proj, ok = gt_matches(pair, k0)
+    return int((ok & (np.linalg.norm(proj - k1, axis=1) < px)).sum())
+
+
+def run_indoor(args: argparse.Namespace) -> None:
+    seeds_of = {"tuning": args.seeds, "test": args.test_seeds}
+    splits = {name: [int(x) for x in seeds_of[name].split(",")] for name in args.splits.split(",")}
+    base = Matcher(MatcherConfig(resize=args.resize))
+    variants = parse_variants(args.variants, args.methods)
+    report: dict[str, object] = {"pairs_per_seed": args.pairs_per_seed, "no_overlap": args.no_overlap}
+    for split, seeds in splits.items():
+        t0 = time.perf_counter()
+        pairs = [p for s in seeds for p in cached_pairs("pairs", s, args.pairs_per_seed)]
+        empty = cached_pairs("none", seeds[0], args.no_overlap) if args.no_overlap else []
+        print(
+            f"{split}: {len(pairs)} pairs + {len(empty)} no-overlap pairs "
+            f"ready in {time.perf_counter() - t0:.0f}s"
+        )
+        rows, none_rows = [], []
+        for label, method, options in variants:
+            m = base.derive(method=method, **options)
+            errs, n, hits, t0 = [], [], 0, time.perf_counter()
+            for p in pairs:
+                r = m.match(p.image0, p.image1)
+                errs.append(max(relative_pose_error(r.keypoints0, r.keypoints1, p.K0, p.K1, p.R, p.t)))
+                n.append(len(r))
+                hits += precision_hits(p, r.keypoints0, r.keypoints1)
+                if args.per_pair:
+                    print(
+                        f"  {label} {p.name} rot {p.rotation_deg:.0f} covis {p.covisibility:.2f}: "
+                        f"{len(r)} matches, error {errs[-1]:.2f} deg"
+                    )
+            sec = time.perf_counter() - t0
+            a5, a10, a20 = pose_auc(errs, (5, 10, 20))
+            row = {
+                "split": split,
+                "method": label,
+                "auc5": a5,
+                "auc10": a10,
+                "auc20": a20,
+                "median_err": float(np.median(errs)),
+                "matches": float(np.mean(n)),
+                "precision": hits / max(sum(n), 1),
+                "errors": [float(e) for e in errs],
+                "sec_per_pair": sec / max(len(pairs), 1),
+            }
+            rows.append(row)
+            print(json.dumps({k: v for k, v in row.items() if k != "errors"}), flush=True)
+            counts = [len(m.match(p.image0, p.image1)) for p in empty]
+            none_rows.append(
+                {
+                    "split": split,
+                    "method": label,
+                    "pairs": len(empty),
+                    "with_matches": sum(c > 0 for c in counts),
+                    "mean_matches": float(np.mean(counts)) if counts else 0.0,
+                    "counts": counts,
+                }
+            )
+        title = (
+            f"indoor {split} (seeds {','.join(map(str, seeds))}): {len(pairs)} pairs, rotation 20-70 deg, "
+            f"covisibility >= 10 %, pose by RANSAC E at 0.5 px"
+        )
+        columns = [
+            ("method", "method", "s"),
+            ("AUC@5", "auc5", "%"),
+            ("AUC@10", "auc10", "%"),
+            ("AUC@20", "auc20", "%"),
+            ("median error deg", "median_err", ".2f"),
+            ("matches", "matches", ".0f"),
+            ("precision@3px", "precision", "%"),
+            ("s/pair", "sec_per_pair", ".1f"),
+        ]
+        print_table(title, columns, rows)
+        if empty:
+            none_cols = [
+                ("method", "method", "s"),
+                ("pairs", "pairs", "d"),
+                ("pairs with >0 matches", "with_matches", "d"),
+                ("mean matches (all false)", "mean_matches", ".1f"),
+            ]
+            print_table(f"indoor {split}: no-overlap pairs (seed {seeds[0]})", none_cols, none_rows)
+        report[split] = {"seeds": seeds, "pairs": rows, "no_overlap": none_rows}
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=1))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--images", type=Path, required=True)
+    ap.add_argument("--images", type=Path, default=None, help="real photos (COLMAP SIFT reference)")
+    ap.add_argument("--set", choices=("indoor",), default=None, help="a synthetic set instead of --images")
+    ap.add_argument("--seeds", default="0,1,2", help="indoor tuning split")
+    ap.add_argument("--test-seeds", default="100,101,102", help="indoor test split")
+    ap.add_argument("--splits", default="tuning,test", help="indoor splits to run: tuning, test or both")
+    ap.add_argument("--pairs-per-seed", type=int, default=10)
+    ap.add_argument("--no-overlap", type=int, default=10, help="no-overlap pairs per split (0: none)")
+    ap.add_argument("--per-pair", action="store_true", help="print every indoor pair")
     ap.add_argument("--resize", type=int, default=640)
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument(
@@ -85,6 +215,11 @@ def main() -> None:
     )
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
+    if args.set == "indoor":
+        run_indoor(args)
+        return
+    if args.images is None:
+        ap.error("give --images DIR or --set indoor")
 
     rec = reference(args.images)
     regs = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)

@@ -153,6 +153,15 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from .synth import write_scene
 
     t0 = time.perf_counter()
+    if args.kind == "indoor":
+        from .synth_indoor import write_room
+
+        views = write_room(args.out, args.ground, args.seed, args.width, args.height)
+        print(
+            f"{len(views)} indoor views in {time.perf_counter() - t0:.1f}s -> {args.out}/images, "
+            f"ground truth in {args.out}/gt, depth in {args.out}/depth"
+        )
+        return 0
     cams = write_scene(args.out, args.aerial, args.ground, args.seed, args.width, args.height)
     print(
         f"{len(cams)} images ({args.aerial} aerial, {args.ground} ground) in {time.perf_counter() - t0:.1f}s "
@@ -178,6 +187,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--aerial", type=int, default=8)
     s.add_argument("--ground", type=int, default=12)
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument(
+        "--kind",
+        choices=("outdoor", "indoor"),
+        default="outdoor",
+        help="indoor: one room, --ground views (--aerial ignored), depth/ as .npy",
+    )
     s.add_argument("--width", type=int, default=640)
     s.add_argument("--height", type=int, default=480)
     s.set_defaults(func=cmd_synth)
