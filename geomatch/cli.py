@@ -35,6 +35,12 @@ def _add_matching_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--memory-budget-mb", type=float, default=256.0)
 
 
+def _add_verbose(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--verbose", action="store_true", help="also print COLMAP's own log (glog lines of pycolmap)"
+    )
+
+
 def _matching_options(args: argparse.Namespace) -> dict[str, object]:
     return {
         "method": args.method,
@@ -104,6 +110,7 @@ def _run_options(args: argparse.Namespace) -> RunOptions:
         mapper=args.mapper,
         share_camera=False if args.camera == "per-image" else None,
         matcher=matcher,
+        verbose=args.verbose,
     )
 
 
@@ -146,7 +153,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
-    return run_demo(args.out, args.aerial, args.ground, args.seed, args.method, args.resize)
+    return run_demo(
+        args.out, args.aerial, args.ground, args.seed, args.method, args.resize, verbose=args.verbose
+    )
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -206,6 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--camera", choices=("auto", "per-image"), default="auto", help="auto: one camera per EXIF device"
     )
     _add_matching_options(r)
+    _add_verbose(r)
     r.set_defaults(func=cmd_run)
 
     e = sub.add_parser("eval", help="compare a run's model with ground truth")
@@ -220,6 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--method", choices=METHODS, default="geo")
     d.add_argument("--resize", type=int, default=640)
+    _add_verbose(d)
     d.set_defaults(func=cmd_demo)
 
     from service.cli import register as register_service  # serve, worker, keys, submit (imports lazily)

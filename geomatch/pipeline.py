@@ -54,6 +54,7 @@ class RunOptions:
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
     match_cache: str | None = None  # folder of raw pair matches shared by runs (benchmarks, variants)
     progress: bool = True
+    verbose: bool = False  # COLMAP's own log (glog) on stderr; off: a progress bar per stage only
 
 
 def list_images(folder: Path) -> list[str]:
@@ -186,7 +187,15 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
             bar.set_postfix(matches=w.matches, inliers=w.inliers)
         db_stats = db.stats()
     t_map = time.perf_counter()
-    summary = reconstruct(out / "database.db", image_dir, out, opts.mapper, opts.min_model_size)
+    summary = reconstruct(
+        out / "database.db",
+        image_dir,
+        out,
+        opts.mapper,
+        opts.min_model_size,
+        verbose=opts.verbose,
+        progress=opts.progress,
+    )
     timings["mapping"] = time.perf_counter() - t_map
     timings["total"] = time.perf_counter() - t_start
     summary.update(
@@ -197,7 +206,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         aerial=sorted(aerial),
         database=db_stats,
         timings=timings,
-        options={k: v for k, v in asdict(opts).items() if k not in ("progress", "pairs_list")},
+        options={k: v for k, v in asdict(opts).items() if k not in ("progress", "verbose", "pairs_list")},
     )
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
