@@ -10,6 +10,7 @@ from pathlib import Path
 from .imageio import ImageReadError, read_image
 from .matcher import DENSE_BACKBONES, METHODS, SPARSE_BACKBONES
 from .pipeline import RunOptions
+from .sfm import MIN_POSE_INLIERS
 from .weights import WeightsNotFoundError
 
 DEMO_AERIAL, DEMO_GROUND = 3, 6
@@ -108,6 +109,7 @@ def _run_options(args: argparse.Namespace) -> RunOptions:
         tiling=args.tiling,
         snap_radius=args.snap_radius,
         mapper=args.mapper,
+        min_pose_inliers=args.min_pose_inliers,
         share_camera=False if args.camera == "per-image" else None,
         matcher=matcher,
         verbose=args.verbose,
@@ -211,6 +213,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--snap-radius", type=float, default=1.5, help="keypoint consolidation radius, network px (0: off)"
     )
     r.add_argument("--mapper", choices=("incremental", "global"), default="incremental")
+    r.add_argument(
+        "--min-pose-inliers",
+        type=int,
+        default=MIN_POSE_INLIERS,
+        help="2D-3D inliers the incremental mapper needs to register an image (COLMAP's own: 30)",
+    )
     r.add_argument(
         "--camera", choices=("auto", "per-image"), default="auto", help="auto: one camera per EXIF device"
     )

@@ -22,6 +22,12 @@ from .colmaplog import colmap_log
 from .metrics import sfm_stats
 
 MAPPERS = ("incremental", "global")
+# COLMAP registers an image from 30 PnP inliers, a count made for sparse SIFT matches. With dense
+# matches a genuinely overlapping image has hundreds of 2D-3D correspondences, while a repeated
+# texture gives a few dozen that agree with each other: the demo's aerial_01 was placed 66 units
+# off from 36 of them (grass patches on two surfaces). From 60 on, it waits until its true
+# correspondences are triangulated and registers right (docs/pipeline.md, "Mapping").
+MIN_POSE_INLIERS = 60
 
 
 def verify(database: Path, verbose: bool = False) -> int:
@@ -51,6 +57,7 @@ def reconstruct(
     seed: int = 0,
     verbose: bool = False,
     progress: bool = False,
+    min_pose_inliers: int = MIN_POSE_INLIERS,
 ) -> dict[str, Any]:
     """Map, export the largest model and return (and write) the summary.
 
@@ -74,6 +81,7 @@ def reconstruct(
             opts = pycolmap.IncrementalPipelineOptions()
             opts.min_model_size = min_model_size
             opts.random_seed = seed
+            opts.mapper.abs_pose_min_num_inliers = min_pose_inliers
             models = pycolmap.incremental_mapping(
                 str(database),
                 str(image_dir),
