@@ -10,6 +10,7 @@ from pathlib import Path
 from .imageio import ImageReadError, read_image
 from .matcher import DENSE_BACKBONES, METHODS, SPARSE_BACKBONES
 from .pipeline import RunOptions
+from .sfm import MIN_POSE_INLIERS
 from .weights import WeightsNotFoundError
 
 DEMO_AERIAL, DEMO_GROUND = 3, 6
@@ -33,6 +34,12 @@ def _add_matching_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--theta-iter", type=float, default=0.01)
     g.add_argument("--theta-c", type=float, default=0.2)
     g.add_argument("--memory-budget-mb", type=float, default=256.0)
+
+
+def _add_verbose(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--verbose", action="store_true", help="also print COLMAP's own log (glog lines of pycolmap)"
+    )
 
 
 def _matching_options(args: argparse.Namespace) -> dict[str, object]:
@@ -102,8 +109,10 @@ def _run_options(args: argparse.Namespace) -> RunOptions:
         tiling=args.tiling,
         snap_radius=args.snap_radius,
         mapper=args.mapper,
+        min_pose_inliers=args.min_pose_inliers,
         share_camera=False if args.camera == "per-image" else None,
         matcher=matcher,
+        verbose=args.verbose,
     )
 
 
@@ -146,7 +155,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
-    return run_demo(args.out, args.aerial, args.ground, args.seed, args.method, args.resize)
+    return run_demo(
+        args.out, args.aerial, args.ground, args.seed, args.method, args.resize, verbose=args.verbose
+    )
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -218,9 +229,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--mapper", choices=("incremental", "global"), default="incremental")
     r.add_argument(
+        "--min-pose-inliers",
+        type=int,
+        default=MIN_POSE_INLIERS,
+        help="2D-3D inliers the incremental mapper needs to register an image (COLMAP's own: 30)",
+    )
+    r.add_argument(
         "--camera", choices=("auto", "per-image"), default="auto", help="auto: one camera per EXIF device"
     )
     _add_matching_options(r)
+    _add_verbose(r)
     r.set_defaults(func=cmd_run)
 
     e = sub.add_parser("eval", help="compare a run's model with ground truth")
@@ -235,6 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--method", choices=METHODS, default="geo")
     d.add_argument("--resize", type=int, default=640)
+    _add_verbose(d)
     d.set_defaults(func=cmd_demo)
 
     from service.cli import register as register_service  # serve, worker, keys, submit (imports lazily)

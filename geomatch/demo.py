@@ -13,7 +13,14 @@ from .synth import write_scene
 
 
 def run_demo(
-    out: Path, n_aerial: int = 3, n_ground: int = 6, seed: int = 0, method: str = "geo", resize: int = 640
+    out: Path,
+    n_aerial: int = 3,
+    n_ground: int = 6,
+    seed: int = 0,
+    method: str = "geo",
+    resize: int = 640,
+    verbose: bool = False,
+    match_cache: str | None = None,
 ) -> int:
     t0 = time.perf_counter()
     scene = out / "scene"
@@ -22,7 +29,11 @@ def run_demo(
     aerial = [n for n in (scene / "aerial.txt").read_text().split() if n]
     print(f"running the pipeline ({method}, aerial x ground pairs tiled) -> {out / 'run'}")
     summary = run(
-        scene / "images", out / "run", RunOptions(method=method, resize=resize, aerial_names=aerial)
+        scene / "images",
+        out / "run",
+        RunOptions(
+            method=method, resize=resize, aerial_names=aerial, verbose=verbose, match_cache=match_cache
+        ),
     )
     print("evaluating against the ground truth poses")
     result = evaluate_run(out / "run", scene / "gt")
@@ -34,9 +45,10 @@ def run_demo(
         f"{summary['pairs']} pairs, {summary['tiled_pairs']} tiled; mapping {t['mapping']:.1f}s). "
         f"Model: {res / 'sparse' / '0'}, {res / 'points.ply'}; database: {res / 'database.db'}"
     )
-    if summary["registered"] < summary["images"]:
+    m = result.metrics
+    if m["correct"] < m["images"]:
         print(
-            f"note: {summary['images'] - summary['registered']} image(s) not registered "
-            "(known gap, see docs/pipeline.md)"
+            f"note: {m['images'] - m['registered']} image(s) not registered and "
+            f"{m['registered'] - m['correct']} registered but wrongly placed (see docs/pipeline.md)"
         )
     return 0

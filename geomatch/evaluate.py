@@ -1,4 +1,11 @@
-"""``geomatch eval``: a run's model against a ground-truth COLMAP model, printed and saved."""
+"""``geomatch eval``: a run's models against a ground-truth COLMAP model, printed and saved.
+
+Every model the run exported (``sparse/0`` the largest, then ``sparse/1`` ...) is judged on its own
+(aligned to the ground truth separately, see metrics.py); pose AUC and the SfM statistics are those
+of ``sparse/0``, the model a user gets. The result goes to ``OUT/eval.json`` and, when the run has a
+``summary.json``, under its ``ground_truth`` key, so a run's summary tells how many of its cameras
+are right and not only how many are registered.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +16,10 @@ from typing import Any
 
 import pycolmap
 
-from .metrics import AUC_THRESHOLDS, evaluate
+from .metrics import AUC_THRESHOLDS, correctness, evaluate
+
+# the keys of a model's result that summary.json carries (the rest stays in eval.json)
+SUMMARY_KEYS = ("registered", "correct", "images", "aligned", "extent", "position_threshold", "wrong")
 
 
 @dataclass
@@ -18,25 +28,42 @@ class EvalResult:
 
     def table(self) -> str:
         m = self.metrics
-        head = "| registered | 3D points | mean track length | mean reproj. error px | " + " | ".join(
-            f"AUC@{t:g} deg" for t in AUC_THRESHOLDS
+        head = (
+            "| correct | registered | 3D points | mean track length | mean reproj. error px | "
+            + " | ".join(f"AUC@{t:g} deg" for t in AUC_THRESHOLDS)
         )
         row = (
-            f"| {m['registered']}/{m['images']} | {m['points3D']} | {m['mean_track_length']:.2f} "
-            f"| {m['mean_reprojection_error']:.3f} | "
+            f"| {m['correct']}/{m['images']} | {m['registered']}/{m['images']} | {m['points3D']} "
+            f"| {m['mean_track_length']:.2f} | {m['mean_reprojection_error']:.3f} | "
             + " | ".join(f"{m[f'auc@{t:g}']:.1f}" for t in AUC_THRESHOLDS)
         )
-        lines = [head + " |", "|" + "---|" * (4 + len(AUC_THRESHOLDS)), row + " |"]
+        lines = [head + " |", "|" + "---|" * (5 + len(AUC_THRESHOLDS)), row + " |"]
+        lines.append(
+            f"correct {m['correct']}/{m['images']} (registered {m['registered']}/{m['images']}): "
+            f"rotation error <= {m['rotation_threshold_deg']:g} deg and position error <= "
+            f"{m['position_threshold']:.2f} (5% of the scene extent {m['extent']:.1f}) after a robust "
+            "similarity alignment to the ground truth"
+        )
         if m.get("aligned"):
             lines.append(
-                "after alignment to ground truth: median rotation error "
-                f"{m['median_rotation_error_deg']:.3f} deg, "
-                f"median position error {m['median_position_error']:.3f} (max {m['max_position_error']:.3f}) "
-                "ground-truth units"
+                f"median rotation error {m['median_rotation_error_deg']:.3f} deg, median position error "
+                f"{m['median_position_error']:.3f} (max {m['max_position_error']:.3f}) ground-truth units"
             )
         else:
+            lines.append("could not align the model to ground truth (fewer than 3 registered images agree)")
+        for name, err in m["wrong"].items():
             lines.append(
-                "could not align the model to ground truth (too few registered images agree with it)"
+                f"  wrong: {name} "
+                + (
+                    "(not alignable)"
+                    if err is None
+                    else f"{err['rotation_deg']:.1f} deg, {err['position']:.2f} off"
+                )
+            )
+        for other in m.get("other_models", []):
+            lines.append(
+                f"{other['model']}: correct {other['correct']}/{other['images']} "
+                f"(registered {other['registered']}/{other['images']})"
             )
         return "\n".join(lines)
 
@@ -50,16 +77,35 @@ def load_model(folder: Path) -> pycolmap.Reconstruction:
         raise ValueError(f"{folder}: not a readable COLMAP model ({e})") from None
 
 
+def exported_models(out: Path) -> list[Path]:
+    """``sparse/0``, ``sparse/1`` ... as sfm.py exports them, largest first."""
+    sparse = out / "sparse"
+    if not sparse.is_dir():
+        return []
+    return sorted((d for d in sparse.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
+
+
 def evaluate_run(out: Path, gt: Path) -> EvalResult:
-    """Evaluate ``out/sparse/0``; a run that produced no model scores zero with every image unregistered."""
+    """Evaluate every exported model; a run without a model scores zero with every image unregistered."""
     gt_rec = load_model(gt)
-    model = out / "sparse" / "0"
-    rec = load_model(model) if model.is_dir() else pycolmap.Reconstruction()
+    models = exported_models(out)
+    rec = load_model(models[0]) if models else pycolmap.Reconstruction()
     metrics = evaluate(rec, gt_rec)
+    metrics["model"] = "sparse/0"
+    metrics["other_models"] = [
+        {"model": f"sparse/{d.name}", **correctness(load_model(d), gt_rec)} for d in models[1:]
+    ]
     summary = out / "summary.json"
     if summary.is_file():
-        metrics["run"] = {
-            k: v for k, v in json.loads(summary.read_text()).items() if k in ("method", "timings")
+        s = json.loads(summary.read_text())
+        metrics["run"] = {k: v for k, v in s.items() if k in ("method", "timings")}
+        s["ground_truth"] = {
+            "gt": str(gt),
+            **{k: metrics[k] for k in SUMMARY_KEYS if k in metrics},
+            "other_models": [
+                {k: o[k] for k in ("model", *SUMMARY_KEYS) if k in o} for o in metrics["other_models"]
+            ],
         }
+        summary.write_text(json.dumps(s, indent=2) + "\n")
     (out / "eval.json").write_text(json.dumps(metrics, indent=2) + "\n")
     return EvalResult(metrics)

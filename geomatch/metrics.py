@@ -3,9 +3,25 @@
 Pose AUC follows the relative-pose protocol the paper reports (AUC of max(rotation error,
 translation-direction error) over image pairs, at 3/5/10 degrees), computed over EVERY pair of
 ground-truth images: a pair with an unregistered image counts as an infinite error, so failing
-to register is penalised rather than hidden. The model is also aligned to the ground truth
-(a similarity fitted on camera centres, robust to outliers) to report absolute errors:
-rotation in degrees and camera position in ground-truth units.
+to register is penalised rather than hidden.
+
+A registered camera is not necessarily a right one: a wrong pair that verification admits can
+place a camera anywhere, and COLMAP still counts it. So each model is also aligned to the ground
+truth and every camera is judged on its own:
+
+- **Alignment**: a similarity (scale, rotation, translation) from the model to the ground truth,
+  fitted on camera centres paired by image name, by RANSAC over triples of centres whose
+  hypotheses are scored by the number of cameras they make correct (rule below), then refitted
+  on those cameras (alignment.py says why not pycolmap's position-only RANSAC). A few badly
+  placed cameras therefore cannot drag the others off: they are simply outliers.
+- **Extent** of the scene: the diagonal of the axis-aligned bounding box of the ground-truth
+  camera centres (all ground-truth images, registered or not), so the rule does not depend on
+  what the model managed to register.
+- **Correct camera**: registered, rotation error <= 3 deg and position error (centre distance
+  after alignment) <= 5 % of the extent. ``correct`` counts those; ``registered`` keeps counting
+  every camera with a pose.
+
+Fewer than 3 registered images cannot be aligned: such a model has no correct camera.
 """
 
 from __future__ import annotations
@@ -16,9 +32,12 @@ from typing import Any
 import numpy as np
 import pycolmap
 
+from .alignment import align
 from .homography import auc
 
 AUC_THRESHOLDS = (3.0, 5.0, 10.0)
+MAX_ROTATION_ERROR_DEG = 3.0
+MAX_POSITION_ERROR_FRACTION = 0.05  # of the scene extent
 
 
 def sfm_stats(rec: pycolmap.Reconstruction, n_images: int) -> dict[str, Any]:
@@ -73,32 +92,93 @@ def relative_pose_errors(rec: pycolmap.Reconstruction, gt: pycolmap.Reconstructi
     return np.asarray(errs, np.float64)
 
 
-def evaluate(
-    rec: pycolmap.Reconstruction, gt: pycolmap.Reconstruction, max_center_error: float = 1.0
-) -> dict[str, Any]:
-    """Pose AUC over all pairs, absolute errors after similarity alignment, SfM statistics."""
-    errs = relative_pose_errors(rec, gt)
-    out: dict[str, Any] = sfm_stats(rec, gt.num_images())
-    for t, v in zip(AUC_THRESHOLDS, auc(errs, AUC_THRESHOLDS), strict=True):
-        out[f"auc@{t:g}"] = 100.0 * v
-    aligned = pycolmap.Reconstruction(rec)
-    sim = (
-        pycolmap.align_reconstructions_via_proj_centers(aligned, gt, max_center_error)
-        if rec.num_reg_images() >= 3
-        else None
+def _centre(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return -R.T @ t
+
+
+def scene_extent(gt: pycolmap.Reconstruction) -> float:
+    """Diagonal of the bounding box of the ground-truth camera centres."""
+    centres = np.array([_centre(R, t) for R, t in _poses(gt).values()]).reshape(-1, 3)
+    if len(centres) < 2:
+        return 0.0
+    return float(np.linalg.norm(centres.max(0) - centres.min(0)))
+
+
+def camera_errors(
+    rec: pycolmap.Reconstruction,
+    gt: pycolmap.Reconstruction,
+    max_rotation_deg: float,
+    max_position: float,
+) -> dict[str, tuple[float, float]] | None:
+    """Rotation error (deg) and position error (ground-truth units) of every registered camera that
+    the ground truth knows, after the robust alignment of alignment.py; None when none exists."""
+    est, ref = _poses(rec), _poses(gt)
+    common = sorted(set(est) & set(ref))
+    if len(common) < 3 or max_position <= 0:
+        return None
+    found = align(
+        np.array([est[n][0] for n in common]),
+        np.array([_centre(*est[n]) for n in common]),
+        np.array([ref[n][0] for n in common]),
+        np.array([_centre(*ref[n]) for n in common]),
+        max_rotation_deg,
+        max_position,
     )
-    if sim is not None:
-        aligned.transform(sim)
-        est, ref = _poses(aligned), _poses(gt)
-        common = sorted(set(est) & set(ref))
-        rot = [_angle_deg(est[n][0] @ ref[n][0].T) for n in common]
-        pos = [float(np.linalg.norm(-est[n][0].T @ est[n][1] + ref[n][0].T @ ref[n][1])) for n in common]
+    if found is None:
+        return None
+    return {
+        n: (float(r), float(p))
+        for n, r, p in zip(common, found.rotation_errors_deg, found.position_errors, strict=True)
+    }
+
+
+def correctness(
+    rec: pycolmap.Reconstruction,
+    gt: pycolmap.Reconstruction,
+    max_rotation_deg: float = MAX_ROTATION_ERROR_DEG,
+    max_position_fraction: float = MAX_POSITION_ERROR_FRACTION,
+) -> dict[str, Any]:
+    """``registered`` and ``correct`` for one model, by the rule of the module docstring."""
+    extent = scene_extent(gt)
+    max_pos = max_position_fraction * extent
+    registered = sorted(_poses(rec))
+    errors = camera_errors(rec, gt, max_rotation_deg, max_pos)
+    out: dict[str, Any] = {
+        "registered": len(registered),
+        "images": int(gt.num_images()),
+        "aligned": errors is not None,
+        "extent": extent,
+        "rotation_threshold_deg": max_rotation_deg,
+        "position_threshold": max_pos,
+    }
+    errors = errors or {}
+    good = sorted(n for n, (r, p) in errors.items() if r <= max_rotation_deg and p <= max_pos)
+    out.update(
+        correct=len(good),
+        correct_names=good,
+        # every registered camera that is not correct, with its errors (None: not alignable)
+        wrong={
+            n: None if n not in errors else {"rotation_deg": errors[n][0], "position": errors[n][1]}
+            for n in registered
+            if n not in good
+        },
+    )
+    if errors:
+        rot = [r for r, _ in errors.values()]
+        pos = [p for _, p in errors.values()]
         out.update(
-            aligned=True,
             median_rotation_error_deg=float(np.median(rot)),
             median_position_error=float(np.median(pos)),
             max_position_error=float(np.max(pos)),
         )
-    else:
-        out["aligned"] = False
+    return out
+
+
+def evaluate(rec: pycolmap.Reconstruction, gt: pycolmap.Reconstruction) -> dict[str, Any]:
+    """Pose AUC over all pairs, per-camera correctness after robust alignment, SfM statistics."""
+    errs = relative_pose_errors(rec, gt)
+    out: dict[str, Any] = sfm_stats(rec, gt.num_images())
+    for t, v in zip(AUC_THRESHOLDS, auc(errs, AUC_THRESHOLDS), strict=True):
+        out[f"auc@{t:g}"] = 100.0 * v
+    out.update(correctness(rec, gt))
     return out

@@ -27,7 +27,7 @@ from .imageio import image_key, read_image
 from .matcher import Matcher, config_from_options
 from .metadata import ImageMeta, read_metadata
 from .retrieval import vlad
-from .sfm import reconstruct
+from .sfm import MIN_POSE_INLIERS, reconstruct
 from .tiling import match_tiled
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
@@ -51,9 +51,11 @@ class RunOptions:
     mapper: str = "incremental"
     share_camera: bool | None = None  # None: one camera per EXIF device, else per image
     min_model_size: int = 3
+    min_pose_inliers: int = MIN_POSE_INLIERS  # PnP inliers the incremental mapper needs to register an image
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
     match_cache: str | None = None  # folder of raw pair matches shared by runs (benchmarks, variants)
     progress: bool = True
+    verbose: bool = False  # COLMAP's own log (glog) on stderr; off: a progress bar per stage only
 
 
 def list_images(folder: Path) -> list[str]:
@@ -186,7 +188,16 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
             bar.set_postfix(matches=w.matches, inliers=w.inliers)
         db_stats = db.stats()
     t_map = time.perf_counter()
-    summary = reconstruct(out / "database.db", image_dir, out, opts.mapper, opts.min_model_size)
+    summary = reconstruct(
+        out / "database.db",
+        image_dir,
+        out,
+        opts.mapper,
+        opts.min_model_size,
+        verbose=opts.verbose,
+        progress=opts.progress,
+        min_pose_inliers=opts.min_pose_inliers,
+    )
     timings["mapping"] = time.perf_counter() - t_map
     timings["total"] = time.perf_counter() - t_start
     summary.update(
@@ -197,7 +208,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         aerial=sorted(aerial),
         database=db_stats,
         timings=timings,
-        options={k: v for k, v in asdict(opts).items() if k not in ("progress", "pairs_list")},
+        options={k: v for k, v in asdict(opts).items() if k not in ("progress", "verbose", "pairs_list")},
     )
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary

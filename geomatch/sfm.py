@@ -16,13 +16,21 @@ from pathlib import Path
 from typing import Any
 
 import pycolmap
+from tqdm import tqdm
 
+from .colmaplog import colmap_log
 from .metrics import sfm_stats
 
 MAPPERS = ("incremental", "global")
+# COLMAP registers an image from 30 PnP inliers, a count made for sparse SIFT matches. With dense
+# matches a genuinely overlapping image has hundreds of 2D-3D correspondences, while a repeated
+# texture gives a few dozen that agree with each other: the demo's aerial_01 was placed 66 units
+# off from 36 of them (grass patches on two surfaces). From 60 on, it waits until its true
+# correspondences are triangulated and registers right (docs/pipeline.md, "Mapping").
+MIN_POSE_INLIERS = 60
 
 
-def verify(database: Path) -> int:
+def verify(database: Path, verbose: bool = False) -> int:
     """Verify matched pairs that have no two-view geometry yet; returns how many were verified."""
     db = pycolmap.Database.open(str(database))
     try:
@@ -35,7 +43,8 @@ def verify(database: Path) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             pairs_path = Path(tmp) / "pairs.txt"
             pairs_path.write_text("".join(f"{names[a]} {names[b]}\n" for a, b in pending))
-            pycolmap.verify_matches(str(database), str(pairs_path))
+            with colmap_log(verbose):
+                pycolmap.verify_matches(str(database), str(pairs_path))
     return len(pending)
 
 
@@ -46,29 +55,49 @@ def reconstruct(
     mapper: str = "incremental",
     min_model_size: int = 3,
     seed: int = 0,
+    verbose: bool = False,
+    progress: bool = False,
+    min_pose_inliers: int = MIN_POSE_INLIERS,
 ) -> dict[str, Any]:
-    """Map, export the largest model and return (and write) the summary."""
+    """Map, export the largest model and return (and write) the summary.
+
+    ``verbose`` lets COLMAP's own log through (colmaplog.py); ``progress`` shows a bar of
+    registered images instead, the one line a user watching a terminal needs.
+    """
     if mapper not in MAPPERS:
         raise ValueError(f"unknown mapper {mapper!r}; choose from {', '.join(MAPPERS)}")
-    verify(database)
+    verify(database, verbose)
     work = out / ".mapping"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    if mapper == "incremental":
-        opts = pycolmap.IncrementalPipelineOptions()
-        opts.min_model_size = min_model_size
-        opts.random_seed = seed
-        models = pycolmap.incremental_mapping(str(database), str(image_dir), str(work), opts)
-    else:
-        gopts = pycolmap.GlobalPipelineOptions()
-        if hasattr(gopts, "random_seed"):
-            gopts.random_seed = seed
-        models = pycolmap.global_mapping(str(database), str(image_dir), str(work), gopts)
     db = pycolmap.Database.open(str(database))
     try:
         n_images = int(db.num_images())
     finally:
         db.close()
+    bar = tqdm(total=n_images, desc=f"mapping ({mapper})", unit="image", disable=not progress)
+    with bar, colmap_log(verbose):
+        if mapper == "incremental":
+            opts = pycolmap.IncrementalPipelineOptions()
+            opts.min_model_size = min_model_size
+            opts.random_seed = seed
+            opts.mapper.abs_pose_min_num_inliers = min_pose_inliers
+            models = pycolmap.incremental_mapping(
+                str(database),
+                str(image_dir),
+                str(work),
+                opts,
+                initial_image_pair_callback=lambda: bar.update(2),
+                next_image_callback=lambda: bar.update(1),
+            )
+        else:
+            gopts = pycolmap.GlobalPipelineOptions()
+            if hasattr(gopts, "random_seed"):
+                gopts.random_seed = seed
+            models = pycolmap.global_mapping(str(database), str(image_dir), str(work), gopts)
+        best_count = max((r.num_reg_images() for r in models.values()), default=0)
+        bar.n = best_count  # the bar ends at the largest model's count (the callbacks count tries)
+        bar.refresh()
     ranked = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
     sparse = out / "sparse"
     shutil.rmtree(sparse, ignore_errors=True)
