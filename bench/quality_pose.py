@@ -115,7 +115,8 @@ def precision_hits(pair: IndoorPair, k0: np.ndarray, k1: np.ndarray, px: float =
 def run_indoor(args: argparse.Namespace) -> None:
     seeds_of = {"tuning": args.seeds, "test": args.test_seeds}
     splits = {name: [int(x) for x in seeds_of[name].split(",")] for name in args.splits.split(",")}
-    base = Matcher(MatcherConfig(resize=args.resize))
+    # every pair's LightGlue output and every image's features stay cached across the variants
+    base = Matcher(MatcherConfig(resize=args.resize, cache_anchors_mb=4096, cache_images=256))
     variants = parse_variants(args.variants, args.methods)
     report: dict[str, object] = {"pairs_per_seed": args.pairs_per_seed, "no_overlap": args.no_overlap}
     for split, seeds in splits.items():

@@ -199,7 +199,12 @@ class Matcher:
         other._cache = self._cache
 
         def lightglue(c: MatcherConfig) -> tuple[object, ...]:
-            return (c.sparse, c.lightglue_threshold, c.lightglue_depth_confidence, c.lightglue_width_confidence)
+            return (
+                c.sparse,
+                c.lightglue_threshold,
+                c.lightglue_depth_confidence,
+                c.lightglue_width_confidence,
+            )
 
         if lightglue(a) == lightglue(b):
             other._sparse = self._sparse

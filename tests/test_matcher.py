@@ -89,7 +89,9 @@ def test_geo_gives_nothing_for_images_that_do_not_overlap(matcher: Matcher) -> N
     assert len(ungated) > 0 and "rejected" not in ungated.stats
 
 
-def test_lightglue_assignment_branch_and_pruning_settings(matcher: Matcher, astronaut_pair: WarpedPair) -> None:
+def test_lightglue_assignment_branch_and_pruning_settings(
+    matcher: Matcher, astronaut_pair: WarpedPair
+) -> None:
     """dense=lightglue reads LightGlue's soft assignment (one LightGlue call serves anchors and the
     dense branch, no dense-map pass); a matcher with pruning does not reuse unpruned anchors, and
     the lightglue branch refuses pruning with a clear error instead of a silent partial P_c."""
