@@ -233,7 +233,7 @@ class Scene:
         inside = (np.abs(P[:, 0]) < self.extent) & (np.abs(P[:, 1]) < self.extent)
         idx = np.flatnonzero(hit)[inside]
         t_best[idx] = tg[idx]
-        colour[idx] = self._sample(
+        colour[idx] = sample_texture(
             self.ground,
             (P[inside, 0] + self.extent) / self.ground_m_per_px,
             (self.extent - P[inside, 1]) / self.ground_m_per_px,
@@ -283,25 +283,22 @@ class Scene:
                 span = max(size[u_axis], size[v_axis])
                 uu = (q[:, u_axis] - box.lo[u_axis]) / span * (tex.shape[1] - 1)
                 vv = (box.hi[v_axis] - q[:, v_axis]) / span * (tex.shape[0] - 1)
-                colour[idx[np.flatnonzero(sel)[m]]] = self._sample(tex, uu, vv)
+                colour[idx[np.flatnonzero(sel)[m]]] = sample_texture(tex, uu, vv)
 
-    @staticmethod
-    def _sample(tex: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Bilinear texture lookups; cv2.remap wants a 2-D map under 32767 a side."""
-        n = x.size
-        cols = 4096
-        rows = -(-n // cols)
-        mx = np.zeros(rows * cols, np.float32)
-        my = np.zeros(rows * cols, np.float32)
-        mx[:n], my[:n] = x, y
-        out = cv2.remap(
-            tex,
-            mx.reshape(rows, cols),
-            my.reshape(rows, cols),
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REFLECT,
-        )
-        return out.reshape(-1, 3)[:n]
+
+def sample_texture(
+    tex: np.ndarray, x: np.ndarray, y: np.ndarray, border: int = cv2.BORDER_REFLECT
+) -> np.ndarray:
+    """Bilinear texture lookups at (x, y) texel coordinates; cv2.remap wants a 2-D map under 32767
+    a side, so the points are laid out in rows of 4096."""
+    n = x.size
+    cols = 4096
+    rows = -(-n // cols)
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n], my[:n] = x, y
+    out = cv2.remap(tex, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR, borderMode=border)
+    return out.reshape(-1, 3)[:n]
 
 
 def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from .homography import photo as _load_photo
-from .synth import Camera, look_at, save_png, scribble, unique_texture, write_gt
+from .synth import Camera, look_at, sample_texture, save_png, scribble, unique_texture, write_gt
 
 PPM = 250.0  # texture pixels per metre: a wall 2 m away at f = 560 px is seen at ~280 px/m
 PHOTOS = ("astronaut", "coffee", "rocket", "chelsea", "motorcycle_left", "camera", "clock", "coins", "retina")
@@ -449,17 +449,8 @@ class Room:
 
 
 def _sample(tex: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear lookups (cv2.remap wants 2-D maps under 32767 a side)."""
-    n = x.size
-    cols = 4096
-    rows = -(-n // cols)
-    mx = np.zeros(rows * cols, np.float32)
-    my = np.zeros(rows * cols, np.float32)
-    mx[:n], my[:n] = x - 0.5, y - 0.5
-    out = cv2.remap(
-        tex, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-    )
-    return out.reshape(-1, 3)[:n].astype(np.float32)
+    """Texel centres at +0.5 here (the outdoor scene samples at integers), edges clamped."""
+    return sample_texture(tex, x - 0.5, y - 0.5, cv2.BORDER_REPLICATE).astype(np.float32)
 
 
 # -- pairs and ground truth ---------------------------------------------------------------------------
