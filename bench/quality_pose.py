@@ -44,6 +44,17 @@ from geomatch.synth_indoor import IndoorPair, gt_matches, indoor_pairs, no_overl
 OUT = Path(__file__).resolve().parent / "out"
 
 
+# the table both sets print (the indoor set adds precision and time)
+POSE_COLUMNS = [
+    ("method", "method", "s"),
+    ("AUC@5", "auc5", "%"),
+    ("AUC@10", "auc10", "%"),
+    ("AUC@20", "auc20", "%"),
+    ("median error deg", "median_err", ".2f"),
+    ("matches", "matches", ".0f"),
+]
+
+
 def reference(images: Path) -> pycolmap.Reconstruction:
     cache = OUT / f"{images.name}_sift_reference"
     model = cache / "model"
@@ -172,16 +183,7 @@ def run_indoor(args: argparse.Namespace) -> None:
             f"indoor {split} (seeds {','.join(map(str, seeds))}): {len(pairs)} pairs, rotation 20-70 deg, "
             f"covisibility >= 10 %, pose by RANSAC E at 0.5 px"
         )
-        columns = [
-            ("method", "method", "s"),
-            ("AUC@5", "auc5", "%"),
-            ("AUC@10", "auc10", "%"),
-            ("AUC@20", "auc20", "%"),
-            ("median error deg", "median_err", ".2f"),
-            ("matches", "matches", ".0f"),
-            ("precision@3px", "precision", "%"),
-            ("s/pair", "sec_per_pair", ".1f"),
-        ]
+        columns = [*POSE_COLUMNS, ("precision@3px", "precision", "%"), ("s/pair", "sec_per_pair", ".1f")]
         print_table(title, columns, rows)
         if empty:
             none_cols = [
@@ -249,15 +251,7 @@ def main() -> None:
         rows.append(row)
         print(json.dumps(row), flush=True)
     title = f"{args.images.name}: {len(pairs)} pairs, resize {args.resize}, reference COLMAP SIFT"
-    columns = [
-        ("method", "method", "s"),
-        ("AUC@5", "auc5", "%"),
-        ("AUC@10", "auc10", "%"),
-        ("AUC@20", "auc20", "%"),
-        ("median error deg", "median_err", ".2f"),
-        ("matches", "matches", ".0f"),
-    ]
-    print_table(title, columns, rows)
+    print_table(title, POSE_COLUMNS, rows)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 

@@ -126,7 +126,6 @@ class Assignment:
     def __init__(self, p: torch.Tensor) -> None:
         self.p = p.float()
         self.n, self.m = p.shape
-        self.rows = max(self.n, 1)
         self.device = p.device
 
     def blocks(self) -> list[slice]:
