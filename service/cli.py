@@ -14,8 +14,9 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
+from geomatch.options import IMAGE_SUFFIXES, add_arguments
+
 EXIT_FAILED, EXIT_BAD_INPUT, EXIT_UNREACHABLE = 1, 2, 3
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
 KEY_FILE = "api-key.txt"
 
 
@@ -60,12 +61,7 @@ def register(sub: Any) -> None:
     air.add_argument("--aerial", metavar="GLOB", help="aerial images by name pattern (others: ground)")
     air.add_argument("--aerial-list", type=Path, metavar="FILE", help="aerial names, one per line")
     b.add_argument("--name", help="project name (default: the folder's name)")
-    b.add_argument("--pairs", default=None, help="exhaustive | sequential:K | retrieval:K")
-    b.add_argument("--method", default=None, help="matching method (default: the server's, geo)")
-    b.add_argument(
-        "--resize", type=int, default=None, help="longer side fed to the networks (server default 640)"
-    )
-    b.add_argument("--mapper", default=None, help="incremental | global")
+    add_arguments(b, ("pairs", "method", "resize", "mapper"), server=True)
     b.add_argument("--wait", action="store_true", help="wait for the model (implied by --out)")
     b.add_argument("--out", type=Path, help="unpack the model here: sparse/0/, points.ply, summary.json")
     b.add_argument("--no-progress", action="store_true")

@@ -26,6 +26,9 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from geomatch.options import CAPTURES, PROJECT_OPTIONS, defaults
+from geomatch.options import PAIR_OPTIONS as PAIR_OPTIONS  # what match_two accepts of DEFAULTS
+
 from . import auth, jobstate
 from .config import Settings
 from .errors import BadFile, Conflict, InvalidRequest, NotFound, TooLarge, Unavailable
@@ -34,27 +37,10 @@ from .models import TERMINAL_STATES, Image, Job, Project
 from .queue import ENTRY_STEP, MATCH_TWO, RENDER_PAIR, JobQueue
 from .storage import Storage
 from .store import MetadataStore
-from .validation import (
-    CAPTURES,
-    MAPPERS,
-    METHODS,
-    TILING,
-    ImageInfo,
-    check_image,
-    check_name,
-    check_pair_list,
-    check_pair_spec,
-)
+from .validation import ImageInfo, check_image, check_name, check_option, check_pair_list
 
-DEFAULTS: dict[str, Any] = {
-    "pairs": "exhaustive",
-    "method": "geo",
-    "resize": 640,
-    "tiling": "auto",
-    "snap_radius": 1.5,
-    "camera": "auto",
-    "mapper": "incremental",
-}
+# a project's configuration and a match job's options: geomatch.options holds them, with defaults
+DEFAULTS: dict[str, Any] = defaults(PROJECT_OPTIONS)
 MODEL_FILES = {"zip": "model.zip", "ply": "points.ply", "json": "summary.json"}
 _CHUNK = 1 << 20
 
@@ -137,9 +123,6 @@ class PairMatches:
     timings: dict[str, float]
 
 
-PAIR_OPTIONS = ("method", "resize", "tiling")  # what match_two accepts of DEFAULTS
-
-
 @dataclass
 class _Staged:
     name: str
@@ -165,24 +148,7 @@ def check_config(config: dict[str, Any]) -> dict[str, Any]:
     for k, v in config.items():
         if v is None:
             continue
-        if k == "pairs":
-            out[k] = check_pair_spec(v) if isinstance(v, str) else v
-        elif k == "method":
-            out[k] = _choice(k, v, METHODS)
-        elif k == "tiling":
-            out[k] = _choice(k, v, TILING)
-        elif k == "mapper":
-            out[k] = _choice(k, v, MAPPERS)
-        elif k == "camera":
-            out[k] = _choice(k, v, ("auto", "per-image"))
-        elif k == "resize":
-            if isinstance(v, bool) or not isinstance(v, int) or not (v == 0 or 64 <= v <= 8192):
-                raise InvalidRequest(f"resize must be 0 (full size) or an integer from 64 to 8192, not {v!r}")
-            out[k] = v
-        elif k == "snap_radius":
-            if isinstance(v, bool) or not isinstance(v, int | float) or not 0 <= v <= 50:
-                raise InvalidRequest(f"snap_radius must be a number from 0 to 50 (network pixels), not {v!r}")
-            out[k] = float(v)
+        out[k] = v if k == "pairs" and isinstance(v, list) else check_option(k, v)
     return out
 
 
@@ -389,10 +355,7 @@ class Service:
             names = set(s.scalars(select(Image.name).where(Image.project_id == project_id)))
             if len(names) < 2:
                 raise InvalidRequest(f"the project has {len(names)} image(s); matching needs at least 2")
-            given = {
-                k: getattr(req, k)
-                for k in ("pairs", "method", "resize", "tiling", "snap_radius", "camera", "mapper")
-            }
+            given = {k: getattr(req, k) for k in PROJECT_OPTIONS}
             opts = {**DEFAULTS, **check_config(dict(p.config)), **check_config(given)}
             if isinstance(opts["pairs"], list):
                 opts["pairs"] = check_pair_list(opts["pairs"], names)
@@ -408,7 +371,7 @@ class Service:
     def start_reconstruct(self, tenant_id: str, project_id: str, mapper: str | None = None) -> JobView:
         with self.store.session() as s:
             p = self._project(s, tenant_id, project_id)
-            mapper = _choice("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"], MAPPERS)
+            mapper = check_option("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"])
             matched = s.scalar(
                 select(func.count())
                 .select_from(Job)

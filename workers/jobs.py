@@ -29,6 +29,7 @@ from typing import Any
 
 from sqlalchemy import select, update
 
+from geomatch.options import DEFAULTS
 from service import jobstate
 from service.config import Settings
 from service.locks import LockFactory
@@ -95,10 +96,11 @@ def _plan(ctx: Context, job: Job) -> None:
                 update(Image).where(Image.project_id == pid, Image.name == n).values(aerial=n in aerial)
             )
     share_camera = False if opts.get("camera") == "per-image" else None
-    spec = opts["pairs"] if isinstance(opts["pairs"], str) else "exhaustive"
+    spec = opts["pairs"] if isinstance(opts["pairs"], str) else DEFAULTS["pairs"]
     pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
     matcher = runtime.matcher(ctx, opts) if spec.startswith("retrieval") and pairs_list is None else None
-    planned = steps.plan(image_dir, names, aerial, spec, pairs_list, opts.get("tiling", "auto"), matcher)
+    tiling = opts.get("tiling", DEFAULTS["tiling"])
+    planned = steps.plan(image_dir, names, aerial, spec, pairs_list, tiling, matcher)
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
             return
@@ -191,7 +193,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             k0, k1, sc = steps.match(runtime.matcher(ctx, opts), pair, a, b)
             t1 = time.perf_counter()
             resize = opts.get("resize") or None
-            radius = float(opts.get("snap_radius", 1.5))
+            radius = float(opts.get("snap_radius", DEFAULTS["snap_radius"]))
             with ctx.locks.project(pid):
                 if not jobstate.is_active(ctx.store, job_id):  # cancelled while matching: write nothing
                     return "cancelled"
@@ -250,7 +252,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
             _sqlite_copy(db_path, snapshot)
         out = work / "model"
         summary = sfm_reconstruct(
-            snapshot, ctx.storage.images_dir(pid), out, job.options.get("mapper", "incremental")
+            snapshot, ctx.storage.images_dir(pid), out, job.options.get("mapper", DEFAULTS["mapper"])
         )
         with ColmapDatabase(snapshot) as db:
             summary["database"] = db.stats()

@@ -19,6 +19,7 @@ import re
 import time
 from typing import TYPE_CHECKING, Any
 
+from geomatch.options import DEFAULTS
 from service.queue import MATCH_TWO
 
 from . import jobs, runtime
@@ -74,7 +75,7 @@ def _match(
         for i, (p, c) in enumerate(zip(paths, captures, strict=True))
         if c == "aerial" or (c == "auto" and read_metadata(p).aerial_hint)
     }
-    pair = finalize([("0", "1")], aerial, options.get("tiling", "auto"))[0]
+    pair = finalize([("0", "1")], aerial, options.get("tiling", DEFAULTS["tiling"]))[0]
     a, b = read_image(paths[0]), read_image(paths[1])  # not runtime.image: these are read once
     matcher = runtime.matcher(ctx, options)
     t1 = time.perf_counter()
@@ -106,7 +107,7 @@ def _match(
         F=np.asarray(F, np.float64).reshape(3, 3),
         size0=np.array([a.shape[1], a.shape[0]]),
         size1=np.array([b.shape[1], b.shape[0]]),
-        method=np.array(options.get("method", "geo")),
+        method=np.array(options.get("method", DEFAULTS["method"])),
         tiled=np.array(pair.tiled),
     )
     tmp.replace(out)

@@ -140,7 +140,7 @@ class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
         options: dict[str, Any] = {}
         first = messages.next()
         if first is not None and first.WhichOneof("part") == "options":
-            options = convert.optional_fields(first.options, ("method", "resize", "tiling"))
+            options = convert.optional_fields(first.options, convert.PAIR_FIELDS)
         elif first is not None:
             messages.push_back(first)
         uploads = (
