@@ -1,4 +1,9 @@
-"""The ``geomatch`` command."""
+"""The library's commands of ``geomatch``: match, synth, run, eval, demo.
+
+``register`` adds them to a parser: the ``geomatch`` command (``app.cli``) adds the service's
+beside them. ``python -m geomatch.cli`` runs the library's commands alone. Imports stay light
+here (the library is imported inside each command), so parsing costs no torch.
+"""
 
 from __future__ import annotations
 
@@ -6,15 +11,15 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from . import options
-from .imageio import ImageReadError, read_image
-from .pipeline import RunOptions
-from .weights import WeightsNotFoundError
+from .options import EXIT_BAD_INPUT, EXIT_FAILED
+
+if TYPE_CHECKING:
+    from .pipeline import RunOptions
 
 DEMO_AERIAL, DEMO_GROUND = 3, 6
-
-EXIT_BAD_INPUT = 2
 
 
 def _add_matching_options(p: argparse.ArgumentParser) -> None:
@@ -35,6 +40,7 @@ def _matching_options(args: argparse.Namespace) -> dict[str, object]:
 
 
 def cmd_match(args: argparse.Namespace) -> int:
+    from .imageio import ImageReadError, read_image
     from .matcher import match_pair
 
     try:
@@ -63,6 +69,7 @@ def cmd_match(args: argparse.Namespace) -> int:
 
 def _run_options(args: argparse.Namespace) -> RunOptions:
     from .pairs import read_pairs_file
+    from .pipeline import RunOptions
 
     opts = _matching_options(args)
     matcher = {k: v for k, v in opts.items() if k not in ("method", "resize", "device")}
@@ -157,9 +164,13 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The library's commands alone (``app.cli.build_parser`` is the whole ``geomatch`` command)."""
     parser = argparse.ArgumentParser(prog="geomatch", description="Geometry-aware matching for SfM")
-    sub = parser.add_subparsers(dest="command", required=True)
+    register(parser.add_subparsers(dest="command", required=True))
+    return parser
 
+
+def register(sub: Any) -> None:
     m = sub.add_parser("match", help="match two images")
     m.add_argument("image0", type=Path)
     m.add_argument("image1", type=Path)
@@ -212,19 +223,21 @@ def build_parser() -> argparse.ArgumentParser:
     _add_verbose(d)
     d.set_defaults(func=cmd_demo)
 
-    from service.cli import register as register_service  # serve, worker, keys, submit (imports lazily)
 
-    register_service(sub)
-    return parser
+def run(args: argparse.Namespace) -> int:
+    """Run a parsed command; missing weights end it with one line naming the file."""
+    try:
+        return int(args.func(args))
+    except Exception as e:
+        weights = sys.modules.get(f"{__package__}.weights")  # loaded by whatever raised it
+        if weights is None or not isinstance(e, weights.WeightsNotFoundError):
+            raise
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_FAILED
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return int(args.func(args))
-    except WeightsNotFoundError as e:
-        print(f"geomatch: error: {e}", file=sys.stderr)
-        return 1
+    return run(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Every option of geomatch, defined once: name, type, choices, default and help.
 
-The command line (``geomatch.cli``, ``app.cli``), the REST schemas, the use cases' checks, the gRPC
+The command line (``geomatch.cli``, ``service.cli``), the REST schemas, the use cases' checks, the gRPC
 conversion and the workers all derive from this module, so adding a method or changing a default
 is one edit here (``tests/test_options.py`` proves that the CLI, the REST schema and the proto
 agree with it). It imports the standard library only: the API process reads it without torch.
@@ -21,6 +21,9 @@ import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
+
+# exit statuses of every ``geomatch`` command
+EXIT_FAILED, EXIT_BAD_INPUT, EXIT_UNREACHABLE = 1, 2, 3
 
 
 class OptionError(ValueError):

@@ -1,7 +1,7 @@
 """The application layer: every operation the API offers, free of any transport.
 
 Routers (HTTP today, gRPC in issue 5) translate requests into these calls and the typed errors
-of ``service.errors`` into statuses. A use case validates everything before it stores or
+of ``core.errors`` into statuses. A use case validates everything before it stores or
 enqueues anything, so a rejected request leaves no trace.
 """
 
@@ -11,11 +11,9 @@ import contextlib
 import hashlib
 import os
 import shutil
-import sqlite3
 import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from contextlib import closing
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -26,17 +24,18 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from core import jobstate
+from core.config import Settings
+from core.errors import BadFile, Conflict, InvalidRequest, NotFound, TooLarge, Unavailable
+from core.locks import LockFactory
+from core.models import TERMINAL_STATES, Image, Job, Project
+from core.queue import ENTRY_STEP, MATCH_TWO, RENDER_PAIR, JobQueue
+from core.storage import Storage, snapshot_sqlite
+from core.store import MetadataStore
 from geomatch.options import CAPTURES, PROJECT_OPTIONS, defaults
 from geomatch.options import PAIR_OPTIONS as PAIR_OPTIONS  # what match_two accepts of DEFAULTS
 
-from . import auth, jobstate
-from .config import Settings
-from .errors import BadFile, Conflict, InvalidRequest, NotFound, TooLarge, Unavailable
-from .locks import LockFactory
-from .models import TERMINAL_STATES, Image, Job, Project
-from .queue import ENTRY_STEP, MATCH_TWO, RENDER_PAIR, JobQueue
-from .storage import Storage
-from .store import MetadataStore
+from . import auth
 from .validation import ImageInfo, check_image, check_name, check_option, check_pair_list
 
 # a project's configuration and a match job's options: geomatch.options holds them, with defaults
@@ -443,11 +442,7 @@ class Service:
         fd, tmp = self.storage.temp_file()
         os.close(fd)
         try:
-            with (
-                closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True, timeout=60)) as a,
-                closing(sqlite3.connect(tmp)) as b,
-            ):
-                a.backup(b)
+            snapshot_sqlite(src, tmp)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
@@ -466,7 +461,7 @@ class Service:
                 raise NotFound(f"image {n!r} not found in project {project_id}")
         if name0 == name1:
             raise InvalidRequest("a pair has two different images")
-        path = self.storage.pictures_dir(project_id) / picture_name(name0, name1)
+        path = self.storage.picture_path(project_id, name0, name1)
         if path.is_file():
             return path
         try:
@@ -574,10 +569,6 @@ class JobWatch:
             self._quiet_since = now
             return True, None
         return False, None
-
-
-def picture_name(name0: str, name1: str) -> str:
-    return hashlib.sha256(f"{name0}\0{name1}".encode()).hexdigest()[:32] + ".png"
 
 
 def _size(a: np.ndarray) -> tuple[int, int]:

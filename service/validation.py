@@ -16,9 +16,8 @@ from typing import Any
 
 from PIL import Image
 
+from core.errors import BadFile, DecompressionBomb, InvalidRequest, TooLarge, UnsupportedFormat
 from geomatch import options
-
-from .errors import BadFile, DecompressionBomb, InvalidRequest, TooLarge, UnsupportedFormat
 
 # what the pipeline reads (geomatch.options.IMAGE_SUFFIXES); MPO is how Pillow names many camera JPEGs
 FORMATS = {"JPEG": "jpeg", "MPO": "jpeg", "PNG": "png", "TIFF": "tiff", "BMP": "bmp", "WEBP": "webp"}

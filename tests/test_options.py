@@ -40,7 +40,7 @@ def test_methods_are_rows_of_flags() -> None:
 
 # -- the command line ----------------------------------------------------------------------------
 def _parse(argv: list[str]) -> object:
-    from geomatch.cli import build_parser
+    from app.cli import build_parser  # the whole `geomatch` command
 
     return build_parser().parse_args(argv)
 

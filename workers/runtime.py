@@ -14,7 +14,7 @@ if TYPE_CHECKING:
 
     from geomatch.matcher import Matcher
 
-    from .jobs import Context
+    from .context import Context
 
 _local = threading.local()
 MAX_MATCHERS = 2  # distinct option sets kept per thread (each holds its own feature LRU)

@@ -15,7 +15,8 @@ from typing import IO, Any
 
 import grpc
 
-from ..errors import InvalidRequest, Unavailable
+from core.errors import InvalidRequest, Unavailable
+
 from ..usecases import Service, Upload
 from . import convert
 from .framing import MAX_CHUNK, Messages, images
