@@ -68,19 +68,11 @@ def find_process() -> tuple[int, list[str]]:
 
 
 def parse(args: list[str]) -> argparse.Namespace:
-    """The server's options as the CLI parsed them (defaults included). The service's commands are
-    registered without importing the library (and torch); the full parser is the fallback for a
-    command registered elsewhere."""
-    from service.cli import register
+    """The server's options as the CLI parsed them (defaults included); parsing imports neither
+    the library's networks (torch) nor the servers' frameworks."""
+    from app.cli import build_parser
 
-    parser = argparse.ArgumentParser(prog="geomatch", add_help=False)
-    register(parser.add_subparsers(dest="command"))
-    try:
-        return parser.parse_args(args)
-    except SystemExit:
-        from geomatch.cli import build_parser
-
-        return build_parser().parse_args(args)
+    return build_parser().parse_args(args)
 
 
 def _connect_host(host: str | None) -> str:
@@ -110,7 +102,7 @@ def check_grpc(host: str, port: int) -> str:
 
 
 def check_worker(pid: int) -> str:
-    from service.config import Settings
+    from core.config import Settings
     from workers.celery_app import make_app
 
     node = f"geomatch-{pid}@{socket.gethostname()}"  # the name `geomatch worker` gives itself

@@ -97,11 +97,15 @@ def check_grpc() -> str:
 
 
 def check_cli() -> str:
-    from geomatch.cli import build_parser
+    from app.cli import build_parser
 
     parser = build_parser()
-    sub = next(a for a in parser._actions if a.dest == "command")
-    missing = [c for c in COMMANDS if c not in sub.choices]  # type: ignore[operator]
+    missing = []
+    for c in COMMANDS:
+        try:
+            parser.parse_args([c])  # each needs no argument
+        except SystemExit:  # an unknown command
+            missing.append(c)
     if missing:
         raise SystemExit(f"the CLI has no {', '.join(missing)} command")
     return f"commands {', '.join(COMMANDS)}"

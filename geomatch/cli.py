@@ -1,4 +1,9 @@
-"""The ``geomatch`` command."""
+"""The library's commands of ``geomatch``: match, synth, run, eval, demo.
+
+``register`` adds them to a parser: the ``geomatch`` command (``app.cli``) adds the service's
+beside them. ``python -m geomatch.cli`` runs the library's commands alone. Imports stay light
+here (the library is imported inside each command), so parsing costs no torch.
+"""
 
 from __future__ import annotations
 
@@ -6,34 +11,20 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from .imageio import ImageReadError, read_image
-from .matcher import DENSE_BACKBONES, METHODS, SPARSE_BACKBONES
-from .pipeline import RunOptions
-from .sfm import MIN_POSE_INLIERS
-from .weights import WeightsNotFoundError
+from . import options
+from .options import EXIT_BAD_INPUT, EXIT_FAILED
+
+if TYPE_CHECKING:
+    from .pipeline import RunOptions
 
 DEMO_AERIAL, DEMO_GROUND = 3, 6
 
-EXIT_BAD_INPUT = 2
-
 
 def _add_matching_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--method", choices=METHODS, default="geo")
-    p.add_argument("--resize", type=int, default=640, help="longer image side fed to the networks (0: keep)")
-    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1 ...")
-    p.add_argument(
-        "--sparse", choices=SPARSE_BACKBONES, default="aliked", help="anchor backbone (+LightGlue)"
-    )
-    p.add_argument("--dense", choices=DENSE_BACKBONES, default="disk", help="dense backbone")
-    p.add_argument("--loftr-weights", default=None, help="LoFTR checkpoint (for --dense loftr)")
-    g = p.add_argument_group("optimizer (paper defaults)")
-    g.add_argument("--tau", type=float, default=10.0, help="Sampson distance threshold, px^2")
-    g.add_argument("--iterations", type=int, default=10)
-    g.add_argument("--w", type=float, default=1.2, help="update weight")
-    g.add_argument("--theta-iter", type=float, default=0.01)
-    g.add_argument("--theta-c", type=float, default=0.2)
-    g.add_argument("--memory-budget-mb", type=float, default=256.0)
+    options.add_arguments(p, options.MATCH_OPTIONS)
+    options.add_arguments(p.add_argument_group("optimizer (paper defaults)"), options.OPTIMIZER_OPTIONS)
 
 
 def _add_verbose(p: argparse.ArgumentParser) -> None:
@@ -43,23 +34,13 @@ def _add_verbose(p: argparse.ArgumentParser) -> None:
 
 
 def _matching_options(args: argparse.Namespace) -> dict[str, object]:
-    return {
-        "method": args.method,
-        "resize": args.resize or None,
-        "device": args.device,
-        "sparse": args.sparse,
-        "dense": args.dense,
-        "loftr_weights": args.loftr_weights,
-        "tau": args.tau,
-        "iterations": args.iterations,
-        "w": args.w,
-        "theta_iter": args.theta_iter,
-        "theta_c": args.theta_c,
-        "memory_budget_mb": args.memory_budget_mb,
-    }
+    opts = options.given(args, options.MATCH_OPTIONS + options.OPTIMIZER_OPTIONS)
+    opts["resize"] = opts["resize"] or None
+    return opts
 
 
 def cmd_match(args: argparse.Namespace) -> int:
+    from .imageio import ImageReadError, read_image
     from .matcher import match_pair
 
     try:
@@ -88,6 +69,7 @@ def cmd_match(args: argparse.Namespace) -> int:
 
 def _run_options(args: argparse.Namespace) -> RunOptions:
     from .pairs import read_pairs_file
+    from .pipeline import RunOptions
 
     opts = _matching_options(args)
     matcher = {k: v for k, v in opts.items() if k not in ("method", "resize", "device")}
@@ -182,9 +164,13 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The library's commands alone (``app.cli.build_parser`` is the whole ``geomatch`` command)."""
     parser = argparse.ArgumentParser(prog="geomatch", description="Geometry-aware matching for SfM")
-    sub = parser.add_subparsers(dest="command", required=True)
+    register(parser.add_subparsers(dest="command", required=True))
+    return parser
 
+
+def register(sub: Any) -> None:
     m = sub.add_parser("match", help="match two images")
     m.add_argument("image0", type=Path)
     m.add_argument("image1", type=Path)
@@ -216,26 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
     air.add_argument(
         "--aerial-list", type=Path, default=None, metavar="FILE", help="aerial names, one per line"
     )
-    r.add_argument(
-        "--pairs",
-        default="exhaustive",
-        help="exhaustive | sequential:K | retrieval:K | a file of pairs (two names per line)",
-    )
-    r.add_argument(
-        "--tiling", choices=("auto", "on", "off"), default="auto", help="tile aerial x ground pairs"
-    )
-    r.add_argument(
-        "--snap-radius", type=float, default=1.5, help="keypoint consolidation radius, network px (0: off)"
-    )
-    r.add_argument("--mapper", choices=("incremental", "global"), default="incremental")
-    r.add_argument(
-        "--min-pose-inliers",
-        type=int,
-        default=MIN_POSE_INLIERS,
-        help="2D-3D inliers the incremental mapper needs to register an image (COLMAP's own: 30)",
-    )
-    r.add_argument(
-        "--camera", choices=("auto", "per-image"), default="auto", help="auto: one camera per EXIF device"
+    options.add_arguments(
+        r, options.RUN_OPTIONS, pairs=options.PAIR_SPEC_HELP + " | a file of pairs (two names per line)"
     )
     _add_matching_options(r)
     _add_verbose(r)
@@ -251,24 +219,25 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--aerial", type=int, default=DEMO_AERIAL)
     d.add_argument("--ground", type=int, default=DEMO_GROUND)
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--method", choices=METHODS, default="geo")
-    d.add_argument("--resize", type=int, default=640)
+    options.add_arguments(d, ("method", "resize"))
     _add_verbose(d)
     d.set_defaults(func=cmd_demo)
 
-    from service.cli import register as register_service  # serve, worker, keys, submit (imports lazily)
 
-    register_service(sub)
-    return parser
+def run(args: argparse.Namespace) -> int:
+    """Run a parsed command; missing weights end it with one line naming the file."""
+    try:
+        return int(args.func(args))
+    except Exception as e:
+        weights = sys.modules.get(f"{__package__}.weights")  # loaded by whatever raised it
+        if weights is None or not isinstance(e, weights.WeightsNotFoundError):
+            raise
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_FAILED
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return int(args.func(args))
-    except WeightsNotFoundError as e:
-        print(f"geomatch: error: {e}", file=sys.stderr)
-        return 1
+    return run(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from .evaluate import evaluate_run
+from .options import DEFAULTS
 from .pipeline import RunOptions, run
 from .synth import write_scene
 
@@ -17,8 +18,8 @@ def run_demo(
     n_aerial: int = 3,
     n_ground: int = 6,
     seed: int = 0,
-    method: str = "geo",
-    resize: int = 640,
+    method: str = DEFAULTS["method"],
+    resize: int = DEFAULTS["resize"],
     verbose: bool = False,
     match_cache: str | None = None,
 ) -> int:

@@ -37,13 +37,10 @@ from .optimizer import (
     mutual_nn,
     optimise,
 )
+from .options import DENSE_BACKBONES, METHODS, SPARSE_BACKBONES
 from .refine import RefineOptions
 
 log = logging.getLogger(__name__)
-
-METHODS = ("sparse", "dense", "concat", "geo-noanchor", "geo")
-SPARSE_BACKBONES = ("aliked", "disk")
-DENSE_BACKBONES = ("disk", "aliked", "loftr", "lightglue")
 
 
 def resolve_device(name: str = "auto") -> torch.device:

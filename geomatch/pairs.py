@@ -10,15 +10,14 @@ exactly one aerial image is tiled when tiling is ``auto`` or ``on``.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-
-class PairSpecError(ValueError):
-    """The pair specification is malformed or names unknown images."""
+from .options import TILING
+from .options import PairSpecError as PairSpecError  # the grammar lives with the other options
+from .options import parse_spec as parse_spec
 
 
 @dataclass(frozen=True)
@@ -31,18 +30,6 @@ class Pair:
     @property
     def key(self) -> tuple[str, str]:
         return (self.name0, self.name1)
-
-
-def parse_spec(spec: str) -> tuple[str, int]:
-    m = re.fullmatch(r"(exhaustive)|(sequential|retrieval):(\d+)", spec.strip())
-    if not m:
-        raise PairSpecError(f"bad pair spec {spec!r}: use exhaustive, sequential:K or retrieval:K")
-    if m.group(1):
-        return "exhaustive", 0
-    k = int(m.group(3))
-    if k < 1:
-        raise PairSpecError(f"bad pair spec {spec!r}: K must be at least 1")
-    return m.group(2), k
 
 
 def exhaustive(names: Sequence[str]) -> list[tuple[str, str]]:
@@ -100,7 +87,7 @@ def finalize(raw: Iterable[tuple[str, str]], aerial: set[str], tiling: str = "au
     ``on`` tiles the first image of every pair that has no aerial side designated (forced);
     ``auto`` tiles exactly the aerial x ground pairs.
     """
-    if tiling not in ("auto", "on", "off"):
+    if tiling not in TILING:
         raise PairSpecError(f"tiling must be auto, on or off, not {tiling!r}")
     seen: set[frozenset[str]] = set()
     out = []

@@ -26,11 +26,10 @@ from .colmapdb import ColmapDatabase
 from .imageio import image_key, read_image
 from .matcher import Matcher, config_from_options
 from .metadata import ImageMeta, read_metadata
+from .options import DEFAULTS, IMAGE_SUFFIXES
 from .retrieval import vlad
-from .sfm import MIN_POSE_INLIERS, reconstruct
+from .sfm import reconstruct
 from .tiling import match_tiled
-
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
 
 
 class PipelineError(ValueError):
@@ -39,19 +38,20 @@ class PipelineError(ValueError):
 
 @dataclass
 class RunOptions:
-    method: str = "geo"
-    resize: int | None = 640
-    device: str = "auto"
-    pairs: str = "exhaustive"
+    method: str = DEFAULTS["method"]
+    resize: int | None = DEFAULTS["resize"]
+    device: str = DEFAULTS["device"]
+    pairs: str = DEFAULTS["pairs"]
     pairs_list: list[list[str]] | None = None  # explicit pairs override ``pairs``
     aerial_glob: str | None = None
     aerial_names: list[str] | None = None
-    tiling: str = "auto"  # auto | on | off
-    snap_radius: float = 1.5  # px at network resolution; 0 turns consolidation off
-    mapper: str = "incremental"
+    tiling: str = DEFAULTS["tiling"]  # auto | on | off
+    snap_radius: float = DEFAULTS["snap_radius"]  # px at network resolution; 0 turns consolidation off
+    mapper: str = DEFAULTS["mapper"]
     share_camera: bool | None = None  # None: one camera per EXIF device, else per image
     min_model_size: int = 3
-    min_pose_inliers: int = MIN_POSE_INLIERS  # PnP inliers the incremental mapper needs to register an image
+    # PnP inliers the incremental mapper needs to register an image
+    min_pose_inliers: int = DEFAULTS["min_pose_inliers"]
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
     match_cache: str | None = None  # folder of raw pair matches shared by runs (benchmarks, variants)
     progress: bool = True

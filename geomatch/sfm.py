@@ -20,17 +20,7 @@ from tqdm import tqdm
 
 from .colmaplog import colmap_log
 from .metrics import sfm_stats
-
-MAPPERS = ("incremental", "global")
-# COLMAP registers an image from 30 PnP inliers, a count made for sparse SIFT matches. With dense
-# matches a genuinely overlapping image has hundreds of 2D-3D correspondences, while a repeated
-# texture gives a few dozen that agree with each other: the demo's aerial_01 was placed 66 units
-# off from 36 of them (grass patches on two surfaces). From 60 on, it waits until its true
-# correspondences are triangulated and registers right (docs/pipeline.md, "Mapping"). But 60 also
-# left one of 4 ground views unregistered in the gRPC submit test (a small scene at 480 px), so the
-# default stays COLMAP's 30 until the matcher stops producing those coherent wrong pairs; 60 is
-# one option away (--min-pose-inliers 60).
-MIN_POSE_INLIERS = 30
+from .options import MAPPERS, MIN_POSE_INLIERS
 
 
 def verify(database: Path, verbose: bool = False) -> int:

@@ -1,5 +1,6 @@
-"""The geomatch service: HTTP API over one application layer, metadata store, file storage, auth.
+"""The geomatch service: HTTP (FastAPI) and gRPC over one application layer (``usecases``), auth,
+the batch client. Built on ``core`` (models, job states, storage); it never imports ``workers``:
+the composition root (``app``) hands it a job queue.
 
-Nothing here imports torch or the ``geomatch`` library: heavy work runs in ``workers`` (Celery
-processes, or in-process threads in the embedded default), which import the library lazily.
+Of the library it reads ``geomatch.options`` only (no torch): heavy work runs in ``workers``.
 """

@@ -11,7 +11,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from . import errors
+from core import errors
+
 from .metrics import Metrics
 from .routes import router
 from .usecases import Service

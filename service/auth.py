@@ -8,13 +8,15 @@ replayed as keys.
 from __future__ import annotations
 
 import hashlib
+import os
 import secrets
+from pathlib import Path
 
 from sqlalchemy import select
 
-from .errors import NotFound, Unauthenticated
-from .models import ApiKey, Tenant, now
-from .store import MetadataStore
+from core.errors import NotFound, Unauthenticated
+from core.models import ApiKey, Tenant, now
+from core.store import MetadataStore
 
 KEY_PREFIX = "gm_"
 
@@ -80,3 +82,21 @@ def revoke(store: MetadataStore, prefix: str) -> int:
         for r in rows:
             r.revoked_at = now()
         return len(rows)
+
+
+KEY_FILE = "api-key.txt"
+
+
+def embedded_key(store: MetadataStore, home: Path) -> str:
+    """The embedded server's ready-to-use key: made once, kept in GEOMATCH_HOME/api-key.txt (0600),
+    shown again at every start (only the digest is in the database)."""
+    path = home / KEY_FILE
+    if path.is_file():
+        key = path.read_text().strip()
+        if key_is_valid(store, key):
+            return key
+    key = create_key(store, "local")
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(key + "\n")
+    return key

@@ -17,7 +17,8 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
-from .errors import NotFound
+from core.errors import NotFound
+
 from .schemas import (
     Error,
     ImageOut,

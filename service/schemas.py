@@ -9,27 +9,34 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
+
+from geomatch import options
 
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
-class ProjectConfig(_Strict):
-    pairs: str | None = Field(
-        None, examples=["exhaustive"], description="exhaustive | sequential:K | retrieval:K"
-    )
-    method: str | None = Field(
-        None, examples=["geo"], description="sparse | dense | concat | geo-noanchor | geo"
-    )
-    resize: int | None = Field(
-        None, examples=[640], description="longer side fed to the networks; 0 = full size"
-    )
-    tiling: str | None = Field(None, description="auto | on | off (auto: aerial x ground pairs)")
-    snap_radius: float | None = Field(None, description="keypoint consolidation radius, network pixels")
-    camera: str | None = Field(None, description="auto (one camera per EXIF device) | per-image")
-    mapper: str | None = Field(None, description="incremental | global")
+def _option_fields(pairs_list: bool) -> dict[str, Any]:
+    """One optional field per project option of ``geomatch.options`` (None: the default)."""
+    fields: dict[str, Any] = {}
+    for name in options.PROJECT_OPTIONS:
+        o = options.OPTIONS[name]
+        kind: Any = o.type
+        examples: list[Any] = [o.default]
+        if name == "pairs" and pairs_list:
+            kind = str | list[list[str]]
+            examples = [o.default, [["a.jpg", "b.jpg"]]]
+        description = o.help
+        if o.choices:
+            description = f"{' | '.join(o.choices)}: {o.help}"
+        description += f" (default {o.default})"
+        fields[name] = (kind | None, Field(None, examples=examples, description=description))
+    return fields
+
+
+ProjectConfig = create_model("ProjectConfig", __base__=_Strict, **_option_fields(pairs_list=False))
 
 
 class ProjectCreate(_Strict):
@@ -63,23 +70,21 @@ class ImagesOut(BaseModel):
     images: list[ImageOut]
 
 
-class MatchIn(_Strict):
-    pairs: str | list[list[str]] | None = Field(
-        None, examples=["exhaustive", [["a.jpg", "b.jpg"]]], description="a spec or explicit name pairs"
-    )
-    method: str | None = Field(None, examples=["geo"])
-    resize: int | None = Field(None, examples=[640])
-    tiling: str | None = None
-    snap_radius: float | None = None
-    camera: str | None = None
-    reconstruct: bool = Field(
-        False, description="also queue a reconstruct job that starts when matching succeeds"
-    )
-    mapper: str | None = Field(None, description="mapper of that reconstruct job")
+MatchIn = create_model(
+    "MatchIn",
+    __base__=_Strict,
+    **_option_fields(pairs_list=True),
+    reconstruct=(
+        bool,
+        Field(False, description="also queue a reconstruct job that starts when matching succeeds"),
+    ),
+)
 
 
 class ReconstructIn(_Strict):
-    mapper: str | None = Field(None, examples=["incremental"], description="incremental | global")
+    mapper: str | None = Field(
+        None, examples=[options.DEFAULTS["mapper"]], description=" | ".join(options.MAPPERS)
+    )
 
 
 class Progress(BaseModel):

@@ -1,7 +1,7 @@
 """The application layer: every operation the API offers, free of any transport.
 
 Routers (HTTP today, gRPC in issue 5) translate requests into these calls and the typed errors
-of ``service.errors`` into statuses. A use case validates everything before it stores or
+of ``core.errors`` into statuses. A use case validates everything before it stores or
 enqueues anything, so a rejected request leaves no trace.
 """
 
@@ -11,11 +11,9 @@ import contextlib
 import hashlib
 import os
 import shutil
-import sqlite3
 import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from contextlib import closing
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -26,35 +24,22 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from . import auth, jobstate
-from .config import Settings
-from .errors import BadFile, Conflict, InvalidRequest, NotFound, TooLarge, Unavailable
-from .locks import LockFactory
-from .models import TERMINAL_STATES, Image, Job, Project
-from .queue import ENTRY_STEP, MATCH_TWO, RENDER_PAIR, JobQueue
-from .storage import Storage
-from .store import MetadataStore
-from .validation import (
-    CAPTURES,
-    MAPPERS,
-    METHODS,
-    TILING,
-    ImageInfo,
-    check_image,
-    check_name,
-    check_pair_list,
-    check_pair_spec,
-)
+from core import jobstate
+from core.config import Settings
+from core.errors import BadFile, Conflict, InvalidRequest, NotFound, TooLarge, Unavailable
+from core.locks import LockFactory
+from core.models import TERMINAL_STATES, Image, Job, Project
+from core.queue import ENTRY_STEP, MATCH_TWO, RENDER_PAIR, JobQueue
+from core.storage import Storage, snapshot_sqlite
+from core.store import MetadataStore
+from geomatch.options import CAPTURES, PROJECT_OPTIONS, defaults
+from geomatch.options import PAIR_OPTIONS as PAIR_OPTIONS  # what match_two accepts of DEFAULTS
 
-DEFAULTS: dict[str, Any] = {
-    "pairs": "exhaustive",
-    "method": "geo",
-    "resize": 640,
-    "tiling": "auto",
-    "snap_radius": 1.5,
-    "camera": "auto",
-    "mapper": "incremental",
-}
+from . import auth
+from .validation import ImageInfo, check_image, check_name, check_option, check_pair_list
+
+# a project's configuration and a match job's options: geomatch.options holds them, with defaults
+DEFAULTS: dict[str, Any] = defaults(PROJECT_OPTIONS)
 MODEL_FILES = {"zip": "model.zip", "ply": "points.ply", "json": "summary.json"}
 _CHUNK = 1 << 20
 
@@ -137,9 +122,6 @@ class PairMatches:
     timings: dict[str, float]
 
 
-PAIR_OPTIONS = ("method", "resize", "tiling")  # what match_two accepts of DEFAULTS
-
-
 @dataclass
 class _Staged:
     name: str
@@ -165,24 +147,7 @@ def check_config(config: dict[str, Any]) -> dict[str, Any]:
     for k, v in config.items():
         if v is None:
             continue
-        if k == "pairs":
-            out[k] = check_pair_spec(v) if isinstance(v, str) else v
-        elif k == "method":
-            out[k] = _choice(k, v, METHODS)
-        elif k == "tiling":
-            out[k] = _choice(k, v, TILING)
-        elif k == "mapper":
-            out[k] = _choice(k, v, MAPPERS)
-        elif k == "camera":
-            out[k] = _choice(k, v, ("auto", "per-image"))
-        elif k == "resize":
-            if isinstance(v, bool) or not isinstance(v, int) or not (v == 0 or 64 <= v <= 8192):
-                raise InvalidRequest(f"resize must be 0 (full size) or an integer from 64 to 8192, not {v!r}")
-            out[k] = v
-        elif k == "snap_radius":
-            if isinstance(v, bool) or not isinstance(v, int | float) or not 0 <= v <= 50:
-                raise InvalidRequest(f"snap_radius must be a number from 0 to 50 (network pixels), not {v!r}")
-            out[k] = float(v)
+        out[k] = v if k == "pairs" and isinstance(v, list) else check_option(k, v)
     return out
 
 
@@ -389,10 +354,7 @@ class Service:
             names = set(s.scalars(select(Image.name).where(Image.project_id == project_id)))
             if len(names) < 2:
                 raise InvalidRequest(f"the project has {len(names)} image(s); matching needs at least 2")
-            given = {
-                k: getattr(req, k)
-                for k in ("pairs", "method", "resize", "tiling", "snap_radius", "camera", "mapper")
-            }
+            given = {k: getattr(req, k) for k in PROJECT_OPTIONS}
             opts = {**DEFAULTS, **check_config(dict(p.config)), **check_config(given)}
             if isinstance(opts["pairs"], list):
                 opts["pairs"] = check_pair_list(opts["pairs"], names)
@@ -408,7 +370,7 @@ class Service:
     def start_reconstruct(self, tenant_id: str, project_id: str, mapper: str | None = None) -> JobView:
         with self.store.session() as s:
             p = self._project(s, tenant_id, project_id)
-            mapper = _choice("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"], MAPPERS)
+            mapper = check_option("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"])
             matched = s.scalar(
                 select(func.count())
                 .select_from(Job)
@@ -480,11 +442,7 @@ class Service:
         fd, tmp = self.storage.temp_file()
         os.close(fd)
         try:
-            with (
-                closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True, timeout=60)) as a,
-                closing(sqlite3.connect(tmp)) as b,
-            ):
-                a.backup(b)
+            snapshot_sqlite(src, tmp)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
@@ -503,7 +461,7 @@ class Service:
                 raise NotFound(f"image {n!r} not found in project {project_id}")
         if name0 == name1:
             raise InvalidRequest("a pair has two different images")
-        path = self.storage.pictures_dir(project_id) / picture_name(name0, name1)
+        path = self.storage.picture_path(project_id, name0, name1)
         if path.is_file():
             return path
         try:
@@ -611,10 +569,6 @@ class JobWatch:
             self._quiet_since = now
             return True, None
         return False, None
-
-
-def picture_name(name0: str, name1: str) -> str:
-    return hashlib.sha256(f"{name0}\0{name1}".encode()).hexdigest()[:32] + ".png"
 
 
 def _size(a: np.ndarray) -> tuple[int, int]:

@@ -3,29 +3,26 @@
 Image checks use Pillow only (the library's ``read_image`` would pull torch into the API): the
 header gives the size, which is checked against the pixel limit BEFORE any decoding, so a
 decompression bomb costs nothing; then the whole file is decoded once, which catches truncated
-and corrupt files. The pair grammar is ``geomatch.pairs.parse_spec``'s (a test keeps them equal).
+and corrupt files. Option values are checked by ``geomatch.options`` (torch-free), which holds
+every option, its choices and its range once.
 """
 
 from __future__ import annotations
 
-import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from PIL import Image
 
-from .errors import BadFile, DecompressionBomb, InvalidRequest, TooLarge, UnsupportedFormat
+from core.errors import BadFile, DecompressionBomb, InvalidRequest, TooLarge, UnsupportedFormat
+from geomatch import options
 
-# what the pipeline reads (geomatch.pipeline.IMAGE_SUFFIXES); MPO is how Pillow names many camera JPEGs
+# what the pipeline reads (geomatch.options.IMAGE_SUFFIXES); MPO is how Pillow names many camera JPEGs
 FORMATS = {"JPEG": "jpeg", "MPO": "jpeg", "PNG": "png", "TIFF": "tiff", "BMP": "bmp", "WEBP": "webp"}
 MIN_SIDE = 16  # the matcher's minimum (geomatch.imageio)
 MAX_NAME = 200
-METHODS = ("sparse", "dense", "concat", "geo-noanchor", "geo")  # geomatch.matcher.METHODS
-MAPPERS = ("incremental", "global")  # geomatch.sfm.MAPPERS
-TILING = ("auto", "on", "off")
-CAPTURES = ("aerial", "ground", "auto")
-_SPEC = re.compile(r"(exhaustive)|(sequential|retrieval):(\d+)")
 
 
 @dataclass(frozen=True)
@@ -87,13 +84,16 @@ def check_image(path: Path, name: str, max_pixels: int) -> ImageInfo:
     return ImageInfo(width, height, FORMATS[fmt])
 
 
+def check_option(name: str, value: Any) -> Any:
+    """``value`` as option ``name`` accepts it (``geomatch.options``), else InvalidRequest."""
+    try:
+        return options.check(name, value)
+    except options.OptionError as e:
+        raise InvalidRequest(str(e)) from None
+
+
 def check_pair_spec(spec: str) -> str:
-    m = _SPEC.fullmatch(spec.strip())
-    if not m or (m.group(3) is not None and int(m.group(3)) < 1):
-        raise InvalidRequest(
-            f"bad pairs {spec!r}: use exhaustive, sequential:K, retrieval:K (K >= 1) or a list of name pairs"
-        )
-    return spec.strip()
+    return str(check_option("pairs", spec))
 
 
 def check_pair_list(pairs: list[list[str]], names: set[str]) -> list[list[str]]:

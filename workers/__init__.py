@@ -1,2 +1,3 @@
-"""The queue side: Celery on Redis (or in-process threads when embedded) running the job steps,
-which call the ``geomatch`` library. Importing this package does not import torch."""
+"""The queue side: Celery on Redis (or in-process threads when embedded) running the job steps
+(``workers.steps``, one static table), which call the ``geomatch`` library. Built on ``core``; it
+never imports ``service``. Importing this package does not import torch."""

@@ -17,8 +17,8 @@ from __future__ import annotations
 
 from celery import Celery
 
-from service.config import Settings
-from service.queue import RENDER_PAIR
+from core.config import Settings
+from core.queue import RENDER_PAIR
 
 
 def interactive_queue(settings: Settings) -> str:

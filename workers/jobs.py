@@ -18,50 +18,23 @@ from __future__ import annotations
 
 import json
 import logging
-import sqlite3
 import time
 import zipfile
-from collections.abc import Callable
-from contextlib import closing
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select, update
 
-from service import jobstate
-from service.config import Settings
-from service.locks import LockFactory
-from service.models import Image, Job, JobPair
-from service.queue import EXTRACT, MATCH_PAIR, PLAN_MATCH, RECONSTRUCT, RENDER_PAIR, JobQueue
-from service.storage import Storage
-from service.store import MetadataStore
-from service.usecases import picture_name
+from core import jobstate
+from core.models import Image, Job, JobPair
+from core.queue import EXTRACT, MATCH_PAIR, RENDER_PAIR
+from core.storage import snapshot_sqlite
+from geomatch.options import DEFAULTS
 
 from . import runtime
+from .context import Context, PermanentError
 
 log = logging.getLogger("geomatch.workers")
-
-
-class PermanentError(Exception):
-    """Retrying cannot help: the job fails at once."""
-
-
-@dataclass
-class Context:
-    settings: Settings
-    store: MetadataStore
-    storage: Storage
-    locks: LockFactory
-    queue: JobQueue
-
-
-def is_permanent(exc: BaseException) -> bool:
-    """Bad options, bad data and missing weights fail the job now; anything else (I/O, a busy
-    database, a lost connection, memory) is worth retrying, possibly on another worker."""
-    if isinstance(exc, PermanentError | ValueError | TypeError | LookupError | NotImplementedError):
-        return True
-    return any(c.__name__ == "WeightsNotFoundError" for c in type(exc).__mro__)
 
 
 # -- match jobs ---------------------------------------------------------------------------------
@@ -95,10 +68,11 @@ def _plan(ctx: Context, job: Job) -> None:
                 update(Image).where(Image.project_id == pid, Image.name == n).values(aerial=n in aerial)
             )
     share_camera = False if opts.get("camera") == "per-image" else None
-    spec = opts["pairs"] if isinstance(opts["pairs"], str) else "exhaustive"
+    spec = opts["pairs"] if isinstance(opts["pairs"], str) else DEFAULTS["pairs"]
     pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
     matcher = runtime.matcher(ctx, opts) if spec.startswith("retrieval") and pairs_list is None else None
-    planned = steps.plan(image_dir, names, aerial, spec, pairs_list, opts.get("tiling", "auto"), matcher)
+    tiling = opts.get("tiling", DEFAULTS["tiling"])
+    planned = steps.plan(image_dir, names, aerial, spec, pairs_list, tiling, matcher)
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
             return
@@ -191,7 +165,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             k0, k1, sc = steps.match(runtime.matcher(ctx, opts), pair, a, b)
             t1 = time.perf_counter()
             resize = opts.get("resize") or None
-            radius = float(opts.get("snap_radius", 1.5))
+            radius = float(opts.get("snap_radius", DEFAULTS["snap_radius"]))
             with ctx.locks.project(pid):
                 if not jobstate.is_active(ctx.store, job_id):  # cancelled while matching: write nothing
                     return "cancelled"
@@ -247,10 +221,10 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     try:
         snapshot = work / "database.db"
         with ctx.locks.project(pid):  # a consistent copy; matching may go on while we map
-            _sqlite_copy(db_path, snapshot)
+            snapshot_sqlite(db_path, snapshot)
         out = work / "model"
         summary = sfm_reconstruct(
-            snapshot, ctx.storage.images_dir(pid), out, job.options.get("mapper", "incremental")
+            snapshot, ctx.storage.images_dir(pid), out, job.options.get("mapper", DEFAULTS["mapper"])
         )
         with ColmapDatabase(snapshot) as db:
             summary["database"] = db.stats()
@@ -275,14 +249,6 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     )
     jobstate.release_followers(ctx.store, ctx.queue, job_id)
     return "done"
-
-
-def _sqlite_copy(src: Path, dst: Path) -> None:
-    with (
-        closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True, timeout=60)) as a,
-        closing(sqlite3.connect(dst)) as b,
-    ):
-        a.backup(b)
 
 
 def _zip_model(out: Path) -> None:
@@ -333,7 +299,7 @@ def render_pair(ctx: Context, project_id: str, name0: str, name1: str) -> dict[s
     )
     pictures = ctx.storage.pictures_dir(project_id)
     pictures.mkdir(parents=True, exist_ok=True)
-    path = pictures / picture_name(name0, name1)
+    path = ctx.storage.picture_path(project_id, name0, name1)
     tmp = path.with_suffix(f".{time.monotonic_ns()}.png")
     save_matches(tmp, a, b, result)
     tmp.replace(path)
@@ -351,12 +317,3 @@ def on_failure(ctx: Context, step: str, args: tuple[Any, ...], exc: BaseExceptio
     if jobstate.fail(ctx.store, job_id, f"{where}: {reason}"):
         log.error("job failed in %s: %s", where, exc, extra={"job_id": job_id})
         jobstate.release_followers(ctx.store, ctx.queue, job_id)
-
-
-STEPS: dict[str, Callable[..., Any]] = {
-    PLAN_MATCH: plan_match,
-    EXTRACT: extract,
-    MATCH_PAIR: match_pair,
-    RECONSTRUCT: reconstruct,
-    RENDER_PAIR: render_pair,
-}

@@ -15,15 +15,17 @@ from typing import Any
 
 from sqlalchemy import select
 
-from service import jobstate
-from service.config import Settings
-from service.locks import LockFactory
-from service.models import Job
-from service.queue import ENTRY_STEP
-from service.storage import Storage
-from service.store import MetadataStore
+from core import jobstate
+from core.config import Settings
+from core.locks import LockFactory
+from core.models import Job
+from core.queue import ENTRY_STEP
+from core.storage import Storage
+from core.store import MetadataStore
 
 from . import jobs
+from .context import Context, is_permanent
+from .steps import STEPS
 
 log = logging.getLogger("geomatch.workers")
 MAX_RETRIES = 3
@@ -33,7 +35,7 @@ class LocalQueue:
     def __init__(
         self, settings: Settings, store: MetadataStore, storage: Storage, locks: LockFactory
     ) -> None:
-        self.ctx = jobs.Context(settings, store, storage, locks, self)
+        self.ctx = Context(settings, store, storage, locks, self)
         self._pool = ThreadPoolExecutor(settings.embedded_threads, thread_name_prefix="geomatch-job")
         self._interactive = ThreadPoolExecutor(1, thread_name_prefix="geomatch-render")
         self._closed = threading.Event()
@@ -45,9 +47,9 @@ class LocalQueue:
 
     def _run(self, step: str, args: tuple[Any, ...], attempt: int) -> None:
         try:
-            jobs.STEPS[step](self.ctx, *args)
+            STEPS[step](self.ctx, *args)
         except Exception as e:
-            if not jobs.is_permanent(e) and attempt < MAX_RETRIES and not self._closed.is_set():
+            if not is_permanent(e) and attempt < MAX_RETRIES and not self._closed.is_set():
                 delay = 2.0**attempt
                 log.warning("%s%r failed (%s); retry %d in %.0fs", step, args, e, attempt + 1, delay)
                 timer = threading.Timer(delay, self._retry, (step, args, attempt + 1))
@@ -62,7 +64,7 @@ class LocalQueue:
             self._pool.submit(self._run, step, args, attempt)
 
     def call(self, step: str, *args: Any, timeout: float) -> Any:
-        return self._interactive.submit(jobs.STEPS[step], self.ctx, *args).result(timeout)
+        return self._interactive.submit(STEPS[step], self.ctx, *args).result(timeout)
 
     def ping(self) -> None:
         if self._closed.is_set():

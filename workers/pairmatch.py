@@ -7,9 +7,9 @@ as the folder's name, not as absolute paths, because a worker on another host ma
 root elsewhere. Nothing is retried or redelivered: the caller waits with a deadline, and work
 found past it is dropped (between stages too, so an abandoned pair costs at most one stage).
 
-How it is wired without touching the job steps: ``install_local`` adds the step to the embedded
-runner's table (the gRPC server calls it in embedded mode), and ``register`` adds a Celery task
-that stores its result (job steps ignore theirs) for ``geomatch worker``.
+It is in the static step table (``workers.steps``) like every other step: the embedded runner
+calls it, and ``workers.tasks`` registers it for ``geomatch worker`` as a one-shot task whose
+result is stored (job steps ignore theirs).
 """
 
 from __future__ import annotations
@@ -17,14 +17,12 @@ from __future__ import annotations
 import logging
 import re
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from service.queue import MATCH_TWO
+from geomatch.options import DEFAULTS
 
-from . import jobs, runtime
-
-if TYPE_CHECKING:
-    from celery import Celery
+from . import runtime
+from .context import Context
 
 log = logging.getLogger("geomatch.workers")
 _WORK = re.compile(r"pair-[0-9a-f]{32}")
@@ -35,7 +33,7 @@ class DeadlinePassed(Exception):
 
 
 def match_two(
-    ctx: jobs.Context, work: str, captures: list[str], options: dict[str, Any], deadline: float
+    ctx: Context, work: str, captures: list[str], options: dict[str, Any], deadline: float
 ) -> dict[str, Any]:
     """``{"file": "result.npz", "matches": N, "timings": {...}}``, or ``{"error": reason}``."""
     if not _WORK.fullmatch(work):
@@ -53,7 +51,7 @@ def match_two(
 
 
 def _match(
-    ctx: jobs.Context, folder: Any, captures: list[str], options: dict[str, Any], deadline: float
+    ctx: Context, folder: Any, captures: list[str], options: dict[str, Any], deadline: float
 ) -> dict[str, Any]:
     import numpy as np
 
@@ -74,7 +72,7 @@ def _match(
         for i, (p, c) in enumerate(zip(paths, captures, strict=True))
         if c == "aerial" or (c == "auto" and read_metadata(p).aerial_hint)
     }
-    pair = finalize([("0", "1")], aerial, options.get("tiling", "auto"))[0]
+    pair = finalize([("0", "1")], aerial, options.get("tiling", DEFAULTS["tiling"]))[0]
     a, b = read_image(paths[0]), read_image(paths[1])  # not runtime.image: these are read once
     matcher = runtime.matcher(ctx, options)
     t1 = time.perf_counter()
@@ -106,26 +104,10 @@ def _match(
         F=np.asarray(F, np.float64).reshape(3, 3),
         size0=np.array([a.shape[1], a.shape[0]]),
         size1=np.array([b.shape[1], b.shape[0]]),
-        method=np.array(options.get("method", "geo")),
+        method=np.array(options.get("method", DEFAULTS["method"])),
         tiled=np.array(pair.tiled),
     )
     tmp.replace(out)
     timings["total"] = time.perf_counter() - t0
     log.info("match_two %s: %d matches, tiled=%s, %.2fs", folder.name, len(sc), pair.tiled, timings["total"])
     return {"file": out.name, "matches": len(sc), "timings": timings}
-
-
-def install_local() -> None:
-    """Make the embedded runner (``workers.local.LocalQueue.call``) know the step."""
-    jobs.STEPS.setdefault(MATCH_TWO, match_two)
-
-
-def register(app: Celery) -> None:
-    """The Celery task for ``geomatch worker``: acknowledged early and never retried (the caller
-    is waiting; a redelivery after its deadline would be wasted), result stored for the caller."""
-    from .tasks import context
-
-    def run(work: str, captures: list[str], options: dict[str, Any], deadline: float) -> dict[str, Any]:
-        return match_two(context(app), work, captures, options, deadline)
-
-    app.task(name=MATCH_TWO, ignore_result=False, acks_late=False, max_retries=0)(run)

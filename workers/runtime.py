@@ -14,7 +14,7 @@ if TYPE_CHECKING:
 
     from geomatch.matcher import Matcher
 
-    from .jobs import Context
+    from .context import Context
 
 _local = threading.local()
 MAX_MATCHERS = 2  # distinct option sets kept per thread (each holds its own feature LRU)
@@ -22,9 +22,13 @@ MAX_IMAGES = 24
 
 
 def matcher(ctx: Context, options: dict[str, Any]) -> Matcher:
+    from geomatch.options import DEFAULTS
     from geomatch.steps import FeatureStore, build_matcher
 
-    method, resize = options.get("method", "geo"), options.get("resize") or None
+    method, resize = (
+        options.get("method", DEFAULTS["method"]),
+        options.get("resize", DEFAULTS["resize"]) or None,
+    )
     key = (method, resize, ctx.settings.device)
     cache: OrderedDict[tuple[Any, ...], Matcher] = _local.__dict__.setdefault("matchers", OrderedDict())
     if key in cache:

@@ -14,19 +14,20 @@ from typing import Any
 import redis
 from celery import Celery, Task
 
-from service.config import Settings
-from service.locks import RedisLocks
-from service.queue import RENDER_PAIR
-from service.storage import Storage
-from service.store import MetadataStore
+from core.config import Settings
+from core.locks import RedisLocks
+from core.storage import Storage
+from core.store import MetadataStore
 
 from . import jobs
 from .celery_queue import CeleryQueue
+from .context import Context, PermanentError, is_permanent
+from .steps import ANSWERED, ONE_SHOT, STEPS
 
-_context: tuple[int, jobs.Context] | None = None
+_context: tuple[int, Context] | None = None
 
 
-def context(app: Celery) -> jobs.Context:
+def context(app: Celery) -> Context:
     global _context
     if _context is None or _context[0] != os.getpid():
         settings = Settings.from_env()
@@ -36,7 +37,7 @@ def context(app: Celery) -> jobs.Context:
         locks = RedisLocks(client, settings.redis_prefix, settings.lock_timeout_s)
         _context = (
             os.getpid(),
-            jobs.Context(settings, store, Storage(settings.home), locks, CeleryQueue(settings, app)),
+            Context(settings, store, Storage(settings.home), locks, CeleryQueue(settings, app)),
         )
     return _context[1]
 
@@ -44,7 +45,7 @@ def context(app: Celery) -> jobs.Context:
 def register(app: Celery) -> None:
     class StepTask(Task):  # type: ignore[misc]
         autoretry_for = (Exception,)
-        dont_autoretry_for = (jobs.PermanentError, ValueError, TypeError, LookupError, NotImplementedError)
+        dont_autoretry_for = (PermanentError, ValueError, TypeError, LookupError, NotImplementedError)
         max_retries = 3
         retry_backoff = 2
         retry_backoff_max = 60
@@ -55,14 +56,21 @@ def register(app: Celery) -> None:
         def on_failure(self, exc: BaseException, task_id: str, args: Any, kwargs: Any, einfo: Any) -> None:
             jobs.on_failure(context(app), self.name, tuple(args), exc)
 
-    for name, fn in jobs.STEPS.items():
+    for name, fn in STEPS.items():
+        if name in ONE_SHOT:
+
+            def once(*args: Any, _fn: Any = fn) -> Any:
+                return _fn(context(app), *args)
+
+            app.task(name=name, ignore_result=False, acks_late=False, max_retries=0)(once)
+            continue
 
         def run(self: Task, *args: Any, _fn: Any = fn) -> Any:
             try:
                 return _fn(context(app), *args)
             except Exception as e:  # e.g. missing weights (an OSError): fail now, not after 3 retries
-                if jobs.is_permanent(e) and not isinstance(e, StepTask.dont_autoretry_for):
-                    raise jobs.PermanentError(f"{type(e).__name__}: {e}") from e
+                if is_permanent(e) and not isinstance(e, StepTask.dont_autoretry_for):
+                    raise PermanentError(f"{type(e).__name__}: {e}") from e
                 raise
 
-        app.task(name=name, base=StepTask, bind=True, ignore_result=name != RENDER_PAIR)(run)
+        app.task(name=name, base=StepTask, bind=True, ignore_result=name not in ANSWERED)(run)

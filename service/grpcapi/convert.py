@@ -9,11 +9,14 @@ from typing import Any
 
 from google.protobuf import struct_pb2, timestamp_pb2
 
+from geomatch import options
+
 from ..usecases import ImageView, JobView, MatchRequest, PairMatches, ProjectView
 from .framing import CAPTURES
 from .pb import pb2
 
-CONFIG_FIELDS = ("pairs", "method", "resize", "tiling", "snap_radius", "camera", "mapper")
+CONFIG_FIELDS = options.PROJECT_OPTIONS  # ProjectConfig's fields, and SubmitMatchingRequest's but pairs
+PAIR_FIELDS = options.PAIR_OPTIONS  # MatchPairOptions' fields
 CAPTURE_ENUM = {"auto": pb2.CAPTURE_AUTO, "aerial": pb2.CAPTURE_AERIAL, "ground": pb2.CAPTURE_GROUND}
 JOB_KINDS = {"match": pb2.JOB_KIND_MATCH, "reconstruct": pb2.JOB_KIND_RECONSTRUCT}
 JOB_STATES = {
@@ -110,7 +113,7 @@ def match_request(req: pb2.SubmitMatchingRequest) -> MatchRequest:
         pairs = req.pair_spec
     elif which == "pair_list":
         pairs = [[p.name0, p.name1] for p in req.pair_list.pairs]
-    opts = optional_fields(req, ("method", "resize", "tiling", "snap_radius", "camera", "mapper"))
+    opts = optional_fields(req, tuple(n for n in CONFIG_FIELDS if n != "pairs"))
     return MatchRequest(pairs=pairs, reconstruct=req.reconstruct, **opts)
 
 

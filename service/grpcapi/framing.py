@@ -14,7 +14,8 @@ import io
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from ..errors import BadFile, InvalidRequest, TooLarge
+from core.errors import BadFile, InvalidRequest, TooLarge
+
 from ..usecases import Upload
 from .status import Malformed
 

@@ -102,10 +102,6 @@ def address(host: str, port: int) -> str:
 
 def start(service: Service, host: str = "127.0.0.1", port: int = DEFAULT_PORT) -> GrpcServer:
     """Serve on ``host:port`` (port 0: a free port, see ``GrpcServer.port``); raises PortInUse."""
-    if service.settings.embedded:
-        from workers.pairmatch import install_local  # this process runs MatchPair itself
-
-        install_local()
     server = grpc.server(
         futures.ThreadPoolExecutor(THREADS, thread_name_prefix="geomatch-grpc"), options=OPTIONS
     )

@@ -15,7 +15,8 @@ from typing import IO, Any
 
 import grpc
 
-from ..errors import InvalidRequest, Unavailable
+from core.errors import InvalidRequest, Unavailable
+
 from ..usecases import Service, Upload
 from . import convert
 from .framing import MAX_CHUNK, Messages, images
@@ -140,7 +141,7 @@ class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
         options: dict[str, Any] = {}
         first = messages.next()
         if first is not None and first.WhichOneof("part") == "options":
-            options = convert.optional_fields(first.options, ("method", "resize", "tiling"))
+            options = convert.optional_fields(first.options, convert.PAIR_FIELDS)
         elif first is not None:
             messages.push_back(first)
         uploads = (

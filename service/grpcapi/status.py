@@ -15,7 +15,7 @@ from typing import Any, NoReturn, TypeVar
 
 import grpc
 
-from .. import errors
+from core import errors
 
 log = logging.getLogger("geomatch.service.grpc")
 

@@ -1,6 +1,6 @@
 """``geomatch submit IMAGES --grpc``: the batch client's flow over gRPC.
 
-Same steps and output as the HTTP flow (``service/cli.py``): create a project, upload, match with
+Same steps and output as the HTTP flow (``service/submit.py``): create a project, upload, match with
 a reconstruction queued behind it, follow both jobs, download and unpack the model. Uploads go
 as streams of a few images each: one stream per folder would make a late failure resend it all,
 one per image would pay a round trip each. Re-sending is safe (same bytes, same image), so a batch
@@ -19,7 +19,9 @@ from typing import Any
 
 import grpc
 
-from ..cli import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_UNREACHABLE, submit_inputs
+from geomatch.options import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_UNREACHABLE
+
+from ..submit import submit_inputs
 from .client import GrpcClient, ImageSource, to_dict
 from .pb import pb2
 

@@ -1,4 +1,4 @@
-"""Real gRPC servers for the tests: ``python -m service.grpcapi`` (gRPC alone, the production entry),
+"""Real gRPC servers for the tests: ``python -m app grpc-serve`` (gRPC alone, the production entry),
 ``geomatch grpc-serve``, or ``geomatch serve`` with both APIs, on free loopback ports; ready when the
 standard health check answers SERVING. Built on ``harness.Deployment`` (its own GEOMATCH_HOME,
 Redis prefix and queue per deployment)."""
@@ -26,20 +26,20 @@ class GrpcDeployment(Deployment):
         self.target = ""
 
     def start_grpc(self, how: str = "module", timeout: float = 120.0) -> str:
-        """``how``: module (python -m service.grpcapi), grpc-serve, or serve (HTTP + gRPC)."""
+        """``how``: module (python -m app grpc-serve), grpc-serve, or serve (HTTP + gRPC)."""
         port = free_port()
         self.root.mkdir(parents=True, exist_ok=True)
         if how == "module":
-            args = [sys.executable, "-m", "service.grpcapi", "--port", str(port)]
+            args = [sys.executable, "-m", "app", "grpc-serve", "--port", str(port)]
             out = (self.root / "server.log").open("ab")
             self.server = subprocess.Popen(
                 args, env=self.env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True
             )
         elif how == "grpc-serve":
-            self.server = self._spawn(["grpc-serve", "--port", str(port)], "server.log")
+            self.server = self.spawn(["grpc-serve", "--port", str(port)], "server.log")
         else:
             http = free_port()
-            self.server = self._spawn(["serve", "--port", str(http), "--grpc-port", str(port)], "server.log")
+            self.server = self.spawn(["serve", "--port", str(http), "--grpc-port", str(port)], "server.log")
             self.url = f"http://127.0.0.1:{http}"
         self.target = f"127.0.0.1:{port}"
         deadline = time.monotonic() + timeout

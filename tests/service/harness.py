@@ -22,7 +22,7 @@ from typing import Any
 
 import httpx
 
-GEOMATCH = str(Path(sys.executable).parent / "geomatch")
+GEOMATCH = [sys.executable, "-m", "app"]  # the `geomatch` command (app.cli:main)
 TERMINAL = ("succeeded", "failed", "cancelled")
 
 
@@ -60,16 +60,16 @@ class Deployment:
         self.server_out = ""  # what `geomatch serve` printed before it was ready
 
     # -- processes ---------------------------------------------------------------------------
-    def _spawn(self, args: list[str], log: str) -> subprocess.Popen[bytes]:
+    def spawn(self, args: list[str], log: str) -> subprocess.Popen[bytes]:
         self.root.mkdir(parents=True, exist_ok=True)
         out = (self.root / log).open("ab")
         return subprocess.Popen(
-            [GEOMATCH, *args], env=self.env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True
+            [*GEOMATCH, *args], env=self.env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True
         )
 
     def start_server(self, timeout: float = 120.0) -> str:
         port = free_port()
-        self.server = self._spawn(["serve", "--host", "127.0.0.1", "--port", str(port)], "server.log")
+        self.server = self.spawn(["serve", "--host", "127.0.0.1", "--port", str(port)], "server.log")
         self.url = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -83,7 +83,7 @@ class Deployment:
         raise RuntimeError(f"geomatch serve not ready after {timeout}s:\n{self.logs()}")
 
     def start_worker(self) -> subprocess.Popen[bytes]:
-        w = self._spawn(["worker", "--concurrency", "1"], f"worker-{len(self.workers)}.log")
+        w = self.spawn(["worker", "--concurrency", "1"], f"worker-{len(self.workers)}.log")
         self.workers.append(w)
         return w
 
@@ -116,7 +116,9 @@ class Deployment:
 
     # -- clients -----------------------------------------------------------------------------
     def create_key(self, tenant: str) -> str:
-        r = subprocess.run([GEOMATCH, "keys", "create", tenant], env=self.env, capture_output=True, text=True)
+        r = subprocess.run(
+            [*GEOMATCH, "keys", "create", tenant], env=self.env, capture_output=True, text=True
+        )
         assert r.returncode == 0, r.stderr
         key = r.stdout.strip()
         assert key.startswith("gm_"), r.stdout

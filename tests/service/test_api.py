@@ -71,7 +71,7 @@ def test_revoked_key_is_refused(deployment: Deployment) -> None:
     key = deployment.create_key("short-lived")
     assert deployment.client(key).get("/v1/projects").status_code == 200
     r = subprocess.run(
-        [GEOMATCH, "keys", "revoke", key[:10]], env=deployment.env, capture_output=True, text=True
+        [*GEOMATCH, "keys", "revoke", key[:10]], env=deployment.env, capture_output=True, text=True
     )
     assert r.returncode == 0, r.stderr
     assert deployment.client(key).get("/v1/projects").status_code == 401
@@ -111,7 +111,7 @@ def test_another_tenants_project_and_jobs_are_404(
 
 
 # -- bad uploads ---------------------------------------------------------------------------------
-def _bad_files(scene: Path) -> list[tuple[str, str, bytes, int, str]]:
+def bad_files(scene: Path) -> list[tuple[str, str, bytes, int, str]]:
     png = (scene / "images" / "ground_02.png").read_bytes()
     return [
         ("not an image", "notes.png", b"this is not an image, just text\n" * 10, 400, "not a readable image"),
@@ -147,7 +147,7 @@ BAD_FILES = [
 def test_bad_upload_is_refused_and_nothing_stored(
     deployment: Deployment, a: httpx.Client, project: str, scene: Path, label: str
 ) -> None:
-    cases = {c[0]: c for c in _bad_files(scene)}
+    cases = {c[0]: c for c in bad_files(scene)}
     assert sorted(cases) == sorted(BAD_FILES)
     _, name, data, status, message = cases[label]
     before = state(deployment, project)

@@ -168,7 +168,7 @@ def test_submit_batch_client(deployment: Deployment, key_a: str, scene: Path, tm
     # sparse: this test is about the client; 3 ground views 30 deg apart can lack an initial pair
     args += ["--method", "sparse", "--resize", str(RESIZE), "--out", str(out), "--no-progress"]
     r = subprocess.run(
-        [GEOMATCH, *args],
+        [*GEOMATCH, *args],
         capture_output=True,
         text=True,
         timeout=600,

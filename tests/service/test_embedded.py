@@ -67,5 +67,5 @@ def test_embedded_default(tmp_path_factory: pytest.TempPathFactory, scene: Path,
 
 def test_worker_needs_redis(tmp_path: Path) -> None:
     d = Deployment(tmp_path, None)
-    r = subprocess.run([GEOMATCH, "worker"], env=d.env, capture_output=True, text=True, timeout=120)
+    r = subprocess.run([*GEOMATCH, "worker"], env=d.env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "needs REDIS_URL" in r.stderr

@@ -1,4 +1,4 @@
-"""The gRPC API against real processes, Redis mode: ``python -m service.grpcapi`` on a loopback port
+"""The gRPC API against real processes, Redis mode: ``python -m app grpc-serve`` on a loopback port
 and one ``geomatch worker``, real networks and pycolmap.
 
 End to end on the synthetic scene (streamed upload, WatchJob, GetModel, every image registered);
@@ -35,7 +35,7 @@ from service.grpcapi.client import GrpcClient, ImageSource, to_dict
 from service.grpcapi.pb import pb2
 
 from .grpc_harness import GrpcDeployment, code_of, error_of
-from .test_api import _bad_files
+from .test_api import bad_files
 
 # The end-to-end run is about the service, not the matcher (tests/test_pipeline_e2e.py and the REST
 # e2e run the paper's method on this scene): the sparse method at 480 px registers every image too
@@ -482,7 +482,7 @@ GRPC_STATUS = {
 def test_bad_upload_is_refused_and_nothing_stored(
     a: GrpcClient, dep: GrpcDeployment, project: str, scene: Path, label: str, declare_size: bool
 ) -> None:
-    cases = {c[0]: c for c in _bad_files(scene)}
+    cases = {c[0]: c for c in bad_files(scene)}
     assert sorted(cases) == sorted(GRPC_STATUS)  # a new bad input of the REST tests needs its status here
     _, name, data, _, message = cases[label]
     good = (scene / "images" / "ground_03.png").read_bytes()

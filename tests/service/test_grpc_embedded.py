@@ -88,7 +88,7 @@ def test_submit_over_grpc(both: GrpcDeployment, key: str, scene: Path, tmp_path:
     args = ["submit", str(folder), "--grpc", "--grpc-server", both.target, "--key", key]
     args += ["--aerial", "aerial_*", "--method", SUBMIT[0], "--resize", str(SUBMIT[1])]
     args += ["--out", str(out), "--no-progress"]
-    r = subprocess.run([GEOMATCH, *args], capture_output=True, text=True, timeout=600)
+    r = subprocess.run([*GEOMATCH, *args], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr + both.logs()
     assert "(gRPC)" in r.stderr and "registered 4/4 images" in r.stdout, r.stdout
     pid = r.stdout.strip().splitlines()[-1]
@@ -98,14 +98,14 @@ def test_submit_over_grpc(both: GrpcDeployment, key: str, scene: Path, tmp_path:
     with both.grpc_client(key) as g:
         assert [i.capture for i in g.list_images(pid)] == [3] * 4  # --aerial given: the others are ground
     args[args.index(key)] = "gm_wrong"
-    bad = subprocess.run([GEOMATCH, *args], capture_output=True, text=True, timeout=120)
+    bad = subprocess.run([*GEOMATCH, *args], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "UNAUTHENTICATED" in bad.stderr, bad.stderr
 
 
 def test_explicit_port_taken_is_an_error(both: GrpcDeployment, tmp_path: Path) -> None:
     port = both.target.rsplit(":", 1)[1]  # held by the running server
     r = subprocess.run(
-        [GEOMATCH, "serve", "--port", str(free_port()), "--grpc-port", port],
+        [*GEOMATCH, "serve", "--port", str(free_port()), "--grpc-port", port],
         env=GrpcDeployment(tmp_path, None).env,
         capture_output=True,
         text=True,
@@ -140,7 +140,7 @@ def test_default_port_taken_serves_http_only_with_a_warning(tmp_path: Path) -> N
 def test_grpc_serve_alone_on_a_free_port(tmp_path: Path) -> None:
     d = GrpcDeployment(tmp_path, None)
     try:
-        proc = d._spawn(["grpc-serve", "--port", "0"], "server.log")
+        proc = d.spawn(["grpc-serve", "--port", "0"], "server.log")
         d.server = proc
         out, deadline = "", time.monotonic() + 120
         while time.monotonic() < deadline:

@@ -15,10 +15,13 @@ sees half a file and a crash leaves only temporaries behind.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
+import sqlite3
 import tempfile
 import uuid
+from contextlib import closing
 from pathlib import Path
 
 
@@ -57,6 +60,10 @@ class Storage:
 
     def pictures_dir(self, project_id: str) -> Path:
         return self.project_dir(project_id) / "pictures"
+
+    def picture_path(self, project_id: str, name0: str, name1: str) -> Path:
+        """Where the matches picture of a pair is kept (names hashed: any file name is safe)."""
+        return self.pictures_dir(project_id) / picture_name(name0, name1)
 
     def writer_lock_path(self, project_id: str) -> Path:
         return self.project_dir(project_id) / ".writer.lock"
@@ -98,3 +105,17 @@ class Storage:
         finally:
             os.close(fd)
             os.unlink(name)
+
+
+def picture_name(name0: str, name1: str) -> str:
+    return hashlib.sha256(f"{name0}\0{name1}".encode()).hexdigest()[:32] + ".png"
+
+
+def snapshot_sqlite(src: Path, dst: Path) -> None:
+    """A consistent copy of a live SQLite file (the COLMAP database) by SQLite's online backup:
+    the file may be mid-transaction at any moment, a plain copy could tear it."""
+    with (
+        closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True, timeout=60)) as a,
+        closing(sqlite3.connect(dst)) as b,
+    ):
+        a.backup(b)

@@ -6,11 +6,11 @@ embedded default), jobs run on threads of this process and writers lock with fil
 
 from __future__ import annotations
 
-from .config import Settings
-from .locks import FileLocks, RedisLocks
-from .storage import Storage
-from .store import MetadataStore
-from .usecases import Service
+from core.config import Settings
+from core.locks import FileLocks, RedisLocks
+from core.storage import Storage
+from core.store import MetadataStore
+from service.usecases import Service
 
 
 def build_service(settings: Settings) -> Service:

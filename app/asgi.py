@@ -1,0 +1,16 @@
+"""ASGI entry point for production servers: ``uvicorn app.asgi:app``.
+
+The HTTP API without the ``geomatch`` command around it; settings come from the environment,
+as for every process.
+"""
+
+from __future__ import annotations
+
+from core.config import Settings
+from service import logs
+from service.api import create_app
+
+from .bootstrap import build_service
+
+logs.configure()
+app = create_app(build_service(Settings.from_env()))

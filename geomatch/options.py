@@ -1,0 +1,235 @@
+"""Every option of geomatch, defined once: name, type, choices, default and help.
+
+The command line (``geomatch.cli``, ``service.cli``), the REST schemas, the use cases' checks, the gRPC
+conversion and the workers all derive from this module, so adding a method or changing a default
+is one edit here (``tests/test_options.py`` proves that the CLI, the REST schema and the proto
+agree with it). It imports the standard library only: the API process reads it without torch.
+
+Methods are rows of flags (:data:`METHOD_TABLE`), the paper's ablations:
+
+``sparse``        anchors only (detector + LightGlue);
+``dense``         dense mutual-NN + refinement, no optimisation;
+``concat``        anchors naively concatenated to ``dense``;
+``geo-noanchor``  optimisation initialised from the top half of the dense matches;
+``geo``           the full method: anchors initialise F, dense matches are re-weighted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+# exit statuses of every ``geomatch`` command
+EXIT_FAILED, EXIT_BAD_INPUT, EXIT_UNREACHABLE = 1, 2, 3
+
+
+class OptionError(ValueError):
+    """A value outside an option's type, range or choices; the message names the option."""
+
+
+class PairSpecError(ValueError):
+    """The pair specification is malformed or names unknown images."""
+
+
+# -- methods -----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Method:
+    name: str
+    anchors: bool  # sparse anchors (detector + LightGlue) are matched and kept in the output
+    dense: bool  # the detector-free dense branch runs
+    optimise: bool  # the geometry-aware rounds re-weight the dense matches (and the final F check)
+    anchor_init: bool  # the anchors initialise F (else the top half of the dense matches do)
+    help: str
+
+
+METHOD_TABLE: tuple[Method, ...] = (
+    Method("sparse", True, False, False, False, "anchors only (detector + LightGlue)"),
+    Method("dense", False, True, False, False, "dense mutual-NN + refinement, no optimisation"),
+    Method("concat", True, True, False, False, "anchors concatenated to the dense matches"),
+    Method("geo-noanchor", False, True, True, False, "optimisation initialised from the dense matches"),
+    Method("geo", True, True, True, True, "the full method: anchors initialise F, dense re-weighted"),
+)
+METHODS: tuple[str, ...] = tuple(m.name for m in METHOD_TABLE)
+METHOD_FLAGS: dict[str, Method] = {m.name: m for m in METHOD_TABLE}
+
+# -- other vocabularies ------------------------------------------------------------------------
+SPARSE_BACKBONES = ("aliked", "disk")
+DENSE_BACKBONES = ("disk", "aliked", "loftr", "lightglue")
+MAPPERS = ("incremental", "global")
+TILING = ("auto", "on", "off")
+CAMERAS = ("auto", "per-image")
+CAPTURES = ("aerial", "ground", "auto")  # how an uploaded image was taken (auto: EXIF/XMP decides)
+IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
+PAIR_SPEC_HELP = "exhaustive | sequential:K | retrieval:K"
+
+# COLMAP registers an image from 30 PnP inliers, a count made for sparse SIFT matches. With dense
+# matches a genuinely overlapping image has hundreds of 2D-3D correspondences, while a repeated
+# texture gives a few dozen that agree with each other: the demo's aerial_01 was placed 66 units
+# off from 36 of them (grass patches on two surfaces). From 60 on, it waits until its true
+# correspondences are triangulated and registers right (docs/pipeline.md, "Mapping"). But 60 also
+# left one of 4 ground views unregistered in the gRPC submit test (a small scene at 480 px), so the
+# default stays COLMAP's 30 until the matcher stops producing those coherent wrong pairs; 60 is
+# one option away (--min-pose-inliers 60).
+MIN_POSE_INLIERS = 30
+
+
+# -- options -----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Option:
+    name: str  # the key in Python, JSON and protobuf; the flag is --name-with-dashes
+    type: type
+    default: Any
+    help: str
+    choices: tuple[str, ...] = ()
+    low: float | None = None  # inclusive range the service accepts (the library accepts any)
+    high: float | None = None
+    zero: str = ""  # when set, 0 is accepted as well and means this ("full size", "off")
+    unit: str = ""
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+    def check(self, value: Any) -> Any:
+        """The value, validated as the service accepts it; OptionError otherwise."""
+        if self.name == "pairs":
+            if not isinstance(value, str):
+                raise OptionError(f"pairs must be a spec or a list of name pairs, not {value!r}")
+            try:
+                parse_spec(value)
+            except PairSpecError:
+                raise OptionError(
+                    f"bad pairs {value!r}: use exhaustive, sequential:K, retrieval:K (K >= 1) "
+                    "or a list of name pairs"
+                ) from None
+            return value.strip()
+        if self.choices:
+            if value not in self.choices:
+                raise OptionError(f"{self.name} must be one of {', '.join(self.choices)}, not {value!r}")
+            return str(value)
+        if self.type is int:
+            ok = isinstance(value, int) and not isinstance(value, bool) and self._in_range(value)
+            if not ok:
+                zero = f"0 ({self.zero}) or " if self.zero else ""
+                raise OptionError(
+                    f"{self.name} must be {zero}an integer from {self.low:g} to {self.high:g}{self.unit}, "
+                    f"not {value!r}"
+                )
+            return value
+        if self.type is float:
+            ok = isinstance(value, int | float) and not isinstance(value, bool) and self._in_range(value)
+            if not ok:
+                span = f"from {self.low:g} to {self.high:g}{self.unit}"
+                raise OptionError(f"{self.name} must be a number {span}, not {value!r}")
+            return float(value)
+        return value
+
+    def _in_range(self, value: float) -> bool:
+        if self.zero and value == 0:
+            return True
+        return (self.low is None or value >= self.low) and (self.high is None or value <= self.high)
+
+
+_OPTIONS: tuple[Option, ...] = (
+    # matching
+    Option("method", str, "geo", "matching method (the paper's ablations)", choices=METHODS),
+    Option(
+        "resize",
+        int,
+        640,
+        "longer image side fed to the networks (0: keep)",
+        low=64,
+        high=8192,
+        zero="full size",
+    ),
+    Option("device", str, "auto", "auto, cpu, cuda, cuda:1 ..."),
+    Option("sparse", str, "aliked", "anchor backbone (+LightGlue)", choices=SPARSE_BACKBONES),
+    Option("dense", str, "disk", "dense backbone", choices=DENSE_BACKBONES),
+    Option("loftr_weights", str, None, "LoFTR checkpoint (for --dense loftr)"),
+    # the optimizer (the paper's defaults, section 3.4)
+    Option("tau", float, 10.0, "Sampson distance threshold, px^2"),
+    Option("iterations", int, 10, "optimisation rounds"),
+    Option("w", float, 1.2, "update weight"),
+    Option("theta_iter", float, 0.01, "mutual-NN threshold inside the rounds"),
+    Option("theta_c", float, 0.2, "final mutual-NN threshold"),
+    Option("memory_budget_mb", float, 256.0, "working memory of one streamed block, MiB"),
+    # the pipeline (geomatch run, match jobs)
+    Option("pairs", str, "exhaustive", PAIR_SPEC_HELP),
+    Option("tiling", str, "auto", "tile aerial x ground pairs (auto: those pairs only)", choices=TILING),
+    Option(
+        "snap_radius",
+        float,
+        1.5,
+        "keypoint consolidation radius, network px (0: off)",
+        low=0,
+        high=50,
+        unit=" (network pixels)",
+    ),
+    Option("camera", str, "auto", "auto: one camera per EXIF device; per-image", choices=CAMERAS),
+    # reconstruction
+    Option("mapper", str, "incremental", "COLMAP mapper", choices=MAPPERS),
+    Option(
+        "min_pose_inliers",
+        int,
+        MIN_POSE_INLIERS,
+        "2D-3D inliers the incremental mapper needs to register an image (COLMAP's own: 30)",
+    ),
+)
+OPTIONS: dict[str, Option] = {o.name: o for o in _OPTIONS}
+DEFAULTS: dict[str, Any] = {o.name: o.default for o in _OPTIONS}
+
+# which surface offers which options (each a subset of OPTIONS, in this order)
+MATCH_OPTIONS = ("method", "resize", "device", "sparse", "dense", "loftr_weights")
+OPTIMIZER_OPTIONS = ("tau", "iterations", "w", "theta_iter", "theta_c", "memory_budget_mb")
+RUN_OPTIONS = ("pairs", "tiling", "snap_radius", "mapper", "min_pose_inliers", "camera")
+# a project's configuration and a match job's options (REST, gRPC, the use cases)
+PROJECT_OPTIONS = ("pairs", "method", "resize", "tiling", "snap_radius", "camera", "mapper")
+PAIR_OPTIONS = ("method", "resize", "tiling")  # one pair matched on its own (gRPC MatchPair)
+
+
+def defaults(names: Iterable[str]) -> dict[str, Any]:
+    return {n: DEFAULTS[n] for n in names}
+
+
+def check(name: str, value: Any) -> Any:
+    """``value`` validated as option ``name``; OptionError (a ValueError) names what is wrong."""
+    return OPTIONS[name].check(value)
+
+
+def add_arguments(parser: Any, names: Iterable[str], server: bool = False, **help: str) -> None:
+    """argparse flags for ``names``. ``server``: the value is the server's when not given (default
+    None, the help says which). ``help`` overrides an option's help text on this command."""
+    for name in names:
+        o = OPTIONS[name]
+        text = help.get(name, o.help)
+        kw: dict[str, Any] = {"type": o.type, "default": None if server else o.default}
+        if o.choices:
+            kw["choices"] = o.choices
+        if server:
+            text += f" (default: the server's, {o.default})"
+        parser.add_argument(o.flag, help=text, **kw)
+
+
+def given(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Any]:
+    """The values of ``names`` in parsed arguments, by option name."""
+    return {n: getattr(args, n) for n in names}
+
+
+# -- the pair-spec grammar ---------------------------------------------------------------------
+_SPEC = re.compile(r"(exhaustive)|(sequential|retrieval):(\d+)")
+
+
+def parse_spec(spec: str) -> tuple[str, int]:
+    """``exhaustive`` -> ("exhaustive", 0); ``sequential:K`` / ``retrieval:K`` -> (kind, K >= 1)."""
+    m = _SPEC.fullmatch(spec.strip())
+    if not m:
+        raise PairSpecError(f"bad pair spec {spec!r}: use exhaustive, sequential:K or retrieval:K")
+    if m.group(1):
+        return "exhaustive", 0
+    k = int(m.group(3))
+    if k < 1:
+        raise PairSpecError(f"bad pair spec {spec!r}: K must be at least 1")
+    return m.group(2), k

@@ -1,0 +1,23 @@
+"""Every step a runner knows, registered statically. ``workers.local`` (embedded) and
+``workers.tasks`` (Celery) run exactly this table, so every step exists in every mode."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from core.queue import EXTRACT, MATCH_PAIR, MATCH_TWO, PLAN_MATCH, RECONSTRUCT, RENDER_PAIR
+
+from . import jobs, pairmatch
+
+STEPS: dict[str, Callable[..., Any]] = {
+    PLAN_MATCH: jobs.plan_match,
+    EXTRACT: jobs.extract,
+    MATCH_PAIR: jobs.match_pair,
+    RECONSTRUCT: jobs.reconstruct,
+    RENDER_PAIR: jobs.render_pair,
+    MATCH_TWO: pairmatch.match_two,
+}
+ANSWERED = frozenset({RENDER_PAIR, MATCH_TWO})  # their results go back to a waiting caller
+# acknowledged at once and never retried: the caller waits with a deadline, a redelivery is wasted
+ONE_SHOT = frozenset({MATCH_TWO})
