@@ -41,14 +41,13 @@ def worker(args: argparse.Namespace) -> None:
         a, b = p.image0, p.image1
     m = Matcher(MatcherConfig(method=args.method, resize=args.size, device=args.device))
     m.match(a, b)  # load the networks (not timed: a worker loads them once)
-    m._cache.clear()
-    m._anchors.clear()
+    m.clear_caches()
     t0 = time.perf_counter()
     cold = m.match(a, b)
     cold_total = time.perf_counter() - t0
     warm = []
     for _ in range(args.repeat):
-        m._anchors.clear()  # warm = features cached, every matching stage run
+        m.clear_caches(features=False)  # warm = features cached, every matching stage run
         t0 = time.perf_counter()
         r = m.match(a, b)
         warm.append((time.perf_counter() - t0, r.timings))

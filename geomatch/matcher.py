@@ -1,6 +1,7 @@
-"""Pair matching: backbones, the optimizer and refinement put together, one method per name.
+"""Pair matching: backbones, the optimizer and refinement put together.
 
-Methods (the paper's ablations, selectable by name):
+Methods (the paper's ablations, selectable by name; each is a row of flags in
+``geomatch.options.METHOD_TABLE``, and :meth:`Matcher.match` reads the flags, not the name):
 ``sparse``        anchors only (detector + LightGlue);
 ``dense``         dense mutual-NN + refinement, no optimisation;
 ``concat``        anchors naively concatenated to ``dense``;
@@ -9,7 +10,9 @@ Methods (the paper's ablations, selectable by name):
                   refined under the epipolar prior, and anchors are kept alongside them.
 
 Features are computed once per image (keyed by pixel hash, backbone and resolution) and kept
-in a small in-memory LRU, so matching one image against many runs each network once.
+in a small in-memory LRU, so matching one image against many runs each network once. The LRU's
+public interface (:meth:`Matcher.has_features`, :meth:`Matcher.put_features`,
+:meth:`Matcher.clear_caches`) lets a store in front of it (``steps.StoredFeaturesMatcher``) fill it.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from .optimizer import (
     mutual_nn,
     optimise,
 )
-from .options import DENSE_BACKBONES, METHODS, SPARSE_BACKBONES
+from .options import DEFAULTS, DENSE_BACKBONES, METHOD_FLAGS, METHODS, SPARSE_BACKBONES, Method
 from .refine import RefineOptions
 
 log = logging.getLogger(__name__)
@@ -58,11 +61,11 @@ def resolve_device(name: str = "auto") -> torch.device:
 
 @dataclass(frozen=True)
 class MatcherConfig:
-    method: str = "geo"
-    resize: int | None = 640
-    device: str = "auto"
-    sparse: str = "aliked"
-    dense: str = "disk"
+    method: str = DEFAULTS["method"]
+    resize: int | None = DEFAULTS["resize"]
+    device: str = DEFAULTS["device"]
+    sparse: str = DEFAULTS["sparse"]
+    dense: str = DEFAULTS["dense"]
     max_keypoints: int = 2048
     lightglue_threshold: float = 0.1
     # LightGlue's adaptive depth (early exit) and width (point pruning) confidences: speed settings
@@ -72,7 +75,7 @@ class MatcherConfig:
     lightglue_depth_confidence: float = -1.0
     lightglue_width_confidence: float = -1.0
     dense_temperature: float | None = None  # None: the head's own (0.02 descriptor maps, 0.1 LoFTR)
-    loftr_weights: str | None = None
+    loftr_weights: str | None = DEFAULTS["loftr_weights"]
     geo: GeoOptions = field(default_factory=GeoOptions)
     refine: RefineOptions = field(default_factory=RefineOptions)
     final_check: bool = True  # geo methods: drop final matches farther than tau from the fitted F
@@ -94,8 +97,13 @@ class MatcherConfig:
             raise ValueError(f"unknown dense backbone {self.dense!r}; choose from {DENSE_BACKBONES}")
 
     @property
+    def flags(self) -> Method:
+        """The method's row in ``options.METHOD_TABLE``."""
+        return METHOD_FLAGS[self.method]
+
+    @property
     def uses_anchors(self) -> bool:
-        return self.method in ("sparse", "concat", "geo")
+        return self.flags.anchors
 
     @property
     def needs_sparse(self) -> bool:
@@ -104,7 +112,7 @@ class MatcherConfig:
 
     @property
     def needs_dense(self) -> bool:
-        return self.method != "sparse"
+        return self.flags.dense
 
     @property
     def dense_maps(self) -> bool:
@@ -236,13 +244,40 @@ class Matcher:
             passes[cfg.dense] = True
         return list(passes.items())
 
+    # -- the caches' public interface ---------------------------------------------------------
+    def _feature_key(self, key: str, backbone: str, dense: bool) -> tuple[str, str, int | None]:
+        return (key, f"{backbone}+dense" if dense else backbone, self.config.resize)
+
+    def has_features(self, key: str, backbone: str, dense: bool) -> bool:
+        """Whether the in-memory cache holds ``backbone``'s features (``dense``: with dense maps)
+        of the image whose pixel hash is ``key``, at this matcher's resolution."""
+        return self._feature_key(key, backbone, dense) in self._cache
+
+    def put_features(
+        self, key: str, backbone: str, dense: bool, feats: ImageFeatures, image: np.ndarray
+    ) -> None:
+        """Put features computed elsewhere (a store on disk) into the in-memory cache, as if
+        :meth:`features` had computed them from ``image`` (pixel hash ``key``)."""
+        self._cache[self._feature_key(key, backbone, dense)] = (
+            feats,
+            prepare(image, self.config.resize, self.device),
+        )
+
+    def clear_caches(self, features: bool = True, anchors: bool = True) -> None:
+        """Empty the per-image feature cache and / or the recent pairs' anchors (shared with the
+        matchers :meth:`derive` made)."""
+        if features:
+            self._cache.clear()
+        if anchors:
+            self._anchors.clear()
+
     # -- features, once per image -------------------------------------------------------------
     def features(self, image: np.ndarray, key: str | None = None) -> dict[str, ImageFeatures]:
         key = key or image_key(image)
         out: dict[str, ImageFeatures] = {}
         prepared: Prepared | None = None
         for name, dense in self.needed_extractors():
-            ck = (key, f"{name}+dense" if dense else name, self.config.resize)
+            ck = self._feature_key(key, name, dense)
             if ck in self._cache:
                 self._cache.move_to_end(ck)
                 out[name] = self._cache[ck][0]
@@ -322,11 +357,11 @@ class Matcher:
         with timer("merge"):
             pa, pb, ps = _merge(parts_a, parts_b, parts_s, cfg.dedup_radius, self.device)
             F_net, _ = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
-            if cfg.method in ("geo", "geo-noanchor") and cfg.final_check and F_net is not None:
+            if cfg.flags.optimise and cfg.final_check and F_net is not None:
                 keep = sampson_distance(F_net, pa, pb) <= cfg.geo.tau
                 stats["final_check_removed"] = int((~keep).sum())
                 pa, pb, ps = pa[keep], pb[keep], ps[keep]
-            if cfg.method == "geo" and anchors is not None and cfg.min_anchor_support > 0:
+            if cfg.flags.optimise and anchors is not None and cfg.min_anchor_support > 0:
                 support = 0
                 if F_net is not None and anchors[0].shape[0]:
                     d = sampson_distance(F_net, anchors[0].to(F_net.device), anchors[1].to(F_net.device))
@@ -369,13 +404,13 @@ class Matcher:
             if cfg.dense_temperature is not None:
                 pair.temperature = cfg.dense_temperature
         stats["coarse_cells"] = (int(pair.feats_a.shape[0]), int(pair.feats_b.shape[0]))
-        if cfg.method in ("dense", "concat"):
+        if not cfg.flags.optimise:
             with timer("dense_coarse"):
                 ci, cj, conf = dense_mutual_nn(
                     pair.feats_a, pair.feats_b, pair.temperature, cfg.geo.theta_c, cfg.geo.memory_budget_mb
                 )
         else:
-            geo = cfg.geo if cfg.method == "geo" else replace(cfg.geo, use_anchors=False)
+            geo = cfg.geo if cfg.flags.anchor_init else replace(cfg.geo, use_anchors=False)
             with timer("optimizer"):
                 cm = geometry_aware_matching(
                     pair.feats_a, pair.feats_b, pair.grid_a, pair.grid_b, pair.temperature, anchors, geo
@@ -419,10 +454,10 @@ class Matcher:
         ga, gb = sa.keypoints.float(), sb.keypoints.float()
         stats["coarse_cells"] = (source.n, source.m)
         with timer("optimizer"):
-            if cfg.method in ("dense", "concat"):
+            if not cfg.flags.optimise:
                 ci, cj, conf = mutual_nn(source, cfg.geo.theta_c)
             else:
-                geo = cfg.geo if cfg.method == "geo" else replace(cfg.geo, use_anchors=False)
+                geo = cfg.geo if cfg.flags.anchor_init else replace(cfg.geo, use_anchors=False)
                 cm = optimise(source, ga, gb, anchors, geo, geo.f_threshold)
                 ci, cj, conf = cm.idx_a, cm.idx_b, cm.confidence
                 stats.update(

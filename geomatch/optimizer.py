@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .geometry import SampsonGrid, estimate_fundamental, sampson_distance
+from .options import DEFAULTS
 
 log = logging.getLogger(__name__)
 
@@ -36,11 +37,11 @@ log = logging.getLogger(__name__)
 class GeoOptions:
     """Every hyperparameter of the module; defaults are the paper's."""
 
-    tau: float = 10.0  # Sampson threshold, px^2
-    iterations: int = 10
-    w: float = 1.2
-    theta_iter: float = 0.01  # MNN threshold inside the loop
-    theta_c: float = 0.2  # final MNN threshold (paper leaves it open; LoFTR's 0.2)
+    tau: float = DEFAULTS["tau"]  # Sampson threshold, px^2
+    iterations: int = DEFAULTS["iterations"]
+    w: float = DEFAULTS["w"]
+    theta_iter: float = DEFAULTS["theta_iter"]  # MNN threshold inside the loop
+    theta_c: float = DEFAULTS["theta_c"]  # final MNN threshold (paper leaves it open; LoFTR's 0.2)
     anchor_min_count: int = 10
     anchor_min_score: float = 0.5
     fallback_fraction: float = 0.5  # "top half" of the initial mutual-NN matches
@@ -48,7 +49,7 @@ class GeoOptions:
     f_estimator: str = "magsac"  # magsac | 8point
     f_threshold: float = 1.0  # px, MAGSAC threshold for the anchors (keypoint precision)
     f_threshold_coarse: float = 3.0  # px, MAGSAC threshold on coarse cell centres (~sqrt(tau))
-    memory_budget_mb: float = 256.0  # working memory of one streamed block
+    memory_budget_mb: float = DEFAULTS["memory_budget_mb"]  # working memory of one streamed block
     candidates_per_line: int = 32  # entries kept per row and per column of the confidence matrix
     # Anchored rounds (this project's reading; False restores the paper's rule: F refitted on the
     # round's mutual-NN cells alone and always accepted). With anchors, a round's F is refitted on

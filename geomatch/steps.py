@@ -27,7 +27,7 @@ import torch
 
 from . import pipeline
 from .features.base import DenseFeatures, ImageFeatures, SparseFeatures
-from .imageio import image_key, prepare
+from .imageio import image_key
 from .matcher import Matcher, MatcherConfig
 from .pairs import Pair
 from .tiling import five_crops, match_tiled
@@ -143,7 +143,7 @@ class StoredFeaturesMatcher(Matcher):
     """A Matcher whose per-image features are read from / written to a :class:`FeatureStore`.
 
     The Matcher's in-memory cache stays the first level; entries read from disk are put into it
-    under the Matcher's own cache key, so ``match`` and ``_prepared`` find them as if computed.
+    (:meth:`Matcher.put_features`), so ``match`` finds them as if computed.
     """
 
     def __init__(self, config: MatcherConfig, store: FeatureStore) -> None:
@@ -153,18 +153,16 @@ class StoredFeaturesMatcher(Matcher):
 
     def features(self, image: np.ndarray, key: str | None = None) -> dict[str, ImageFeatures]:
         key = key or image_key(image)
-        resize = self.config.resize
         paths, missing = {}, set()
         for name, dense in self.needed_extractors():
             paths[name] = self.store.path(key, name, dense, self.config)
-            cache_key = (key, f"{name}+dense" if dense else name, resize)
-            if cache_key in self._cache:
+            if self.has_features(key, name, dense):
                 continue
             feats = self.store.load(paths[name], self.device)
             if feats is None:
                 missing.add(name)  # computed below, then written (over a torn file, if any)
                 continue
-            self._cache[cache_key] = (feats, prepare(image, resize, self.device))
+            self.put_features(key, name, dense, feats, image)
             self.disk_hits += 1
         out = super().features(image, key)
         for name in missing:

@@ -43,7 +43,7 @@ def test_geo_finds_more_correct_matches_than_either_backbone(
 
 def test_features_are_computed_once_per_image(astronaut_pair: WarpedPair, matcher: Matcher) -> None:
     m = matcher.derive(method="geo")
-    m._cache.clear()
+    m.clear_caches(anchors=False)
     before = m.extract_calls
     third = warped_pair("astronaut", seed=2, strength=0.15).image1
     m.match(astronaut_pair.image0, astronaut_pair.image1)
@@ -55,7 +55,7 @@ def test_features_are_computed_once_per_image(astronaut_pair: WarpedPair, matche
 
 def test_disk_for_both_branches_runs_one_pass_per_image(astronaut_pair: WarpedPair, matcher: Matcher) -> None:
     m = matcher.derive(method="geo", sparse="disk", dense="disk")
-    m._cache.clear()
+    m.clear_caches(anchors=False)
     before = m.extract_calls
     r = m.match(astronaut_pair.image0, astronaut_pair.image1)
     assert m.extract_calls - before == 2
@@ -108,3 +108,17 @@ def test_lightglue_assignment_branch_and_pruning_settings(
         pruned.match(astronaut_pair.image0, astronaut_pair.image1)
     same = m.derive(method="sparse")
     assert same._anchors is m._anchors
+
+
+def test_the_method_flags_are_the_old_name_tests() -> None:
+    """Matcher.match reads the method's flags; for the five methods they say what the names did."""
+    from geomatch.matcher import MatcherConfig
+
+    for method in METHODS:
+        cfg = MatcherConfig(method=method)
+        assert cfg.uses_anchors == (method in ("sparse", "concat", "geo")), method
+        assert cfg.needs_dense == (method != "sparse"), method
+        assert cfg.flags.optimise == (method in ("geo", "geo-noanchor")), method
+        assert (not cfg.flags.optimise) == (method in ("sparse", "dense", "concat")), method
+        assert cfg.flags.anchor_init == (method == "geo"), method
+        assert (cfg.flags.optimise and cfg.uses_anchors) == (method == "geo"), method
