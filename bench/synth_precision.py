@@ -19,8 +19,8 @@ import numpy as np
 from common import print_table
 
 from geomatch import pairs as pairing
+from geomatch import steps
 from geomatch.matcher import Matcher, config_from_options
-from geomatch.pipeline import _match
 from geomatch.synth import Camera, Scene, covisibility, write_scene
 
 OUT = Path(__file__).parent / "out" / "synth_precision"
@@ -82,7 +82,8 @@ def main() -> None:
             if kind not in args.kinds.split(","):
                 continue
             t0 = time.perf_counter()
-            k0, k1, _ = _match(matcher, p, images[p.name0], images[p.name1], str(OUT / "cache"))
+            m = steps.match(matcher, p, images[p.name0], images[p.name1], str(OUT / "cache"))
+            k0, k1 = m.keypoints0, m.keypoints1
             dt = time.perf_counter() - t0
             a, b = byname[p.name0], byname[p.name1]
             ok = correct(a, depth[a.name], b, depth[b.name], k0, k1, args.px)

@@ -125,23 +125,9 @@ class ColmapDatabase:
 
     # -- pairs -------------------------------------------------------------------------------
     def has_pair(self, image_id0: int, image_id1: int) -> bool:
+        """Whether the pair is written, either order; a pair written with zero matches is (a
+        matcher that found nothing is an answer too, not a reason to match again)."""
         return bool(self.db.exists_matches(image_id0, image_id1))
-
-    def matched_pairs(self) -> set[tuple[int, int]]:
-        """Image id pairs (smaller first) already written, including pairs written with zero
-        matches (a matcher that found nothing is an answer too, not a reason to match again)."""
-        out: set[tuple[int, int]] = set()
-        for pair_id in self.db.read_all_matches()[0]:
-            a, b = pycolmap.pair_id_to_image_pair(pair_id)
-            out.add((min(int(a), int(b)), max(int(a), int(b))))
-        # read_all_matches leaves out empty rows, and pycolmap's connection holds recent writes in
-        # its WAL where another connection may not see them yet, so empty pairs are asked per pair
-        ids = sorted(int(im.image_id) for im in self.db.read_all_images())
-        for i, a in enumerate(ids):
-            for b in ids[i + 1 :]:
-                if (a, b) not in out and self.db.exists_matches(a, b):
-                    out.add((a, b))
-        return out
 
     def write_pair(
         self,

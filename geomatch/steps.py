@@ -1,36 +1,53 @@
-"""The pipeline one piece at a time, for callers that run each image and each pair as its own task.
+"""The pipeline's stages: the library's one pipeline API, as hloc's modules are.
 
-``pipeline.run`` does everything in one process with one in-memory feature cache. A queue runs
-one image or one pair per task, in whichever process picks it up, possibly twice (a task whose
-worker died is delivered again). What this module adds for that:
+plan -> extract -> match one pair (:func:`match`) and write it (:func:`write`) -> reconstruct ->
+export, each a function with explicit inputs that returns a record. ``pipeline.run`` is a loop
+over them in one process; the worker steps (``workers.jobs``, ``workers.pairmatch``) call the same
+functions, one image or one pair per task, under their locks. The decisions every caller shares
+are made here once: which images are aerial (:func:`captures`, :func:`aerial_set`), which pairs
+are tiled and in what order (:func:`plan`), which are matched already (:func:`unmatched`: a pair
+stored with zero matches is matched too), how a tiled pair is matched (:func:`match`) and the snap
+radius in original pixels (:func:`snap_radius`).
+
+For queues, which run a task in whichever process picks it up, possibly twice:
 
 - :class:`FeatureStore`: features on disk, keyed by (pixel hash, backbone, resolution, options),
   so any process computes an image's features once and every later task, job or worker reads
   them back instead of running the networks again (DESIGN.md, data flow step 3);
 - :class:`StoredFeaturesMatcher`: a :class:`Matcher` whose per-image features go through that
-  store (the in-memory LRU stays in front of it);
-- per-stage functions (:func:`plan`, :func:`extract`, :func:`match`, :func:`snap_radius`) built
-  from the existing modules, with the same behaviour as ``pipeline.run``.
+  store (the in-memory LRU stays in front of it).
 """
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
+import json
 import os
 import tempfile
-from collections.abc import Sequence
+import zipfile
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from . import pipeline
+from . import pairs as pairing
+from . import sfm
+from .colmapdb import ColmapDatabase, PairWrite
 from .features.base import DenseFeatures, ImageFeatures, SparseFeatures
-from .imageio import image_key
-from .matcher import Matcher, MatcherConfig
+from .geometry import fundamental_from_matches
+from .imageio import image_key, read_image
+from .matcher import Matcher, MatcherConfig, MatchResult
+from .metadata import ImageMeta
+from .options import DEFAULTS, IMAGE_SUFFIXES
 from .pairs import Pair
-from .tiling import five_crops, match_tiled
+from .retrieval import vlad
+from .tiling import TiledMatches, five_crops, match_tiled
 
 
 class FeatureStore:
@@ -178,22 +195,128 @@ def build_matcher(store: FeatureStore | None = None, **options: Any) -> Matcher:
     return StoredFeaturesMatcher(config, store) if store is not None else Matcher(config)
 
 
+# -- input -------------------------------------------------------------------------------------
+class PipelineError(ValueError):
+    """Bad input to a run: no images, unknown names, bad pair spec."""
+
+
+def list_images(folder: Path) -> list[str]:
+    if not folder.is_dir():
+        raise PipelineError(f"{folder}: not a directory")
+    names = sorted(
+        str(p.relative_to(folder))
+        for p in folder.rglob("*")
+        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+    )
+    if len(names) < 2:
+        raise PipelineError(f"{folder}: found {len(names)} image(s); need at least 2")
+    return names
+
+
+class Images:
+    """Decoded images of a folder, a few at a time (least recently used go first)."""
+
+    def __init__(self, folder: Path, capacity: int = 32) -> None:
+        self.folder, self.capacity = Path(folder), capacity
+        self._cache: OrderedDict[str, np.ndarray] = OrderedDict()
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name in self._cache:
+            self._cache.move_to_end(name)
+            return self._cache[name]
+        img = read_image(self.folder / name)
+        self._cache[name] = img
+        while len(self._cache) > self.capacity:
+            self._cache.popitem(last=False)
+        return img
+
+
+# -- plan ----------------------------------------------------------------------------------------
+def captures(
+    names: Sequence[str], aerial_names: Sequence[str] | None = None, aerial_glob: str | None = None
+) -> dict[str, str]:
+    """How each image was taken (aerial, ground, auto), as ``geomatch run`` is told: an explicit
+    list of aerial images, or a glob over the relative path or the file name, makes every image
+    aerial or ground; neither leaves each to its metadata (auto)."""
+    if aerial_names is not None:
+        unknown = sorted(set(aerial_names) - set(names))
+        if unknown:
+            raise PipelineError(f"aerial list names images not in the folder: {', '.join(unknown[:5])}")
+        chosen = set(aerial_names)
+        return {n: "aerial" if n in chosen else "ground" for n in names}
+    if aerial_glob is not None:
+        return {
+            n: "aerial"
+            if fnmatch.fnmatch(n, aerial_glob) or fnmatch.fnmatch(Path(n).name, aerial_glob)
+            else "ground"
+            for n in names
+        }
+    return {n: "auto" for n in names}
+
+
+def aerial_set(captures: Mapping[str, str], metas: Mapping[str, ImageMeta]) -> set[str]:
+    """The aerial images: those captured ``aerial``, and those ``auto`` whose EXIF/XMP says so
+    (silent metadata means ground). ``metas`` is read for the ``auto`` images only."""
+    return {n for n, c in captures.items() if c == "aerial" or (c == "auto" and metas[n].aerial_hint)}
+
+
 def plan(
     image_dir: Path,
     names: Sequence[str],
     aerial: set[str],
-    spec: str = "exhaustive",
-    pairs_list: list[list[str]] | None = None,
-    tiling: str = "auto",
+    spec: str = DEFAULTS["pairs"],
+    pairs_list: Sequence[Sequence[str]] | None = None,
+    tiling: str = DEFAULTS["tiling"],
     matcher: Matcher | None = None,
+    images: Images | None = None,
+    progress: bool = False,
 ) -> list[Pair]:
-    """The pairs ``pipeline.run`` would match, in its cache-friendly order. ``retrieval:K``
-    needs ``matcher`` (global descriptors come from its sparse features)."""
-    opts = pipeline.RunOptions(pairs=spec, pairs_list=pairs_list, tiling=tiling, progress=False)
-    images = pipeline._Images(Path(image_dir))
-    return pipeline.plan_pairs(list(names), aerial, opts, matcher, images)
+    """The pairs to match (``pairs_list``, else ``spec``), tiled where ``tiling`` says, in a
+    cache-friendly order: all pairs of one aerial image (its five crops) together.
+    ``retrieval:K`` needs ``matcher`` (global descriptors come from its sparse features)."""
+    names = list(names)
+    if pairs_list is not None:
+        raw = pairing.explicit(pairs_list, names)
+    else:
+        kind, k = pairing.parse_spec(spec)
+        if kind == "exhaustive":
+            raw = pairing.exhaustive(names)
+        elif kind == "sequential":
+            raw = pairing.sequential(names, k)
+        else:
+            assert matcher is not None
+            descriptors = global_descriptors(matcher, images or Images(image_dir), names, progress)
+            raw = pairing.nearest_neighbours(descriptors, names, k)
+            raw += pairing.cross_view(names, aerial)
+    planned = pairing.finalize(raw, aerial, tiling)
+    return sorted(planned, key=lambda p: (not p.tiled, p.name0 if p.aerial_first else p.name1, p.key))
 
 
+def global_descriptors(
+    matcher: Matcher, images: Images, names: Sequence[str], progress: bool = True
+) -> np.ndarray:
+    sparse = matcher.derive(method="sparse")
+    local = []
+    for n in tqdm(names, desc="retrieval", disable=not progress, leave=False):
+        feats = sparse.features(images[n])[sparse.config.sparse].sparse
+        assert feats is not None
+        local.append(feats.descriptors.float().cpu().numpy())
+    return vlad(local)
+
+
+def register(
+    db: ColmapDatabase, names: Sequence[str], metas: Mapping[str, ImageMeta], share_camera: bool | None
+) -> dict[str, int]:
+    """Every image in the COLMAP database (a no-op for those there); their ids by name."""
+    return {n: db.add_image(n, metas[n], share_camera) for n in names}
+
+
+def unmatched(db: ColmapDatabase, ids: Mapping[str, int], planned: Sequence[Pair]) -> list[Pair]:
+    """The planned pairs not in the database yet (a pair stored with zero matches is matched)."""
+    return [p for p in planned if not db.has_pair(ids[p.name0], ids[p.name1])]
+
+
+# -- extract -------------------------------------------------------------------------------------
 def extract(matcher: Matcher, image: np.ndarray, full: bool = True, crops: bool = False) -> int:
     """Features of an image (and of its five tiling crops when it is the aerial side of a tiled
     pair); returns how many entries that was. With a :class:`StoredFeaturesMatcher` they land
@@ -210,23 +333,126 @@ def extract(matcher: Matcher, image: np.ndarray, full: bool = True, crops: bool 
     return n
 
 
+# -- match one pair and write it ----------------------------------------------------------------
+@dataclass
+class PairMatches:
+    """One pair's matches, in each image's original pixels (pixel centres at integers)."""
+
+    keypoints0: np.ndarray
+    keypoints1: np.ndarray
+    scores: np.ndarray
+    sizes: tuple[tuple[int, int], tuple[int, int]]  # (width, height) of image0 and image1
+    tiled: bool = False
+    source: MatchResult | TiledMatches | None = None  # None: read back from a match cache
+
+    def __len__(self) -> int:
+        return int(self.keypoints0.shape[0])
+
+    @property
+    def F(self) -> np.ndarray:
+        """x1^T F x0 = 0 in original pixels: the matcher's (a tiled pair's is fitted over its
+        merged matches on first use; so is a pair read back from a match cache)."""
+        if self.source is None:
+            return fundamental_from_matches(self.keypoints0, self.keypoints1)
+        return self.source.F
+
+
 def match(
-    matcher: Matcher, pair: Pair, image0: np.ndarray, image1: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One planned pair, tiled when the plan says so; keypoints in each image's original pixels."""
+    matcher: Matcher, pair: Pair, image0: np.ndarray, image1: np.ndarray, cache: str | Path | None = None
+) -> PairMatches:
+    """One planned pair, tiled when the plan says so. ``cache``: a folder of raw pair matches
+    shared by runs (benchmarks, variants), keyed by the pixels, the plan and the matcher's config."""
+    sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
+    path = None
+    if cache:
+        h = hashlib.sha256(
+            repr(
+                (image_key(image0), image_key(image1), pair.tiled, pair.aerial_first, matcher.config)
+            ).encode()
+        )
+        path = Path(cache) / f"{h.hexdigest()[:32]}.npz"
+        if path.is_file():
+            with np.load(path) as z:
+                return PairMatches(z["k0"], z["k1"], z["scores"], sizes, pair.tiled)
+    r: MatchResult | TiledMatches
     if pair.tiled:
         if pair.aerial_first:
             r = match_tiled(matcher, image0, image1, True)
         else:
             r = match_tiled(matcher, image1, image0, False)
-        return r.keypoints0, r.keypoints1, r.scores
-    m = matcher.match(image0, image1)
-    return m.keypoints0, m.keypoints1, m.scores
+    else:
+        r = matcher.match(image0, image1)
+    out = PairMatches(r.keypoints0, r.keypoints1, r.scores, sizes, pair.tiled, r)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, k0=out.keypoints0, k1=out.keypoints1, scores=out.scores)
+        tmp.replace(path)
+    return out
 
 
-def snap_radius(radius: float, resize: int | None, image: np.ndarray) -> float:
+def snap_radius(radius: float, resize: int | None, long_side: int) -> float:
     """Consolidation radius in original pixels, from ``radius`` in network pixels (as
-    ``geomatch run --snap-radius``): a match is no more precise than the resolution it was found at."""
+    ``geomatch run --snap-radius``): it grows with the downscale, since a match is no more precise
+    than the resolution it was found at. ``long_side``: the image's longer side."""
     if radius <= 0:
         return 0.0
-    return radius * (max(image.shape[:2]) / resize if resize else 1.0)
+    return radius * (long_side / resize if resize else 1.0)
+
+
+def write(
+    db: ColmapDatabase, id0: int, id1: int, m: PairMatches, radius: float, resize: int | None
+) -> PairWrite:
+    """The pair into the COLMAP database (snapped within ``radius`` network pixels, verified,
+    one transaction); a no-op when it is there."""
+    return db.write_pair(
+        id0,
+        id1,
+        m.keypoints0,
+        m.keypoints1,
+        m.scores,
+        snap_radius(radius, resize, max(m.sizes[0])),
+        snap_radius(radius, resize, max(m.sizes[1])),
+    )
+
+
+# -- reconstruct and export ----------------------------------------------------------------------
+def reconstruct(
+    database: Path,
+    image_dir: Path,
+    out: Path,
+    mapper: str = DEFAULTS["mapper"],
+    min_pose_inliers: int = DEFAULTS["min_pose_inliers"],
+    min_model_size: int = 3,
+    verbose: bool = False,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Map the matched database; the models land in ``out/sparse`` (the largest first) with
+    ``out/points.ply``; returns the summary."""
+    return sfm.reconstruct(
+        database,
+        image_dir,
+        out,
+        mapper,
+        min_model_size,
+        verbose=verbose,
+        progress=progress,
+        min_pose_inliers=min_pose_inliers,
+    )
+
+
+def export(out: Path, summary: dict[str, Any], archive: bool = False) -> None:
+    """``out/summary.json``; ``archive``: also ``out/model.zip`` (sparse/<i>/, COLMAP binary, and
+    text for sparse/0; points.ply; summary.json)."""
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if not archive:
+        return
+    tmp = out / "model.zip.tmp"
+    with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
+        for f in sorted((out / "sparse").rglob("*")):
+            if f.is_file():
+                z.write(f, f.relative_to(out).as_posix())
+        for name in ("points.ply", "summary.json"):
+            if (out / name).is_file():
+                z.write(out / name, name)
+    tmp.rename(out / "model.zip")

@@ -178,12 +178,8 @@ def _module_privates() -> dict[str, set[str]]:
     return _PRIVATES
 
 
-# Known exceptions, each a remaining item of issue 12: the pipeline's image cache and
-# match-with-cache need to become stages of geomatch/steps.py; argparse has no public way to list
-# a parser's subcommands.
+# Known exceptions: argparse has no public way to list a parser's subcommands.
 ALLOWED = {
-    ("geomatch/steps.py", "_Images"),
-    ("bench/synth_precision.py", "_match"),
     ("tests/test_deploy.py", "_actions"),
 }
 

@@ -5,8 +5,8 @@ import pytest
 
 from geomatch import pairs
 from geomatch.metadata import ImageMeta, read_metadata
-from geomatch.pipeline import RunOptions, aerial_set
 from geomatch.retrieval import vlad
+from geomatch.steps import aerial_set, captures
 from geomatch.synth import write_scene
 
 NAMES = ["a0.jpg", "a1.jpg", "g0.jpg", "g1.jpg", "g2.jpg"]
@@ -81,11 +81,13 @@ def test_aerial_from_synthetic_exif_and_xmp(tmp_path) -> None:
         assert m.focal_px == pytest.approx(c.K[0, 0])
         assert m.aerial_hint is (True if c.aerial else None)
         assert m.model == ("synth-drone" if c.aerial else "synth-handheld")
-    inferred = aerial_set(names, metas, RunOptions())
+    inferred = aerial_set(captures(names), metas)
     assert inferred == {c.name for c in cams if c.aerial}
-    assert aerial_set(names, metas, RunOptions(aerial_glob="ground_0*")) == {"ground_00.png", "ground_01.png"}
+    glob = captures(names, aerial_glob="ground_0*")
+    assert aerial_set(glob, metas) == {"ground_00.png", "ground_01.png"}
+    assert aerial_set(captures(names, aerial_names=["ground_00.png"]), {}) == {"ground_00.png"}
     with pytest.raises(ValueError, match="not in the folder"):
-        aerial_set(names, metas, RunOptions(aerial_names=["x.png"]))
+        captures(names, aerial_names=["x.png"])
     # the rules: relative altitude decides, else gimbal pitch
     assert ImageMeta(1, 1, relative_altitude_m=3.0, gimbal_pitch_deg=-90).aerial_hint is False
     assert ImageMeta(1, 1, gimbal_pitch_deg=-45).aerial_hint is True

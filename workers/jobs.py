@@ -16,11 +16,8 @@ steps only, so importing this module does not import torch.
 
 from __future__ import annotations
 
-import json
 import logging
 import time
-import zipfile
-from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select, update
@@ -61,7 +58,7 @@ def _plan(ctx: Context, job: Job) -> None:
     names = [n for n, _ in rows]
     image_dir = ctx.storage.images_dir(pid)
     metas = {n: read_metadata(image_dir / n) for n in names}
-    aerial = {n for n, c in rows if c == "aerial" or (c == "auto" and metas[n].aerial_hint)}
+    aerial = steps.aerial_set(dict(rows), metas)
     with ctx.store.session() as s:
         for n in names:
             s.execute(
@@ -77,9 +74,8 @@ def _plan(ctx: Context, job: Job) -> None:
         if not jobstate.is_active(ctx.store, job.id):
             return
         with ColmapDatabase(ctx.storage.database_path(pid)) as db:
-            ids = {n: db.add_image(n, metas[n], share_camera) for n in names}
-            # has_pair, not matched_pairs(): a pair stored with zero matches is matched too
-            todo = [p for p in planned if not db.has_pair(ids[p.name0], ids[p.name1])]
+            ids = steps.register(db, names, metas, share_camera)
+            todo = steps.unmatched(db, ids, planned)
     with ctx.store.session() as s:
         row = s.get(Job, job.id, with_for_update=True)
         if row is None or row.planned:  # a duplicate of this step planned it first
@@ -162,7 +158,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             a = runtime.image(ctx.storage.image_path(pid, p.name0))
             b = runtime.image(ctx.storage.image_path(pid, p.name1))
             pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first)
-            k0, k1, sc = steps.match(runtime.matcher(ctx, opts), pair, a, b)
+            m = steps.match(runtime.matcher(ctx, opts), pair, a, b)
             t1 = time.perf_counter()
             resize = opts.get("resize") or None
             radius = float(opts.get("snap_radius", DEFAULTS["snap_radius"]))
@@ -170,15 +166,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
                 if not jobstate.is_active(ctx.store, job_id):  # cancelled while matching: write nothing
                     return "cancelled"
                 with ColmapDatabase(db_path) as db:
-                    w = db.write_pair(
-                        id0,
-                        id1,
-                        k0,
-                        k1,
-                        sc,
-                        steps.snap_radius(radius, resize, a),
-                        steps.snap_radius(radius, resize, b),
-                    )
+                    w = steps.write(db, id0, id1, m, radius, resize)
             matches, inliers = w.matches, w.inliers
             log.info(
                 "pair %s x %s: %d matches, %d inliers (%s), match %.2fs write %.2fs",
@@ -206,8 +194,8 @@ def _image_id(db: Any, name: str) -> int:
 
 # -- reconstruct jobs ---------------------------------------------------------------------------
 def reconstruct(ctx: Context, job_id: str) -> str:
+    from geomatch import steps
     from geomatch.colmapdb import ColmapDatabase
-    from geomatch.sfm import reconstruct as sfm_reconstruct
 
     job = jobstate.claim(ctx.store, job_id)
     if job is None:
@@ -223,15 +211,14 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         with ctx.locks.project(pid):  # a consistent copy; matching may go on while we map
             snapshot_sqlite(db_path, snapshot)
         out = work / "model"
-        summary = sfm_reconstruct(
+        summary = steps.reconstruct(
             snapshot, ctx.storage.images_dir(pid), out, job.options.get("mapper", DEFAULTS["mapper"])
         )
         with ColmapDatabase(snapshot) as db:
             summary["database"] = db.stats()
         summary["timings"] = {"mapping": round(time.perf_counter() - t0, 3)}
         summary["job_id"] = job_id
-        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-        _zip_model(out)
+        steps.export(out, summary, archive=True)
         if not jobstate.is_active(ctx.store, job_id):
             return "cancelled"
         ctx.storage.replace_dir(out, ctx.storage.model_dir(pid))
@@ -249,19 +236,6 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     )
     jobstate.release_followers(ctx.store, ctx.queue, job_id)
     return "done"
-
-
-def _zip_model(out: Path) -> None:
-    """model.zip: sparse/<i>/ (COLMAP binary, and text for sparse/0), points.ply, summary.json."""
-    tmp = out / "model.zip.tmp"
-    with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
-        for f in sorted((out / "sparse").rglob("*")):
-            if f.is_file():
-                z.write(f, f.relative_to(out).as_posix())
-        for name in ("points.ply", "summary.json"):
-            if (out / name).is_file():
-                z.write(out / name, name)
-    tmp.rename(out / "model.zip")
 
 
 # -- interactive --------------------------------------------------------------------------------

@@ -58,7 +58,6 @@ def _match(
     from geomatch import steps
     from geomatch.imageio import read_image
     from geomatch.metadata import read_metadata
-    from geomatch.pairs import finalize
 
     def check() -> None:
         if time.time() > deadline:
@@ -66,14 +65,13 @@ def _match(
 
     t0 = time.perf_counter()
     check()
-    paths = [folder / "0", folder / "1"]
-    aerial = {
-        str(i)
-        for i, (p, c) in enumerate(zip(paths, captures, strict=True))
-        if c == "aerial" or (c == "auto" and read_metadata(p).aerial_hint)
-    }
-    pair = finalize([("0", "1")], aerial, options.get("tiling", DEFAULTS["tiling"]))[0]
-    a, b = read_image(paths[0]), read_image(paths[1])  # not runtime.image: these are read once
+    names = ["0", "1"]
+    taken = dict(zip(names, captures, strict=True))
+    metas = {n: read_metadata(folder / n) for n in names if taken[n] == "auto"}
+    aerial = steps.aerial_set(taken, metas)
+    tiling = options.get("tiling", DEFAULTS["tiling"])
+    pair = steps.plan(folder, names, aerial, pairs_list=[names], tiling=tiling)[0]
+    a, b = read_image(folder / "0"), read_image(folder / "1")  # not runtime.image: these are read once
     matcher = runtime.matcher(ctx, options)
     t1 = time.perf_counter()
     timings = {"read": t1 - t0}
@@ -84,15 +82,8 @@ def _match(
         timings[f"features{name}"] = time.perf_counter() - t1
         t1 = time.perf_counter()
     check()
-    if pair.tiled:
-        from geomatch.tiling import match_tiled
-
-        aerial_img, other = (a, b) if pair.aerial_first else (b, a)
-        tiled = match_tiled(matcher, aerial_img, other, pair.aerial_first)
-        k0, k1, sc, F = tiled.keypoints0, tiled.keypoints1, tiled.scores, tiled.F
-    else:
-        r = matcher.match(a, b)
-        k0, k1, sc, F = r.keypoints0, r.keypoints1, r.scores, r.F
+    m = steps.match(matcher, pair, a, b)
+    k0, k1, sc, F = m.keypoints0, m.keypoints1, m.scores, m.F
     timings["match"] = time.perf_counter() - t1
     out = folder / "result.npz"
     tmp = folder / "result.tmp.npz"
