@@ -42,12 +42,12 @@ test: setup
 	$(BIN)/python -m pytest -q tests
 
 lint: setup
-	$(BIN)/ruff check geomatch core service workers app tests bench
-	$(BIN)/ruff format --check geomatch core service workers app tests bench
+	$(BIN)/ruff check geomatch geomatch_core service workers geomatch_app tests bench
+	$(BIN)/ruff format --check geomatch geomatch_core service workers geomatch_app tests bench
 
 format: setup
-	$(BIN)/ruff format geomatch core service workers app tests bench
-	$(BIN)/ruff check --fix geomatch core service workers app tests bench
+	$(BIN)/ruff format geomatch geomatch_core service workers geomatch_app tests bench
+	$(BIN)/ruff check --fix geomatch geomatch_core service workers geomatch_app tests bench
 
 bench: setup
 	$(BIN)/python bench/pair_speed.py

@@ -123,11 +123,26 @@ def precision_hits(pair: IndoorPair, k0: np.ndarray, k1: np.ndarray, px: float =
     return int((ok & (np.linalg.norm(proj - k1, axis=1) < px)).sum())
 
 
+def pose_row(split: str, label: str, errs: list[np.ndarray], n: list[int]) -> dict[str, object]:
+    """One table row: AUC means and the AUC@10 spread over RANSAC orderings, per-pair errors pooled."""
+    (a5, a10, a20), sd = auc_over_runs(errs)
+    return {
+        "split": split,
+        "method": label,
+        "auc5": a5,
+        "auc10": a10,
+        "auc20": a20,
+        "sd10": sd[1],
+        "median_err": float(np.median(errs)),
+        "matches": float(np.mean(n)),
+    }
+
+
 def run_indoor(args: argparse.Namespace) -> None:
     seeds_of = {"tuning": args.seeds, "test": args.test_seeds}
     splits = {name: [int(x) for x in seeds_of[name].split(",")] for name in args.splits.split(",")}
     # every pair's LightGlue output and every image's features stay cached across the variants
-    base = Matcher(MatcherConfig(resize=args.resize, cache_anchors_mb=4096, cache_images=256))
+    base = Matcher(MatcherConfig(resize=args.resize, cache_anchors_mb=2048, cache_features_mb=3072))
     variants = parse_variants(args.variants, args.methods)
     report: dict[str, object] = {"pairs_per_seed": args.pairs_per_seed, "no_overlap": args.no_overlap}
     for split, seeds in splits.items():
@@ -160,20 +175,12 @@ def run_indoor(args: argparse.Namespace) -> None:
                         f"{len(r)} matches, error {np.median(errs[-1]):.2f} deg (median of runs)"
                     )
             sec = time.perf_counter() - t0
-            (a5, a10, a20), sd = auc_over_runs(errs)
-            row = {
-                "split": split,
-                "method": label,
-                "auc5": a5,
-                "auc10": a10,
-                "auc20": a20,
-                "sd10": sd[1],
-                "median_err": float(np.median(errs)),
-                "matches": float(np.mean(n)),
-                "precision": hits / max(sum(n), 1),
-                "errors": [[float(e) for e in pair] for pair in errs],
-                "sec_per_pair": sec / max(len(pairs), 1),
-            }
+            row = pose_row(split, label, errs, n)
+            row.update(
+                precision=hits / max(sum(n), 1),
+                errors=[[float(e) for e in pair] for pair in errs],
+                sec_per_pair=sec / max(len(pairs), 1),
+            )
             rows.append(row)
             print(json.dumps({k: v for k, v in row.items() if k != "errors"}), flush=True)
             counts = [len(m.match(p.image0, p.image1)) for p in empty]
@@ -213,7 +220,11 @@ def main() -> None:
     ap.add_argument("--set", choices=("indoor",), default=None, help="a synthetic set instead of --images")
     ap.add_argument("--seeds", default="0,1,2", help="indoor tuning split")
     ap.add_argument("--test-seeds", default="100,101,102", help="indoor test split")
-    ap.add_argument("--splits", default="tuning,test", help="indoor splits to run: tuning, test or both")
+    ap.add_argument(
+        "--splits",
+        default="tuning,test",
+        help="splits to run (indoor: seeds; real photos: first / second half of the names)",
+    )
     ap.add_argument("--pairs-per-seed", type=int, default=10)
     ap.add_argument("--no-overlap", type=int, default=10, help="no-overlap pairs per split (0: none)")
     ap.add_argument("--per-pair", action="store_true", help="print every indoor pair")
@@ -242,39 +253,41 @@ def main() -> None:
     rec = reference(args.images)
     regs = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     print(f"reference: {len(regs)}/{len(list(args.images.iterdir()))} images registered by COLMAP SIFT")
-    pairs = list(itertools.combinations(regs, 2))
+    # photo-disjoint splits: the first half of the names (sorted) tunes, the second half tests;
+    # pairs across the halves belong to neither
+    half = (len(regs) + 1) // 2
+    groups = {"tuning": regs[:half], "test": regs[half:]}
     pixels = {im.name: read_image(args.images / im.name) for im in regs}
     base = Matcher(MatcherConfig(resize=args.resize, cache_anchors_mb=4096))
     rows = []
-    for label, method, options in parse_variants(args.variants, args.methods):
-        m = base.derive(method=method, **options)
-        errs, n, t0 = [], [], time.perf_counter()
-        for a, b in pairs:
-            r = m.match(pixels[a.name], pixels[b.name])
-            errs.append(
-                shuffled_errors(
-                    r.keypoints0,
-                    r.keypoints1,
-                    lambda k0, k1, a=a, b=b: pose_error(rec, a, b, k0, k1),
-                    args.ransac_runs,
+    for split in args.splits.split(","):
+        pairs = list(itertools.combinations(groups[split], 2))
+        split_rows = []
+        for label, method, options in parse_variants(args.variants, args.methods):
+            m = base.derive(method=method, **options)
+            errs, n, t0 = [], [], time.perf_counter()
+            for a, b in pairs:
+                r = m.match(pixels[a.name], pixels[b.name])
+                errs.append(
+                    shuffled_errors(
+                        r.keypoints0,
+                        r.keypoints1,
+                        lambda k0, k1, a=a, b=b: pose_error(rec, a, b, k0, k1),
+                        args.ransac_runs,
+                    )
                 )
-            )
-            n.append(len(r))
-        (a5, a10, a20), sd = auc_over_runs(errs)
-        row = {
-            "method": label,
-            "auc5": a5,
-            "auc10": a10,
-            "auc20": a20,
-            "sd10": sd[1],
-            "matches": float(np.mean(n)),
-            "median_err": float(np.median(errs)),
-            "sec": time.perf_counter() - t0,
-        }
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-    title = f"{args.images.name}: {len(pairs)} pairs, resize {args.resize}, reference COLMAP SIFT"
-    print_table(title, POSE_COLUMNS, rows)
+                n.append(len(r))
+            row = pose_row(split, label, errs, n)
+            row["sec"] = time.perf_counter() - t0
+            split_rows.append(row)
+            print(json.dumps(row), flush=True)
+        names = ", ".join(im.name.split(".")[0] for im in groups[split])
+        title = (
+            f"{args.images.name} {split} ({names}): {len(pairs)} pairs, resize {args.resize}, "
+            "reference COLMAP SIFT"
+        )
+        print_table(title, POSE_COLUMNS, split_rows)
+        rows += split_rows
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 

@@ -70,7 +70,7 @@ def find_process() -> tuple[int, list[str]]:
 def parse(args: list[str]) -> argparse.Namespace:
     """The server's options as the CLI parsed them (defaults included); parsing imports neither
     the library's networks (torch) nor the servers' frameworks."""
-    from app.cli import build_parser
+    from geomatch_app.cli import build_parser
 
     return build_parser().parse_args(args)
 
@@ -102,15 +102,15 @@ def check_grpc(host: str, port: int) -> str:
 
 
 def check_worker(pid: int) -> str:
-    from core.config import Settings
+    from geomatch_core.config import Settings
     from workers.celery_app import make_app
 
     node = f"geomatch-{pid}@{socket.gethostname()}"  # the name `geomatch worker` gives itself
-    app = make_app(Settings.from_env())
+    celery = make_app(Settings.from_env())
     try:
-        replies = app.control.ping(destination=[node], timeout=TIMEOUT_S)
+        replies = celery.control.ping(destination=[node], timeout=TIMEOUT_S)
     finally:
-        app.close()
+        celery.close()
     if not any(node in r for r in replies):
         raise RuntimeError(f"worker {node} did not answer a ping within {TIMEOUT_S:.0f} s")
     return f"worker {node} answered"

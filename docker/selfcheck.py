@@ -97,7 +97,7 @@ def check_grpc() -> str:
 
 
 def check_cli() -> str:
-    from app.cli import build_parser
+    from geomatch_app.cli import build_parser
 
     parser = build_parser()
     missing = []

@@ -1,6 +1,6 @@
 """The library's commands of ``geomatch``: match, synth, run, eval, demo.
 
-``register`` adds them to a parser: the ``geomatch`` command (``app.cli``) adds the service's
+``register`` adds them to a parser: the ``geomatch`` command (``geomatch_app.cli``) adds the service's
 beside them. ``python -m geomatch.cli`` runs the library's commands alone. Imports stay light
 here (the library is imported inside each command), so parsing costs no torch.
 """
@@ -164,7 +164,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The library's commands alone (``app.cli.build_parser`` is the whole ``geomatch`` command)."""
+    """The library's commands alone (``geomatch_app.cli.build_parser`` is the whole ``geomatch`` command)."""
     parser = argparse.ArgumentParser(prog="geomatch", description="Geometry-aware matching for SfM")
     register(parser.add_subparsers(dest="command", required=True))
     return parser

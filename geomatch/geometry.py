@@ -93,15 +93,23 @@ def estimate_fundamental(
     """F with x_b^T F x_a = 0 and the inlier mask, or (None, None) with fewer than 8 matches.
 
     ``magsac`` wraps OpenCV's USAC MAGSAC++ around the minimal solver and finishes with a
-    least-squares fit on the inliers; ``8point`` is the plain normalised 8-point fit on all matches.
+    least-squares fit on the inliers; ``torch`` is :mod:`geomatch.robust_f` on the tensors' own
+    device (no host round trip); ``auto`` is ``torch`` for CUDA tensors and ``magsac`` otherwise;
+    ``8point`` is the plain normalised 8-point fit on all matches.
     """
     n = pa.shape[0]
     if n < MIN_POINTS:
         return None, None
+    if method == "auto":
+        method = "torch" if pa.device.type == "cuda" else "magsac"
+    if method == "torch":
+        from .robust_f import ransac_fundamental
+
+        return ransac_fundamental(pa, pb, threshold)
     if method == "8point":
         return eight_point(pa, pb), torch.ones(n, dtype=torch.bool, device=pa.device)
     if method != "magsac":
-        raise ValueError(f"unknown fundamental-matrix estimator {method!r} (magsac, 8point)")
+        raise ValueError(f"unknown fundamental-matrix estimator {method!r} (auto, magsac, torch, 8point)")
     a = pa.detach().double().cpu().numpy()
     b = pb.detach().double().cpu().numpy()
     try:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -42,6 +43,7 @@ from .optimizer import (
 )
 from .options import DEFAULTS, DENSE_BACKBONES, METHOD_FLAGS, METHODS, SPARSE_BACKBONES, Method
 from .refine import RefineOptions
+from .subpixel import SubpixelOptions, refine_points
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +87,14 @@ class MatcherConfig:
     # not overlap they agree with a wrong F and pass any later verification; the anchors, which the
     # optimiser does not shape, are the independent evidence. 15 is COLMAP's min_num_inliers.
     min_anchor_support: int = 15
-    cache_images: int = 16
+    # least-squares matching of the final points in B (geomatch.subpixel): "auto" does it for the
+    # methods that optimise (the paper's refinement stage, anchors included), "lsm" for any
+    # method, "off" never
+    subpixel: str = "auto"
+    subpixel_options: SubpixelOptions = field(default_factory=SubpixelOptions)
+    # recent images' features (dense maps included: a 640 px DISK fine map alone is ~150 MB), LRU,
+    # bounded in bytes: a worker's memory must not grow with the project
+    cache_features_mb: float = 1024.0
     cache_anchors_mb: float = 256.0  # recent pairs' LightGlue output (soft assignments included)
 
     def __post_init__(self) -> None:
@@ -95,11 +104,17 @@ class MatcherConfig:
             raise ValueError(f"unknown sparse backbone {self.sparse!r}; choose from {SPARSE_BACKBONES}")
         if self.dense not in DENSE_BACKBONES:
             raise ValueError(f"unknown dense backbone {self.dense!r}; choose from {DENSE_BACKBONES}")
+        if self.subpixel not in ("auto", "lsm", "off"):
+            raise ValueError(f"unknown subpixel mode {self.subpixel!r}; choose from auto, lsm, off")
 
     @property
     def flags(self) -> Method:
         """The method's row in ``options.METHOD_TABLE``."""
         return METHOD_FLAGS[self.method]
+
+    @property
+    def refines_subpixel(self) -> bool:
+        return self.subpixel == "lsm" or (self.subpixel == "auto" and self.flags.optimise)
 
     @property
     def uses_anchors(self) -> bool:
@@ -115,10 +130,18 @@ class MatcherConfig:
         return self.flags.dense
 
     @property
+    def dense_keypoints(self) -> str | None:
+        """The detector whose own LightGlue soft assignment is the dense branch (``disk-lightglue``
+        and ``aliked-lightglue``), else None."""
+        if self.needs_dense and self.dense.endswith("-lightglue"):
+            return self.dense.removesuffix("-lightglue")
+        return None
+
+    @property
     def dense_maps(self) -> bool:
-        """Whether the dense branch needs per-image dense maps (all dense backbones but LightGlue's
-        soft assignment, which is computed per pair from the keypoints)."""
-        return self.needs_dense and self.dense != "lightglue"
+        """Whether the dense branch needs per-image dense maps (all dense backbones but the
+        LightGlue soft assignments, which are computed per pair from keypoints)."""
+        return self.needs_dense and self.dense != "lightglue" and self.dense_keypoints is None
 
 
 @dataclass
@@ -179,12 +202,13 @@ class Matcher:
         self.device = resolve_device(self.config.device)
         self._extractors: dict[str, Extractor] = {}
         self._sparse: SparseMatcher | None = None
+        self._dense_lightglue: SparseMatcher | None = None
         self._dense: DenseHead | None = None
         self._cache: OrderedDict[tuple[str, str, int | None], tuple[ImageFeatures, Prepared]] = OrderedDict()
         self.extract_calls = 0
         # anchors of recent pairs: re-matching a pair with other optimizer options (ablations,
         # a retried task) does not run LightGlue again
-        self._anchors: OrderedDict[tuple[str, str, int | None], SparseMatch] = OrderedDict()
+        self._anchors: OrderedDict[tuple[str, str, int | None, str | None], SparseMatch] = OrderedDict()
 
     def derive(self, **overrides: Any) -> Matcher:
         """A matcher with other options that shares this one's networks and feature cache.
@@ -214,6 +238,8 @@ class Matcher:
         if lightglue(a) == lightglue(b):
             other._sparse = self._sparse
             other._anchors = self._anchors
+            if a.dense_keypoints == b.dense_keypoints:
+                other._dense_lightglue = self._dense_lightglue
         return other
 
     # -- networks -------------------------------------------------------------------------
@@ -229,6 +255,17 @@ class Matcher:
         return self._sparse
 
     @property
+    def dense_lightglue(self) -> SparseMatcher:
+        """The second detector's LightGlue (``dense=disk-lightglue``); its pruning settings are
+        the anchors' (a soft assignment needs width pruning off)."""
+        if self._dense_lightglue is None:
+            assert self.config.dense_keypoints is not None
+            self._dense_lightglue = build_sparse_matcher(
+                replace(self.config, sparse=self.config.dense_keypoints), self.device
+            )
+        return self._dense_lightglue
+
+    @property
     def dense_head(self) -> DenseHead:
         if self._dense is None:
             self._dense = build_dense_head(self.config, self.extractor(self.config.dense))
@@ -240,6 +277,8 @@ class Matcher:
         passes: dict[str, bool] = {}
         if cfg.needs_sparse:
             passes[cfg.sparse] = False
+        if cfg.dense_keypoints is not None:
+            passes.setdefault(cfg.dense_keypoints, False)
         if cfg.dense_maps:
             passes[cfg.dense] = True
         return list(passes.items())
@@ -262,6 +301,7 @@ class Matcher:
             feats,
             prepare(image, self.config.resize, self.device),
         )
+        self._evict()
 
     def clear_caches(self, features: bool = True, anchors: bool = True) -> None:
         """Empty the per-image feature cache and / or the recent pairs' anchors (shared with the
@@ -288,10 +328,16 @@ class Matcher:
                 feats = self.extractor(name).extract(prepared.tensor, dense=dense)
             self.extract_calls += 1
             self._cache[ck] = (feats, prepared)
-            while len(self._cache) > self.config.cache_images * max(1, len(self.needed_extractors())):
-                self._cache.popitem(last=False)
+            self._evict()
             out[name] = feats
         return out
+
+    def cache_nbytes(self) -> int:
+        """Bytes the feature cache holds (features and the prepared network inputs)."""
+        return sum(_entry_nbytes(*e) for e in self._cache.values())
+
+    def _evict(self) -> None:
+        _trim_lru(self._cache, self.config.cache_features_mb, lambda e: _entry_nbytes(*e), keep=1)
 
     def _prepared(self, image: np.ndarray, key: str) -> Prepared:
         for (k, _, r), (_, prep) in self._cache.items():
@@ -299,19 +345,32 @@ class Matcher:
                 return prep
         return prepare(image, self.config.resize, self.device)
 
-    def _match_anchors(self, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures) -> SparseMatch:
-        ak = (key0, key1, self.config.resize)
+    def _match_anchors(
+        self, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures, dense: bool = False
+    ) -> SparseMatch:
+        """One LightGlue pass, cached per pair: the anchors' (``dense`` False) or the dense
+        branch's second detector's (``dense`` True)."""
+        ak = (key0, key1, self.config.resize, self.config.dense_keypoints if dense else None)
         if ak in self._anchors:
             self._anchors.move_to_end(ak)
             return self._anchors[ak]
-        out = self.sparse_matcher.match(sa, sb)
+        out = (self.dense_lightglue if dense else self.sparse_matcher).match(sa, sb)
         self._anchors[ak] = out
-        budget = self.config.cache_anchors_mb * 2**20
-        while self._anchors and sum(v.nbytes() for v in self._anchors.values()) > budget:
-            self._anchors.popitem(last=False)
+        _trim_lru(self._anchors, self.config.cache_anchors_mb, lambda m: m.nbytes(), keep=0)
         return out
 
     # -- one pair --------------------------------------------------------------------------
+    @torch.inference_mode()
+    def anchor_count(self, image0: np.ndarray, image1: np.ndarray) -> int:
+        """How many matches LightGlue alone finds (features and result cached like the anchors, so
+        a later :meth:`match` of the same pair reuses them): how a quarter-turn probe ranks turns."""
+        probe = self if self.config.method == "sparse" else self.derive(method="sparse")
+        key0, key1 = image_key(image0), image_key(image1)
+        sa = probe.features(image0, key0)[self.config.sparse].sparse
+        sb = probe.features(image1, key1)[self.config.sparse].sparse
+        assert sa is not None and sb is not None
+        return int(probe._match_anchors(key0, key1, sa, sb).idx_a.numel())
+
     @torch.inference_mode()
     def match(self, image0: np.ndarray, image1: np.ndarray) -> MatchResult:
         cfg = self.config
@@ -343,6 +402,12 @@ class Matcher:
             dense_a, dense_b, dense_s = self._dense_from_assignment(
                 lg, f0[cfg.sparse].sparse, f1[cfg.sparse].sparse, anchors, stats, timer
             )
+        elif cfg.dense_keypoints is not None:
+            da, db = f0[cfg.dense_keypoints].sparse, f1[cfg.dense_keypoints].sparse
+            assert da is not None and db is not None
+            with timer("dense_lightglue"):
+                lgd = self._match_anchors(key0, key1, da, db, dense=True)
+            dense_a, dense_b, dense_s = self._dense_from_assignment(lgd, da, db, anchors, stats, timer)
         elif cfg.needs_dense:
             dense_a, dense_b, dense_s = self._dense_from_maps(f0, f1, anchors, stats, timer)
         if cfg.uses_anchors and anchors is not None:
@@ -356,6 +421,11 @@ class Matcher:
 
         with timer("merge"):
             pa, pb, ps = _merge(parts_a, parts_b, parts_s, cfg.dedup_radius, self.device)
+        if cfg.refines_subpixel and pa.shape[0]:
+            with timer("subpixel"):
+                pb, moved = refine_points(prep0.tensor, prep1.tensor, pa, pb, cfg.subpixel_options)
+            stats["subpixel_refined"] = int(moved.sum())
+        with timer("merge"):
             F_net, _ = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
             if cfg.flags.optimise and cfg.final_check and F_net is not None:
                 keep = sampson_distance(F_net, pa, pb) <= cfg.geo.tau
@@ -465,6 +535,20 @@ class Matcher:
                 )
         stats["coarse_matches"] = int(ci.numel())
         return ga[ci], gb[cj], conf.float()
+
+
+def _entry_nbytes(feats: ImageFeatures, prep: Prepared) -> int:
+    return feats.nbytes() + prep.tensor.numel() * prep.tensor.element_size()
+
+
+def _trim_lru(
+    cache: OrderedDict[Any, Any], budget_mb: float, nbytes: Callable[[Any], int], keep: int
+) -> None:
+    """Drop the least recently used entries until ``cache`` fits ``budget_mb`` (at least ``keep``
+    entries stay): the one byte bound both caches obey."""
+    total = sum(nbytes(v) for v in cache.values())
+    while len(cache) > keep and total > budget_mb * 2**20:
+        total -= nbytes(cache.popitem(last=False)[1])
 
 
 def _merge(

@@ -46,7 +46,7 @@ class GeoOptions:
     anchor_min_score: float = 0.5
     fallback_fraction: float = 0.5  # "top half" of the initial mutual-NN matches
     use_anchors: bool = True
-    f_estimator: str = "magsac"  # magsac | 8point
+    f_estimator: str = "auto"  # auto (torch on CUDA, magsac otherwise) | magsac | torch | 8point
     f_threshold: float = 1.0  # px, MAGSAC threshold for the anchors (keypoint precision)
     f_threshold_coarse: float = 3.0  # px, MAGSAC threshold on coarse cell centres (~sqrt(tau))
     memory_budget_mb: float = DEFAULTS["memory_budget_mb"]  # working memory of one streamed block

@@ -57,7 +57,10 @@ METHOD_FLAGS: dict[str, Method] = {m.name: m for m in METHOD_TABLE}
 
 # -- other vocabularies ------------------------------------------------------------------------
 SPARSE_BACKBONES = ("aliked", "disk")
-DENSE_BACKBONES = ("disk", "aliked", "loftr", "lightglue")
+# ``lightglue``: the anchors' own LightGlue soft assignment (keypoints as cells);
+# ``disk-lightglue`` / ``aliked-lightglue``: a second detector's keypoints matched by its own
+# LightGlue, whose soft assignment is the dense branch's P_c (other points than the anchors')
+DENSE_BACKBONES = ("disk", "aliked", "loftr", "lightglue", "disk-lightglue", "aliked-lightglue")
 MAPPERS = ("incremental", "global")
 TILING = ("auto", "on", "off")
 CAMERAS = ("auto", "per-image")

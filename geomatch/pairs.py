@@ -26,6 +26,9 @@ class Pair:
     name1: str
     tiled: bool = False  # exactly one side is aerial and tiling applies
     aerial_first: bool = True  # for tiled pairs: which side is aerial
+    # an aerial side: a drone's heading is arbitrary, so the pair is matched at the best quarter
+    # turn (geomatch.rotation)
+    rotate: bool = False
 
     @property
     def key(self) -> tuple[str, str]:
@@ -97,12 +100,13 @@ def finalize(raw: Iterable[tuple[str, str]], aerial: set[str], tiling: str = "au
             continue
         seen.add(key)
         a_air, b_air = a in aerial, b in aerial
+        turn = a_air or b_air
         if tiling == "off":
-            out.append(Pair(a, b))
+            out.append(Pair(a, b, rotate=turn))
         elif a_air != b_air:
-            out.append(Pair(a, b, tiled=True, aerial_first=a_air))
+            out.append(Pair(a, b, tiled=True, aerial_first=a_air, rotate=turn))
         elif tiling == "on":
-            out.append(Pair(a, b, tiled=True, aerial_first=True))
+            out.append(Pair(a, b, tiled=True, aerial_first=True, rotate=turn))
         else:
-            out.append(Pair(a, b))
+            out.append(Pair(a, b, rotate=turn))
     return out

@@ -60,12 +60,10 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     aerial = steps.aerial_set(steps.captures(names, opts.aerial_names, opts.aerial_glob), metas)
     out.mkdir(parents=True, exist_ok=True)
 
-    n_entries = len(names) + 5 * len(aerial)
     config = config_from_options(
         method=opts.method,
         resize=opts.resize,
         device=opts.device,
-        cache_images=max(16, min(n_entries, 96)),
         **opts.matcher,
     )
     matcher = Matcher(config)

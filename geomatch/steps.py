@@ -47,6 +47,7 @@ from .metadata import ImageMeta
 from .options import DEFAULTS, IMAGE_SUFFIXES
 from .pairs import Pair
 from .retrieval import vlad
+from .rotation import best_turn, points_back, quarter_turn
 from .tiling import TiledMatches, five_crops, match_tiled
 
 
@@ -367,28 +368,52 @@ def match(
     if cache:
         h = hashlib.sha256(
             repr(
-                (image_key(image0), image_key(image1), pair.tiled, pair.aerial_first, matcher.config)
+                (
+                    image_key(image0),
+                    image_key(image1),
+                    pair.tiled,
+                    pair.aerial_first,
+                    pair.rotate,
+                    matcher.config,
+                )
             ).encode()
         )
         path = Path(cache) / f"{h.hexdigest()[:32]}.npz"
         if path.is_file():
             with np.load(path) as z:
                 return PairMatches(z["k0"], z["k1"], z["scores"], sizes, pair.tiled)
-    r: MatchResult | TiledMatches
-    if pair.tiled:
-        if pair.aerial_first:
-            r = match_tiled(matcher, image0, image1, True)
-        else:
-            r = match_tiled(matcher, image1, image0, False)
-    else:
-        r = matcher.match(image0, image1)
-    out = PairMatches(r.keypoints0, r.keypoints1, r.scores, sizes, pair.tiled, r)
+    k0, k1, scores, source = _match_turned(matcher, pair, image0, image1)
+    out = PairMatches(k0, k1, scores, sizes, pair.tiled, source)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.npz")
         np.savez(tmp, k0=out.keypoints0, k1=out.keypoints1, scores=out.scores)
         tmp.replace(path)
     return out
+
+
+def _match_turned(
+    matcher: Matcher, pair: Pair, image0: np.ndarray, image1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, MatchResult | TiledMatches | None]:
+    """(keypoints0, keypoints1, scores, source) of the pair; with ``pair.rotate`` the aerial side
+    (image1 of an untiled pair) is matched at its best quarter turn (geomatch.rotation) and its
+    keypoints mapped back, and the source is dropped (its F is in the turned frame)."""
+    if pair.tiled:
+        aerial, other = (image0, image1) if pair.aerial_first else (image1, image0)
+        turns = best_turn(matcher, other, aerial) if pair.rotate else 0
+        t = match_tiled(matcher, quarter_turn(aerial, turns), other, pair.aerial_first)
+        if not turns:
+            return t.keypoints0, t.keypoints1, t.scores, t
+        h, w = aerial.shape[:2]
+        if pair.aerial_first:
+            return points_back(t.keypoints0, turns, w, h), t.keypoints1, t.scores, None
+        return t.keypoints0, points_back(t.keypoints1, turns, w, h), t.scores, None
+    turns = best_turn(matcher, image0, image1) if pair.rotate else 0
+    r = matcher.match(image0, quarter_turn(image1, turns))
+    if not turns:
+        return r.keypoints0, r.keypoints1, r.scores, r
+    h, w = image1.shape[:2]
+    return r.keypoints0, points_back(r.keypoints1, turns, w, h), r.scores, None
 
 
 def snap_radius(radius: float, resize: int | None, long_side: int) -> float:

@@ -17,6 +17,7 @@ covisibility of at least 10 %, computed from depth (see :func:`covisibility`). P
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -599,6 +600,49 @@ def _rooms(seed: int, salt: int):
         k += 1
 
 
+def _choose_pairs(
+    seed: int,
+    salt: int,
+    n_pairs: int,
+    n_candidates: int,
+    tag: str,
+    candidate: Callable[[float, float, float], bool],
+    keep: Callable[[IndoorPair], bool],
+    width: int,
+    height: int,
+    supersample: int,
+) -> list[IndoorPair]:
+    """Room after room, up to :data:`PAIRS_PER_ROOM` pairs of ``n_candidates`` random views: the
+    view pairs whose (rotation, covisibility, baseline) on the small depth renders pass
+    ``candidate``, in random order, no view in two pairs, each rendered full size and taken if it
+    passes ``keep``. Deterministic per (seed, salt)."""
+    out: list[IndoorPair] = []
+    for k, room, rng in _rooms(seed, salt):
+        cams, small, depths = _candidates(room, rng, n_candidates, width, height)
+        options = [
+            (i, j)
+            for i in range(len(cams))
+            for j in range(i + 1, len(cams))
+            if candidate(*_pair_stats(small, depths, i, j))
+        ]
+        used: set[int] = set()
+        taken = 0
+        for idx in rng.permutation(len(options)):
+            i, j = options[idx]
+            if i in used or j in used or taken == PAIRS_PER_ROOM or len(out) == n_pairs:
+                continue
+            name = f"s{seed}_{tag}r{k}_{i:02d}_{j:02d}"
+            pair = _make_pair(room, cams[i], cams[j], name, supersample, 1000 * k + 2 * taken)
+            if not keep(pair):
+                continue
+            used |= {i, j}
+            out.append(pair)
+            taken += 1
+        if len(out) == n_pairs:
+            return out
+    raise AssertionError("unreachable")
+
+
 def indoor_pairs(
     seed: int, n_pairs: int, width: int = 640, height: int = 480, supersample: int = 2
 ) -> list[IndoorPair]:
@@ -607,40 +651,22 @@ def indoor_pairs(
     Every :data:`PAIRS_PER_ROOM` pairs come from a new room, so a split sees several layouts. Pairs
     are chosen on 80-px-wide depth renders and confirmed on the full-size ones.
     """
-    out: list[IndoorPair] = []
-    for k, room, rng in _rooms(seed, 0):
-        cams, small, depths = _candidates(room, rng, 48, width, height)
-        options = []
-        for i in range(len(cams)):
-            for j in range(i + 1, len(cams)):
-                rot, cov, base = _pair_stats(small, depths, i, j)
-                if (
-                    MIN_ROTATION_DEG + 1 <= rot <= MAX_ROTATION_DEG - 1
-                    and cov >= MIN_COVISIBILITY + 0.03
-                    and base > 0.3
-                ):
-                    options.append((i, j))
-        used: dict[int, int] = {}
-        taken = 0
-        for idx in rng.permutation(len(options)):
-            i, j = options[idx]
-            if used.get(i, 0) or used.get(j, 0) or taken == PAIRS_PER_ROOM or len(out) == n_pairs:
-                continue
-            pair = _make_pair(
-                room, cams[i], cams[j], f"s{seed}_r{k}_{i:02d}_{j:02d}", supersample, 1000 * k + 2 * taken
-            )
-            if not (
-                pair.covisibility >= MIN_COVISIBILITY
-                and MIN_ROTATION_DEG <= pair.rotation_deg <= MAX_ROTATION_DEG
-                and _solvable(pair)
-            ):
-                continue
-            used[i] = used[j] = 1
-            out.append(pair)
-            taken += 1
-        if len(out) == n_pairs:
-            return out
-    raise AssertionError("unreachable")
+
+    def candidate(rot: float, cov: float, base: float) -> bool:
+        return (
+            MIN_ROTATION_DEG + 1 <= rot <= MAX_ROTATION_DEG - 1
+            and cov >= MIN_COVISIBILITY + 0.03
+            and base > 0.3
+        )
+
+    def keep(pair: IndoorPair) -> bool:
+        return (
+            pair.covisibility >= MIN_COVISIBILITY
+            and MIN_ROTATION_DEG <= pair.rotation_deg <= MAX_ROTATION_DEG
+            and _solvable(pair)
+        )
+
+    return _choose_pairs(seed, 0, n_pairs, 48, "", candidate, keep, width, height, supersample)
 
 
 def no_overlap_pairs(
@@ -649,37 +675,14 @@ def no_overlap_pairs(
     """Two views of the same room that share no surface point (covisibility exactly 0 in both
     directions at full size), so every match is false: the same paint, tiles, shelves and repeated
     poster can still be in both. Deterministic per seed."""
-    out: list[IndoorPair] = []
-    for k, room, rng in _rooms(seed, 1):
-        cams, small, depths = _candidates(room, rng, 32, width, height)
-        options = [
-            (i, j)
-            for i in range(len(cams))
-            for j in range(i + 1, len(cams))
-            if _pair_stats(small, depths, i, j)[1] == 0.0
-        ]
-        used: set[int] = set()
-        taken = 0
-        for idx in rng.permutation(len(options)):
-            i, j = options[idx]
-            if i in used or j in used or taken == PAIRS_PER_ROOM or len(out) == n_pairs:
-                continue
-            pair = _make_pair(
-                room,
-                cams[i],
-                cams[j],
-                f"s{seed}_none_r{k}_{i:02d}_{j:02d}",
-                supersample,
-                1000 * k + 2 * taken,
-            )
-            if covisibility(pair.depth0, pair.depth1, pair.K0, pair.K1, pair.R, pair.t, stride=2) > 0:
-                continue
-            used |= {i, j}
-            out.append(pair)
-            taken += 1
-        if len(out) == n_pairs:
-            return out
-    raise AssertionError("unreachable")
+
+    def candidate(rot: float, cov: float, base: float) -> bool:
+        return cov == 0.0
+
+    def keep(pair: IndoorPair) -> bool:
+        return not covisibility(pair.depth0, pair.depth1, pair.K0, pair.K1, pair.R, pair.t, stride=2) > 0
+
+    return _choose_pairs(seed, 1, n_pairs, 32, "none_", candidate, keep, width, height, supersample)
 
 
 def write_room(

@@ -7,11 +7,15 @@ import logging
 from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from pydantic import BaseModel
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import compile_path
 
-from core import errors
+from geomatch_core import errors
 
 from .metrics import Metrics
 from .routes import router
@@ -27,8 +31,21 @@ STATUS: dict[type[errors.DomainError], int] = {
     errors.TooLarge: 413,
     errors.UnsupportedFormat: 415,
     errors.InvalidRequest: 422,
+    errors.Overloaded: 429,
     errors.Unavailable: 503,
+    errors.InsufficientStorage: 507,
 }
+
+
+def printable(text: str) -> str:
+    """``text`` as UTF-8 can carry it: a lone surrogate a client sent (JSON allows ``\\ud800``)
+    and a message echoes would otherwise fail the response's encoding, a 500 for a 4xx."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+class Readiness(BaseModel):
+    ready: bool
+    checks: dict[str, str]
 
 
 def status_of(exc: errors.DomainError) -> int:
@@ -55,7 +72,7 @@ def create_app(service: Service) -> FastAPI:
     async def domain_error(request: Request, exc: errors.DomainError) -> JSONResponse:
         status = status_of(exc)
         headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
-        return JSONResponse({"detail": exc.message}, status_code=status, headers=headers)
+        return JSONResponse({"detail": printable(exc.message)}, status_code=status, headers=headers)
 
     @app.exception_handler(RequestValidationError)
     async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -63,27 +80,58 @@ def create_app(service: Service) -> FastAPI:
         if any(p.get("type") == "json_invalid" for p in problems):
             ctx = next(p for p in problems if p.get("type") == "json_invalid").get("ctx", {})
             return JSONResponse(
-                {"detail": f"malformed JSON body: {ctx.get('error', 'cannot be parsed')}"}, status_code=400
+                {"detail": printable(f"malformed JSON body: {ctx.get('error', 'cannot be parsed')}")},
+                status_code=400,
             )
-        text = "; ".join(
-            f"{'.'.join(str(x) for x in p.get('loc', ()) if x != 'body') or 'body'}: {p.get('msg')}"
+        shown = [
+            {
+                "loc": [printable(x) if isinstance(x, str) else x for x in p.get("loc", ())],
+                "msg": printable(str(p.get("msg"))),
+                "type": p.get("type"),
+            }
             for p in problems
+        ]
+        text = "; ".join(
+            f"{'.'.join(str(x) for x in p['loc'] if x != 'body') or 'body'}: {p['msg']}" for p in shown
         )
-        return JSONResponse(
-            {"detail": text, "errors": [{k: p.get(k) for k in ("loc", "msg", "type")} for p in problems]},
-            status_code=422,
-        )
+        return JSONResponse({"detail": text, "errors": shown}, status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        """A 405's ``Allow`` names every method the schema documents for the path: Starlette's names
+        those of the first route it found, and GET and DELETE of one path are two routes."""
+        if exc.status_code == 405:
+            path = request.scope["path"]
+            allowed = {
+                method.upper()
+                for template, operations in app.openapi()["paths"].items()
+                if compile_path(template)[0].fullmatch(path)
+                for method in operations
+            }
+            if allowed:  # else a path outside the schema (/docs): Starlette's answer stands
+                exc.headers = {**(exc.headers or {}), "Allow": ", ".join(sorted(allowed))}
+        return await http_exception_handler(request, exc)
 
     @app.get("/healthz", tags=["health"])
     def healthz() -> dict[str, str]:
         return {"status": "ok"}
 
-    @app.get("/readyz", tags=["health"])
+    @app.get(
+        "/readyz",
+        tags=["health"],
+        response_model=Readiness,
+        responses={503: {"model": Readiness, "description": "the store, the queue or the storage fails"}},
+    )
     def readyz() -> JSONResponse:
         r = service.readiness()
         return JSONResponse({"ready": r.ok, "checks": r.checks}, status_code=200 if r.ok else 503)
 
-    @app.get("/metrics", tags=["health"])
+    @app.get(
+        "/metrics",
+        tags=["health"],
+        response_class=PlainTextResponse,
+        responses={200: {"description": "Prometheus text format", "content": {"text/plain": {}}}},
+    )
     def prometheus() -> Response:
         return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
 

@@ -14,9 +14,9 @@ from pathlib import Path
 
 from sqlalchemy import select
 
-from core.errors import NotFound, Unauthenticated
-from core.models import ApiKey, Tenant, now
-from core.store import MetadataStore
+from geomatch_core.errors import NotFound, Unauthenticated
+from geomatch_core.models import ApiKey, Tenant, now
+from geomatch_core.store import MetadataStore
 
 KEY_PREFIX = "gm_"
 

@@ -1,6 +1,6 @@
 """The service's client-side commands of ``geomatch``: keys, submit.
 
-``register`` adds them to the command's parser (``app.cli``); everything heavy (httpx, grpc) is
+``register`` adds them to the command's parser (``geomatch_app.cli``); everything heavy (httpx, grpc) is
 imported inside the command that needs it. The commands that run servers or workers (serve,
 grpc-serve, worker) put a service together with a job runner: they live in the composition root.
 """
@@ -13,8 +13,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from core.errors import NotFound
 from geomatch.options import EXIT_BAD_INPUT, add_arguments
+from geomatch_core.errors import NotFound
 
 from .grpcapi import cli as grpc_cli  # light: grpc is imported by its commands only
 
@@ -52,8 +52,8 @@ def register(sub: Any) -> None:
 
 # -- keys ------------------------------------------------------------------------------------------
 def _store() -> Any:
-    from core.config import Settings
-    from core.store import MetadataStore
+    from geomatch_core.config import Settings
+    from geomatch_core.store import MetadataStore
 
     store = MetadataStore(Settings.from_env().database_url)
     store.create_all()
@@ -96,8 +96,13 @@ def cmd_keys_revoke(args: argparse.Namespace) -> int:
 
 # -- submit ----------------------------------------------------------------------------------------
 def cmd_submit(args: argparse.Namespace) -> int:
-    if args.grpc:
-        from .grpcapi.submit import submit
-    else:
-        from .submit import submit_http as submit
-    return submit(args)
+    from .submit import HttpSubmitClient, SubmitClient, submit
+
+    def connect() -> SubmitClient:
+        if args.grpc:
+            from .grpcapi.submit import GrpcSubmitClient
+
+            return GrpcSubmitClient(args.grpc_server, args.key)
+        return HttpSubmitClient(args.server, args.key)
+
+    return submit(args, connect)

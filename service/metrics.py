@@ -14,8 +14,8 @@ from sqlalchemy import func, select
 from starlette.requests import Request
 from starlette.responses import Response
 
-from core.models import JOB_STATES, Job
-from core.store import MetadataStore
+from geomatch_core.models import JOB_STATES, Job
+from geomatch_core.store import MetadataStore
 
 
 class JobsCollector(Collector):

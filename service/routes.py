@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import AsyncIterator
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import FileResponse, StreamingResponse
@@ -17,7 +17,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
-from core.errors import NotFound
+from geomatch_core.errors import NotFound
 
 from .schemas import (
     Error,
@@ -88,10 +88,14 @@ def delete_project(project_id: str, svc: Svc, tenant_id: Tenant) -> Response:
 @router.post("/projects/{project_id}/images", status_code=201, response_model=ImagesOut, tags=["images"])
 def upload_images(
     project_id: str,
-    files: Annotated[list[UploadFile], File(description="one or more images (repeat the field)")],
+    files: Annotated[
+        list[UploadFile], File(description="one or more images (repeat the field)", min_length=1)
+    ],
     svc: Svc,
     tenant_id: Tenant,
-    capture: Annotated[str, Form(description="aerial | ground | auto (EXIF/XMP decides)")] = "auto",
+    capture: Annotated[
+        Literal["aerial", "ground", "auto"], Form(description="auto: EXIF/XMP decides")
+    ] = "auto",
 ) -> ImagesOut:
     views = svc.upload_images(tenant_id, project_id, [Upload(f.filename, f.file) for f in files], capture)
     return ImagesOut(images=[ImageOut.model_validate(v, from_attributes=True) for v in views])
@@ -181,7 +185,7 @@ def model(
     svc: Svc,
     tenant_id: Tenant,
     format: Annotated[
-        str, Query(description="zip (COLMAP binary + text, PLY, summary) | ply | json")
+        Literal["zip", "ply", "json"], Query(description="zip: COLMAP binary + text, PLY, summary")
     ] = "zip",
 ) -> FileResponse:
     path = svc.model_file(tenant_id, project_id, format)

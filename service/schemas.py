@@ -1,21 +1,115 @@
 """The JSON shapes of the REST API (pydantic): what OpenAPI at /docs shows.
 
 Values are checked once more by the use cases (the gRPC server shares those checks); here the
-models only fix the shape and reject unknown fields, so a typo is a 422 rather than ignored.
+models fix the shape, the JSON types and, in the schema, each value's choices, range or pattern, so
+that what OpenAPI calls valid is what the server takes. Unknown fields are refused (a typo is a 422
+rather than ignored) and nothing is coerced (``"640"`` is not a size, ``true`` is not a radius,
+``"yes"`` is not a boolean). A JSON integer still passes where a number is asked, and a number
+with no fraction (``640.0``) where an integer is, as JSON Schema defines them.
 """
 
 from __future__ import annotations
 
-from datetime import datetime
-from typing import Any
+import re
+from datetime import UTC, datetime
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, create_model
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    WithJsonSchema,
+    create_model,
+)
 
 from geomatch import options
 
+from . import validation
+
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+def _utc(t: datetime) -> str:
+    t = t.replace(tzinfo=UTC) if t.tzinfo is None else t.astimezone(UTC)
+    return t.isoformat(timespec="microseconds").replace("+00:00", "Z")
+
+
+# Every timestamp out of the API: UTC, "Z", always six decimals, whichever store the row came from
+# and whether it was just written (POST) or read back (GET).
+Timestamp = Annotated[
+    datetime,
+    PlainSerializer(_utc, return_type=str, when_used="json"),
+    WithJsonSchema({"type": "string", "format": "date-time", "examples": ["2025-01-31T12:00:00.000000Z"]}),
+]
+
+
+# What parse_spec takes, as a pattern (ASCII digits and white space: the JSON Schema dialect's \\d and
+# \\s are narrower than Python's, and the schema must not promise what the server refuses)
+PAIR_SPEC_PATTERN = r"^[ \t\n\r]*(?:exhaustive|(?:sequential|retrieval):0*[1-9][0-9]*)[ \t\n\r]*$"
+
+
+def _option_schema(o: options.Option) -> dict[str, Any]:
+    """The option's choices or range in JSON Schema, from ``geomatch.options``."""
+    if o.choices:
+        return {"type": "string", "enum": list(o.choices)}
+    if o.name == "pairs":
+        return {"type": "string", "pattern": PAIR_SPEC_PATTERN}
+    kind = {int: "integer", float: "number", str: "string"}[o.type]
+    span = {k: v for k, v in (("minimum", o.low), ("maximum", o.high)) if v is not None}
+    if o.type is int:
+        span = {k: int(v) for k, v in span.items()}
+    if o.zero and span:  # 0 means something ("full size") below the range
+        return {"type": kind, "anyOf": [{"const": 0}, span]}
+    return {"type": kind, **span}
+
+
+def _checked(name: str) -> Any:
+    """options.check as a validator: the value the use case would store, or a ValueError whose
+    message names the option as the use cases' do (pydantic shows it in the 422). A list of pairs
+    passes: the use case checks its names against the project's images."""
+
+    def check(value: Any) -> Any:
+        if isinstance(value, list):
+            return value
+        if name == "pairs" and not re.fullmatch(PAIR_SPEC_PATTERN, value):
+            raise ValueError(f"bad pairs {value!r}: use exhaustive, sequential:K, retrieval:K (K >= 1)")
+        return options.check(name, value)
+
+    return AfterValidator(check)
+
+
+# a match job's explicit pairs: two different names of the project's images each
+PAIR_LIST_SCHEMA = {
+    "type": "array",
+    "minItems": 1,
+    "items": {
+        "type": "array",
+        "items": {"type": "string"},
+        "minItems": 2,
+        "maxItems": 2,
+        "uniqueItems": True,
+    },
+}
+
+
+def _integral(value: Any) -> Any:
+    """640.0 is an integer to JSON Schema (a number whose fraction is zero), so it is one here."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+def option_type(name: str, pairs_list: bool = False) -> Any:
+    o = options.OPTIONS[name]
+    if name == "pairs" and pairs_list:
+        schema = {"anyOf": [_option_schema(o), PAIR_LIST_SCHEMA]}
+        return Annotated[str | list[list[str]], _checked(name), WithJsonSchema(schema)]
+    if o.type is int:
+        return Annotated[int, BeforeValidator(_integral), _checked(name), WithJsonSchema(_option_schema(o))]
+    return Annotated[o.type, _checked(name), WithJsonSchema(_option_schema(o))]
 
 
 def _option_fields(pairs_list: bool) -> dict[str, Any]:
@@ -23,10 +117,9 @@ def _option_fields(pairs_list: bool) -> dict[str, Any]:
     fields: dict[str, Any] = {}
     for name in options.PROJECT_OPTIONS:
         o = options.OPTIONS[name]
-        kind: Any = o.type
+        kind: Any = option_type(name, pairs_list)
         examples: list[Any] = [o.default]
         if name == "pairs" and pairs_list:
-            kind = str | list[list[str]]
             examples = [o.default, [["a.jpg", "b.jpg"]]]
         description = o.help
         if o.choices:
@@ -40,7 +133,21 @@ ProjectConfig = create_model("ProjectConfig", __base__=_Strict, **_option_fields
 
 
 class ProjectCreate(_Strict):
-    name: str = Field(..., examples=["campus"])
+    name: Annotated[
+        str,
+        WithJsonSchema(
+            {
+                "type": "string",
+                "minLength": 1,
+                "maxLength": validation.MAX_PROJECT_NAME,
+                "pattern": validation.PROJECT_NAME_PATTERN,
+            }
+        ),
+    ] = Field(
+        ...,
+        examples=["campus"],
+        description="stripped of white space at both ends; no control characters",
+    )
     config: ProjectConfig | None = None
 
 
@@ -48,7 +155,7 @@ class ProjectOut(BaseModel):
     id: str
     name: str
     config: dict[str, Any]
-    created_at: datetime
+    created_at: Timestamp
     images: int
     has_model: bool
 
@@ -82,7 +189,7 @@ MatchIn = create_model(
 
 
 class ReconstructIn(_Strict):
-    mapper: str | None = Field(
+    mapper: option_type("mapper") | None = Field(  # type: ignore[valid-type]
         None, examples=[options.DEFAULTS["mapper"]], description=" | ".join(options.MAPPERS)
     )
 
@@ -102,9 +209,9 @@ class JobOut(BaseModel):
     options: dict[str, Any]
     result: dict[str, Any] | None
     after_job_id: str | None = Field(description="the job this one waits for")
-    created_at: datetime
-    started_at: datetime | None
-    finished_at: datetime | None
+    created_at: Timestamp
+    started_at: Timestamp | None
+    finished_at: Timestamp | None
 
 
 class JobAccepted(BaseModel):

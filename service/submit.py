@@ -1,5 +1,9 @@
-"""``geomatch submit``: the batch client. What both transports share (which files go, with which
-capture) is here, with the HTTP flow; ``service.grpcapi.submit`` is the gRPC flow.
+"""``geomatch submit``: the batch client. One flow (:func:`submit`: check the inputs, create a
+project, upload, match with a reconstruction queued behind it, follow both jobs, download and
+unpack the model) over a small client interface, :class:`SubmitClient`, with two implementations:
+:class:`HttpSubmitClient` here (over ``service.client``) and ``GrpcSubmitClient`` in
+``service.grpcapi.submit``. So both transports refuse the same input, print the same lines and
+exit with the same codes.
 """
 
 from __future__ import annotations
@@ -8,16 +12,18 @@ import argparse
 import fnmatch
 import sys
 import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from geomatch.options import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_UNREACHABLE, IMAGE_SUFFIXES
 
 
-# -- submit ----------------------------------------------------------------------------------------
+# -- the inputs ------------------------------------------------------------------------------------
 def submit_inputs(args: argparse.Namespace) -> tuple[list[Path], dict[Path, str]] | int:
-    """The images to send and their capture types, or the exit code of a bad request: shared by
-    the HTTP and the gRPC batch clients so that both refuse the same input the same way."""
+    """The images to send and their capture types, or the exit code of a bad request (said on
+    stderr), whatever the transport."""
     if not args.key:
         print("geomatch: error: no API key: pass --key or set GEOMATCH_KEY", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -64,60 +70,91 @@ def _captures(files: list[Path], folder: Path, args: argparse.Namespace) -> dict
     return {p: "aerial" if is_aerial(p) else "ground" for p in files}
 
 
-def submit_http(args: argparse.Namespace) -> int:
-    import httpx
-    from tqdm import tqdm
+# -- the client interface --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class JobView:
+    """A job as the flow reads it, whatever the transport: state is the API's word (``running``,
+    ``succeeded``, ``failed`` ...), result the job's result as plain JSON values."""
 
-    from .client import ApiError, Client
+    state: str
+    done: int
+    total: int
+    error: str | None = None
+    result: dict[str, Any] = field(default_factory=dict)
+
+
+class SubmitClient(Protocol):
+    """What the batch flow needs of a transport. Errors are the transport's own exceptions:
+    :meth:`failure` turns those it knows into a message and an exit code."""
+
+    where: str  # the server, as the upload line names it
+
+    def create_project(self, name: str) -> str: ...
+
+    def upload(
+        self, project_id: str, images: list[tuple[Path, str]], on_bytes: Callable[[int], object]
+    ) -> None:
+        """Every (path, capture); ``on_bytes`` follows the bytes sent (negative: sent again)."""
+
+    def match_and_reconstruct(
+        self, project_id: str, pairs: str | None, method: str | None, resize: int | None, mapper: str | None
+    ) -> tuple[str, str]:
+        """Queue a match job with a reconstruction behind it: (match job id, reconstruct job id)."""
+
+    def follow_hint(self, job_id: str) -> str: ...
+
+    def wait(self, job_id: str, on_update: Callable[[JobView], object]) -> JobView: ...
+
+    def download(self, project_id: str, dest: Path) -> Path:
+        """The model as a zip at ``dest``."""
+
+    def failure(self, error: Exception) -> tuple[str, int] | None:
+        """(message, exit code) for an error of this transport; None for any other."""
+
+    def close(self) -> None: ...
+
+
+def submit(args: argparse.Namespace, connect: Callable[[], SubmitClient]) -> int:
+    """The batch flow over the client ``connect`` opens (once the inputs are known to be good)."""
+    from tqdm import tqdm
 
     inputs = submit_inputs(args)
     if isinstance(inputs, int):
         return inputs
     files, captures = inputs
     wait = args.wait or args.out is not None
-    client = Client(args.server, args.key)
     quiet = args.no_progress
+    client = connect()
     try:
-        project = client.create_project(args.name or args.images.resolve().name)
-        pid = project["id"]
-        print(f"project {pid}: uploading {len(files)} images to {args.server}", file=sys.stderr)
+        pid = client.create_project(args.name or args.images.resolve().name)
+        print(f"project {pid}: uploading {len(files)} images to {client.where}", file=sys.stderr)
         total = sum(p.stat().st_size for p in files)
         with tqdm(total=total, unit="B", unit_scale=True, desc="upload", disable=quiet) as bar:
-            for p in files:
-                client.upload(pid, p, captures[p], on_bytes=bar.update)
-        accepted = client.match(
-            pid,
-            pairs=args.pairs,
-            method=args.method,
-            resize=args.resize,
-            reconstruct=True,
-            mapper=args.mapper,
+            client.upload(pid, [(p, captures[p]) for p in files], bar.update)
+        match_id, recon_id = client.match_and_reconstruct(
+            pid, pairs=args.pairs, method=args.method, resize=args.resize, mapper=args.mapper
         )
-        match_id, recon_id = accepted["job_id"], accepted["reconstruct_job_id"]
         print(f"match job {match_id}, then reconstruct job {recon_id}", file=sys.stderr)
         if not wait:
-            print(
-                f"follow with: curl -N -H 'Authorization: Bearer ...' {args.server}/v1/jobs/{recon_id}/events"
-            )
+            print(f"follow with: {client.follow_hint(recon_id)}")
             print(pid)
             return 0
         for job_id, desc in ((match_id, "match"), (recon_id, "reconstruct")):
             with tqdm(total=0, unit="pair" if desc == "match" else "step", desc=desc, disable=quiet) as bar:
 
-                def show(job: dict[str, Any], bar: Any = bar) -> None:
-                    bar.total = job["progress"]["total"]
-                    bar.n = job["progress"]["done"]
-                    bar.set_postfix_str(job["state"])
+                def show(job: JobView, bar: Any = bar) -> None:
+                    bar.total, bar.n = job.total, job.done
+                    bar.set_postfix_str(job.state)
                     bar.refresh()
 
                 job = client.wait(job_id, show)
-            if job["state"] != "succeeded":
-                print(f"geomatch: {desc} job {job_id} {job['state']}: {job.get('error')}", file=sys.stderr)
+            if job.state != "succeeded":
+                print(f"geomatch: {desc} job {job_id} {job.state}: {job.error}", file=sys.stderr)
                 return EXIT_FAILED
-        summary = job.get("result") or {}
+        summary = job.result
         print(
-            f"registered {summary.get('registered')}/{summary.get('images')} images, "
-            f"{summary.get('points3D')} 3D points, "
+            f"registered {summary.get('registered', 0):.0f}/{summary.get('images', 0):.0f} images, "
+            f"{summary.get('points3D', 0):.0f} 3D points, "
             f"mean track length {summary.get('mean_track_length', 0):.2f}, "
             f"mean reprojection error {summary.get('mean_reprojection_error', 0):.3f} px"
         )
@@ -131,11 +168,69 @@ def submit_http(args: argparse.Namespace) -> int:
             )
         print(pid)
         return 0
-    except ApiError as e:
-        print(f"geomatch: error: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT if 400 <= e.status < 500 else EXIT_FAILED
-    except httpx.TransportError as e:
-        print(f"geomatch: error: {args.server} unreachable ({e})", file=sys.stderr)
-        return EXIT_UNREACHABLE
+    except Exception as e:
+        failed = client.failure(e)
+        if failed is None:
+            raise
+        message, code = failed
+        print(f"geomatch: error: {message}", file=sys.stderr)
+        return code
     finally:
         client.close()
+
+
+# -- over HTTP -------------------------------------------------------------------------------------
+class HttpSubmitClient:
+    """:class:`SubmitClient` over the REST client (``service.client``): one request per image."""
+
+    def __init__(self, server: str, key: str, **options: Any) -> None:
+        from .client import Client
+
+        self.where = server
+        self.client = Client(server, key, **options)
+
+    def create_project(self, name: str) -> str:
+        return str(self.client.create_project(name)["id"])
+
+    def upload(
+        self, project_id: str, images: list[tuple[Path, str]], on_bytes: Callable[[int], object]
+    ) -> None:
+        for path, capture in images:
+            self.client.upload(project_id, path, capture, on_bytes=on_bytes)
+
+    def match_and_reconstruct(
+        self, project_id: str, pairs: str | None, method: str | None, resize: int | None, mapper: str | None
+    ) -> tuple[str, str]:
+        accepted = self.client.match(
+            project_id, pairs=pairs, method=method, resize=resize, reconstruct=True, mapper=mapper
+        )
+        return accepted["job_id"], accepted["reconstruct_job_id"]
+
+    def follow_hint(self, job_id: str) -> str:
+        return f"curl -N -H 'Authorization: Bearer ...' {self.where}/v1/jobs/{job_id}/events"
+
+    def wait(self, job_id: str, on_update: Callable[[JobView], object]) -> JobView:
+        def view(job: dict[str, Any]) -> JobView:
+            progress = job["progress"]
+            return JobView(
+                job["state"], progress["done"], progress["total"], job.get("error"), job.get("result") or {}
+            )
+
+        return view(self.client.wait(job_id, lambda job: on_update(view(job))))
+
+    def download(self, project_id: str, dest: Path) -> Path:
+        return self.client.download(project_id, dest)
+
+    def failure(self, error: Exception) -> tuple[str, int] | None:
+        import httpx
+
+        from .client import ApiError
+
+        if isinstance(error, ApiError):
+            return str(error), EXIT_BAD_INPUT if 400 <= error.status < 500 else EXIT_FAILED
+        if isinstance(error, httpx.TransportError):
+            return f"{self.where} unreachable ({error})", EXIT_UNREACHABLE
+        return None
+
+    def close(self) -> None:
+        self.client.close()

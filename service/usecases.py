@@ -1,13 +1,14 @@
 """The application layer: every operation the API offers, free of any transport.
 
 Routers (HTTP today, gRPC in issue 5) translate requests into these calls and the typed errors
-of ``core.errors`` into statuses. A use case validates everything before it stores or
+of ``geomatch_core.errors`` into statuses. A use case validates everything before it stores or
 enqueues anything, so a rejected request leaves no trace.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import shutil
@@ -20,28 +21,47 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
-from sqlalchemy import func, select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import delete, func, select
+from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
 
-from core import jobstate
-from core.config import Settings
-from core.errors import BadFile, Conflict, InvalidRequest, NotFound, TooLarge, Unavailable
-from core.locks import LockFactory
-from core.models import TERMINAL_STATES, Image, Job, Project
-from core.queue import ENTRY_STEP, MATCH_TWO, RENDER_PAIR, JobQueue
-from core.storage import Storage, snapshot_sqlite
-from core.store import MetadataStore
 from geomatch.options import CAPTURES, PROJECT_OPTIONS, defaults
 from geomatch.options import PAIR_OPTIONS as PAIR_OPTIONS  # what match_two accepts of DEFAULTS
+from geomatch_core import jobstate
+from geomatch_core.config import Settings
+from geomatch_core.errors import (
+    BadFile,
+    Conflict,
+    InsufficientStorage,
+    InvalidRequest,
+    NotFound,
+    TooLarge,
+    Unavailable,
+)
+from geomatch_core.locks import LockFactory
+from geomatch_core.models import TERMINAL_STATES, Image, Job, Project
+from geomatch_core.queue import ENTRY_STEP, MATCH_TWO, RENDER_PAIR, JobQueue
+from geomatch_core.storage import Storage, snapshot_sqlite
+from geomatch_core.store import MetadataStore
 
 from . import auth
-from .validation import ImageInfo, check_image, check_name, check_option, check_pair_list
+from .validation import (
+    ImageInfo,
+    check_image,
+    check_name,
+    check_option,
+    check_pair_list,
+    check_project_name,
+)
 
 # a project's configuration and a match job's options: geomatch.options holds them, with defaults
 DEFAULTS: dict[str, Any] = defaults(PROJECT_OPTIONS)
 MODEL_FILES = {"zip": "model.zip", "ply": "points.ply", "json": "summary.json"}
 _CHUNK = 1 << 20
+_FULL = (
+    "the storage is full (no space left on device): nothing of this upload was kept; "
+    "retry when space is freed"
+)
 
 
 @dataclass(frozen=True)
@@ -179,9 +199,7 @@ class Service:
 
     # -- projects --------------------------------------------------------------------------
     def create_project(self, tenant_id: str, name: str, config: dict[str, Any] | None = None) -> ProjectView:
-        name = (name or "").strip()
-        if not name or len(name) > 200:
-            raise InvalidRequest("project name must be 1 to 200 characters")
+        name = check_project_name(name)
         cfg = check_config(config or {})
         if isinstance(cfg.get("pairs"), list):
             raise InvalidRequest(
@@ -205,13 +223,17 @@ class Service:
             return self._project_view(s, self._project(s, tenant_id, project_id))
 
     def delete_project(self, tenant_id: str, project_id: str) -> None:
+        """Of concurrent deletes of one project exactly one succeeds, the others find it gone: the
+        row is deleted by one statement whose row count says who did it."""
         with self.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             jobs = s.scalars(select(Job.id).where(Job.project_id == p.id)).all()
         for job_id in jobs:  # workers see their job gone or cancelled and stop
             jobstate.cancel(self.store, job_id, "project deleted")
         with self.store.session() as s:
-            s.delete(s.get(Project, project_id))
+            gone = s.execute(delete(Project).where(Project.id == project_id, Project.tenant_id == tenant_id))
+            if gone.rowcount != 1:  # type: ignore[attr-defined]
+                raise NotFound(f"project {project_id} not found")
         # the writer lock: a worker writing this project right now finishes before the files go
         with self.locks.project(project_id):
             self.storage.delete_project(project_id)
@@ -260,6 +282,16 @@ class Service:
                 raise Conflict(
                     "another upload of the same name or bytes was committed concurrently; retry"
                 ) from None
+            except OperationalError as e:  # SQLite's SQLITE_FULL: the metadata store's disk is full
+                if "disk is full" in str(e.orig):
+                    raise InsufficientStorage(_FULL) from None
+                raise
+        except OSError as e:
+            for path in moved:
+                path.unlink(missing_ok=True)
+            if e.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise InsufficientStorage(_FULL) from None
+            raise
         except BaseException:
             for path in moved:
                 path.unlink(missing_ok=True)
@@ -285,6 +317,7 @@ class Service:
                             f"{self.settings.max_upload_bytes // (1024 * 1024)} MiB"
                         )
                     h.update(chunk)
+                    self.storage.check_space(len(chunk))
                     f.write(chunk)
             info = check_image(tmp, name, self.settings.max_pixels)
         except BaseException:

@@ -126,7 +126,7 @@ def env_reads(path: Path) -> list[tuple[str, Any]]:
 def code_env() -> dict[str, Any]:
     """Every variable geomatch's packages read, with its constant default (None: none or computed)."""
     out: dict[str, Any] = {}
-    for package in ("geomatch", "core", "service", "workers", "app"):
+    for package in ("geomatch", "geomatch_core", "service", "workers", "geomatch_app"):
         for path in sorted((ROOT / package).rglob("*.py")):
             for name, default in env_reads(path):
                 if out.get(name) is None:
@@ -295,7 +295,7 @@ def load_script(name: str) -> ModuleType:
 
 
 def parser() -> Any:
-    from app.cli import build_parser
+    from geomatch_app.cli import build_parser
 
     return build_parser()
 

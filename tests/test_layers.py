@@ -1,6 +1,6 @@
 """The layout's rules, read from the source (ast, nothing imported):
 
-- imports point one way: geomatch (the library) <- core <- {service, workers} <- app (the
+- imports point one way: geomatch (the library) <- geomatch_core <- {service, workers} <- geomatch_app (the
   composition root); service and workers never import each other;
 - no import loops between modules (lazy imports inside functions count: they load the same code;
   imports under ``if TYPE_CHECKING:`` are annotations only and count for the layering alone);
@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-LAYERS = {"geomatch": 0, "core": 1, "service": 2, "workers": 2, "app": 3}
+LAYERS = {"geomatch": 0, "geomatch_core": 1, "service": 2, "workers": 2, "geomatch_app": 3}
 PACKAGES = tuple(LAYERS)
 
 

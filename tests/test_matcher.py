@@ -53,6 +53,21 @@ def test_features_are_computed_once_per_image(astronaut_pair: WarpedPair, matche
     assert m.extract_calls - before == 6
 
 
+def test_feature_cache_is_bounded_in_bytes(astronaut_pair: WarpedPair, matcher: Matcher) -> None:
+    """A worker's memory must not grow with the project: the LRU drops images past its byte budget
+    (one DISK image with dense maps at 480 px is ~100 MB) and recomputes them when asked again."""
+    m = matcher.derive(method="geo", cache_features_mb=150.0)
+    m.clear_caches(anchors=False)
+    third = warped_pair("astronaut", seed=2, strength=0.15).image1
+    for a, b in ((astronaut_pair.image0, astronaut_pair.image1), (astronaut_pair.image0, third)):
+        m.match(a, b)
+        assert m.cache_nbytes() <= 150 * 2**20
+    before = m.extract_calls
+    r = m.match(astronaut_pair.image0, astronaut_pair.image1)
+    assert m.extract_calls > before  # evicted, so computed again
+    assert np.median(reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)) < 2.0
+
+
 def test_disk_for_both_branches_runs_one_pass_per_image(astronaut_pair: WarpedPair, matcher: Matcher) -> None:
     m = matcher.derive(method="geo", sparse="disk", dense="disk")
     m.clear_caches(anchors=False)

@@ -40,7 +40,7 @@ def test_methods_are_rows_of_flags() -> None:
 
 # -- the command line ----------------------------------------------------------------------------
 def _parse(argv: list[str]) -> object:
-    from app.cli import build_parser  # the whole `geomatch` command
+    from geomatch_app.cli import build_parser  # the whole `geomatch` command
 
     return build_parser().parse_args(argv)
 
@@ -90,9 +90,11 @@ def test_rest_schema_is_the_options() -> None:
 
 
 def typing_args(annotation: object) -> tuple[object, ...]:
+    """The types of a union, each without its ``Annotated`` metadata."""
     import typing
 
-    return typing.get_args(annotation) or (annotation,)
+    args = typing.get_args(annotation) or (annotation,)
+    return tuple(typing.get_args(a)[0] if typing.get_origin(a) is typing.Annotated else a for a in args)
 
 
 def test_use_case_defaults_are_the_options() -> None:

@@ -17,8 +17,8 @@ from __future__ import annotations
 
 from celery import Celery
 
-from core.config import Settings
-from core.queue import RENDER_PAIR
+from geomatch_core.config import Settings
+from geomatch_core.queue import RENDER_PAIR
 
 
 def interactive_queue(settings: Settings) -> str:

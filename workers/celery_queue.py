@@ -10,8 +10,8 @@ import redis
 from celery import Celery
 from celery.exceptions import TimeoutError as CeleryTimeout
 
-from core.config import Settings
-from core.queue import RENDER_PAIR
+from geomatch_core.config import Settings
+from geomatch_core.queue import RENDER_PAIR
 
 from .celery_app import interactive_queue, make_app
 

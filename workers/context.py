@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from core.config import Settings
-from core.locks import LockFactory
-from core.queue import JobQueue
-from core.storage import Storage
-from core.store import MetadataStore
+from geomatch_core.config import Settings
+from geomatch_core.locks import LockFactory
+from geomatch_core.queue import JobQueue
+from geomatch_core.storage import Storage
+from geomatch_core.store import MetadataStore
 
 
 class PermanentError(Exception):

@@ -22,11 +22,11 @@ from typing import Any
 
 from sqlalchemy import select, update
 
-from core import jobstate
-from core.models import Image, Job, JobPair
-from core.queue import EXTRACT, MATCH_PAIR, RENDER_PAIR
-from core.storage import snapshot_sqlite
 from geomatch.options import DEFAULTS
+from geomatch_core import jobstate
+from geomatch_core.models import Image, Job, JobPair
+from geomatch_core.queue import EXTRACT, MATCH_PAIR, RENDER_PAIR
+from geomatch_core.storage import snapshot_sqlite
 
 from . import runtime
 from .context import Context, PermanentError
@@ -144,6 +144,17 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         return "skipped"
     with ctx.store.session() as s:
         p = s.get(JobPair, (job_id, idx))
+        # the plan step marked the aerial images: a pair with an aerial side is matched at its
+        # best quarter turn (geomatch.rotation)
+        airborne = p is not None and bool(
+            s.execute(
+                select(Image.name).where(
+                    Image.project_id == job.project_id,
+                    Image.name.in_((p.name0, p.name1)),
+                    Image.aerial.is_(True),
+                )
+            ).first()
+        )
     if p is None:
         return "skipped"
     pid, opts = job.project_id, job.options
@@ -157,7 +168,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             t0 = time.perf_counter()
             a = runtime.image(ctx.storage.image_path(pid, p.name0))
             b = runtime.image(ctx.storage.image_path(pid, p.name1))
-            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first)
+            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, rotate=airborne)
             m = steps.match(runtime.matcher(ctx, opts), pair, a, b)
             t1 = time.perf_counter()
             resize = opts.get("resize") or None
@@ -165,6 +176,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             with ctx.locks.project(pid):
                 if not jobstate.is_active(ctx.store, job_id):  # cancelled while matching: write nothing
                     return "cancelled"
+                ctx.storage.check_space(1 << 16)  # test hook (GEOMATCH_TEST_FILL_LIMIT); no-op otherwise
                 with ColmapDatabase(db_path) as db:
                     w = steps.write(db, id0, id1, m, radius, resize)
             matches, inliers = w.matches, w.inliers
@@ -205,8 +217,9 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     if not db_path.is_file():
         raise PermanentError("the project has no COLMAP database: run a match job first")
     t0 = time.perf_counter()
-    work = ctx.storage.work_dir(pid, f"reconstruct-{job_id}")
-    try:
+    for name in ctx.storage.remove_stale_work(pid):  # left by attempts that died (SIGKILL)
+        log.info("removed stale work folder %s", name, extra={"job_id": job_id, "project_id": pid})
+    with ctx.storage.work(pid, f"reconstruct-{job_id}") as work:
         snapshot = work / "database.db"
         with ctx.locks.project(pid):  # a consistent copy; matching may go on while we map
             snapshot_sqlite(db_path, snapshot)
@@ -222,10 +235,6 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         if not jobstate.is_active(ctx.store, job_id):
             return "cancelled"
         ctx.storage.replace_dir(out, ctx.storage.model_dir(pid))
-    finally:
-        import shutil
-
-        shutil.rmtree(work, ignore_errors=True)
     jobstate.succeed(ctx.store, job_id, summary)
     log.info(
         "reconstructed: %s/%s images registered, %s points",

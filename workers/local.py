@@ -15,13 +15,13 @@ from typing import Any
 
 from sqlalchemy import select
 
-from core import jobstate
-from core.config import Settings
-from core.locks import LockFactory
-from core.models import Job
-from core.queue import ENTRY_STEP
-from core.storage import Storage
-from core.store import MetadataStore
+from geomatch_core import jobstate
+from geomatch_core.config import Settings
+from geomatch_core.locks import LockFactory
+from geomatch_core.models import Job
+from geomatch_core.queue import ENTRY_STEP
+from geomatch_core.storage import Storage
+from geomatch_core.store import MetadataStore
 
 from . import jobs
 from .context import Context, is_permanent

@@ -36,7 +36,16 @@ def matcher(ctx: Context, options: dict[str, Any]) -> Matcher:
         return cache[key]
     cap = ctx.settings.feature_cache_mb
     store = FeatureStore(ctx.storage.features_dir, cap * 1024 * 1024 if cap > 0 else 0)
-    m = build_matcher(store, method=method, resize=resize, device=ctx.settings.device, cache_images=32)
+    # the thread's memory budget, split over the matchers it may keep: 3/4 features, 1/4 anchors
+    share = ctx.settings.cache_mb / MAX_MATCHERS
+    m = build_matcher(
+        store,
+        method=method,
+        resize=resize,
+        device=ctx.settings.device,
+        cache_features_mb=0.75 * share,
+        cache_anchors_mb=0.25 * share,
+    )
     cache[key] = m
     while len(cache) > MAX_MATCHERS:
         cache.popitem(last=False)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from core.queue import EXTRACT, MATCH_PAIR, MATCH_TWO, PLAN_MATCH, RECONSTRUCT, RENDER_PAIR
+from geomatch_core.queue import EXTRACT, MATCH_PAIR, MATCH_TWO, PLAN_MATCH, RECONSTRUCT, RENDER_PAIR
 
 from . import jobs, pairmatch
 

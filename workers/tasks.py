@@ -12,14 +12,16 @@ import os
 from typing import Any
 
 import redis
-from celery import Celery, Task
+from celery import Celery, Task, bootsteps
+from redis.backoff import ExponentialBackoff
+from redis.retry import Retry
 
-from core.config import Settings
-from core.locks import RedisLocks
-from core.storage import Storage
-from core.store import MetadataStore
+from geomatch_core.config import Settings
+from geomatch_core.locks import RedisLocks
+from geomatch_core.storage import Storage
+from geomatch_core.store import MetadataStore
 
-from . import jobs
+from . import jobs, recovery
 from .celery_queue import CeleryQueue
 from .context import Context, PermanentError, is_permanent
 from .steps import ANSWERED, ONE_SHOT, STEPS
@@ -33,7 +35,14 @@ def context(app: Celery) -> Context:
         settings = Settings.from_env()
         assert settings.redis_url is not None
         store = MetadataStore(settings.database_url)
-        client = redis.Redis.from_url(settings.redis_url)
+        client = redis.Redis.from_url(
+            settings.redis_url,
+            socket_timeout=10,
+            socket_connect_timeout=5,
+            # a Redis restart of a few seconds: lock calls wait for it rather than fail the step
+            retry=Retry(ExponentialBackoff(cap=2.0, base=0.1), 10),
+            retry_on_error=[redis.ConnectionError, redis.TimeoutError],
+        )
         locks = RedisLocks(client, settings.redis_prefix, settings.lock_timeout_s)
         _context = (
             os.getpid(),
@@ -74,3 +83,21 @@ def register(app: Celery) -> None:
                 raise
 
         app.task(name=name, base=StepTask, bind=True, ignore_result=name not in ANSWERED)(run)
+
+    app.steps["consumer"].add(_recovery_step(app))
+
+
+def _recovery_step(app: Celery) -> type:
+    class Recover(bootsteps.StartStopStep):  # type: ignore[misc]
+        """Runs each time the consumer (re)connects to the broker: see ``workers.recovery``."""
+
+        requires = ("celery.worker.consumer.tasks:Tasks",)
+
+        def start(self, c: Any) -> None:
+            try:
+                ctx = context(app)
+                recovery.requeue_unfinished(ctx.store, ctx.queue)
+            except Exception as e:  # the store or Redis down again: the next (re)connect retries
+                jobs.log.warning("could not requeue unfinished jobs: %s", e)
+
+    return Recover

@@ -14,7 +14,7 @@ import io
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from core.errors import BadFile, InvalidRequest, TooLarge
+from geomatch_core.errors import BadFile, InvalidRequest, TooLarge
 
 from ..usecases import Upload
 from .status import Malformed
@@ -27,9 +27,15 @@ class Messages:
     """A request iterator with one message of look-ahead, whose end is checked: gRPC's iterator
     also stops when the call is no longer active, which must not read as "the client is done"."""
 
-    def __init__(self, requests: Iterator[Any], is_active: Callable[[], bool]) -> None:
+    def __init__(
+        self,
+        requests: Iterator[Any],
+        is_active: Callable[[], bool],
+        heard: Callable[[bool], None] | None = None,
+    ) -> None:
         self._it = requests
         self._is_active = is_active
+        self._heard = heard  # limits.IdleStreams: a message came (False), the stream ended (True)
         self._pending: list[Any] = []
 
     def next(self) -> Any | None:
@@ -40,7 +46,11 @@ class Messages:
         except StopIteration:
             if not self._is_active():
                 raise InvalidRequest("the request stream was cut off") from None
+            if self._heard is not None:
+                self._heard(True)
             return None
+        if self._heard is not None:
+            self._heard(False)
         if isinstance(msg, Malformed):
             raise InvalidRequest(msg.message)
         return msg

@@ -23,6 +23,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from ..usecases import Service
+from .limits import THREADS
 from .pb import SERVICE, SERVICE_NAME, pb2
 from .servicer import MatchingServicer
 from .status import Malformed
@@ -30,7 +31,6 @@ from .status import Malformed
 log = logging.getLogger("geomatch.service.grpc")
 
 DEFAULT_PORT = 50051
-THREADS = 64  # handler threads: each open WatchJob / upload stream holds one while it lasts
 READINESS_INTERVAL_S = 5.0  # how often health follows the store / queue / storage checks
 MAX_MESSAGE = 4 * 1024 * 1024  # gRPC's default receive limit, explicit: chunks are at most 1 MiB
 OPTIONS = [

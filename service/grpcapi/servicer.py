@@ -15,11 +15,12 @@ from typing import IO, Any
 
 import grpc
 
-from core.errors import InvalidRequest, Unavailable
+from geomatch_core.errors import InvalidRequest, Unavailable
 
 from ..usecases import Service, Upload
 from . import convert
 from .framing import MAX_CHUNK, Messages, images
+from .limits import STREAMS, IdleStreams, StreamSlots
 from .pb import pb2, pb2_grpc
 from .status import rpc, rpc_stream
 
@@ -30,8 +31,13 @@ DEADLINE_MARGIN_S = 0.25  # left for the answer to travel back before the client
 
 
 class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
+    """Streaming methods take one of ``streams`` while they last, and request streams are watched
+    for silence (``limits``): open streams cannot starve health checks and unary calls."""
+
     def __init__(self, service: Service) -> None:
         self.service = service
+        self.streams = StreamSlots(STREAMS, service.settings.grpc_tenant_streams)
+        self.idle = IdleStreams(service.settings.grpc_stream_idle_s)
 
     # -- projects ----------------------------------------------------------------------------
     @rpc
@@ -57,14 +63,15 @@ class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
     # -- images ------------------------------------------------------------------------------
     @rpc
     def UploadImages(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        messages = Messages(request_iterator, context.is_active)
-        first = messages.next()
-        if first is None or not first.project_id:
-            raise InvalidRequest("the first message of UploadImages must carry project_id")
-        if first.WhichOneof("part") is not None:  # else a message that only names the project
-            messages.push_back(first)
-        uploads = images(messages, self.service.settings.max_upload_bytes, first.project_id)
-        views = self.service.upload_images(tenant_id, first.project_id, uploads)
+        with self.streams.open(tenant_id), self.idle.watch(context) as heard:
+            messages = Messages(request_iterator, context.is_active, heard)
+            first = messages.next()
+            if first is None or not first.project_id:
+                raise InvalidRequest("the first message of UploadImages must carry project_id")
+            if first.WhichOneof("part") is not None:  # else a message that only names the project
+                messages.push_back(first)
+            uploads = images(messages, self.service.settings.max_upload_bytes, first.project_id)
+            views = self.service.upload_images(tenant_id, first.project_id, uploads)
         return pb2.UploadImagesResponse(images=[convert.image(v) for v in views])
 
     @rpc
@@ -96,13 +103,14 @@ class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
     def WatchJob(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Iterator[Any]:
         # watch_job yields None when nothing changed for LIVENESS_S: the moment to notice a client
         # that went away (or whose deadline passed) and stop polling the store for it
-        for job in self.service.watch_job(
-            tenant_id, request.job_id, interval_s=WATCH_POLL_S, heartbeat_s=LIVENESS_S
-        ):
-            if not context.is_active():
-                return
-            if job is not None:
-                yield pb2.JobEvent(job=convert.job(job))
+        with self.streams.open(tenant_id):
+            for job in self.service.watch_job(
+                tenant_id, request.job_id, interval_s=WATCH_POLL_S, heartbeat_s=LIVENESS_S
+            ):
+                if not context.is_active():
+                    return
+                if job is not None:
+                    yield pb2.JobEvent(job=convert.job(job))
 
     @rpc
     def CancelJob(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
@@ -117,7 +125,7 @@ class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
         path = self.service.model_file(tenant_id, request.project_id, fmt)
         # open first: a reconstruction that swaps the model folder meanwhile does not tear what
         # this stream sends (the open file outlives the swap)
-        with path.open("rb") as f:
+        with self.streams.open(tenant_id), path.open("rb") as f:
             summary = _summary(f, fmt, path)
             digest, size = _digest(f)
             yield pb2.GetModelResponse(
@@ -137,7 +145,10 @@ class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
     # -- pairwise matching -------------------------------------------------------------------
     @rpc
     def MatchPair(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        messages = Messages(request_iterator, context.is_active)
+        with self.streams.open(tenant_id), self.idle.watch(context) as heard:
+            return self._match_pair(Messages(request_iterator, context.is_active, heard), context, tenant_id)
+
+    def _match_pair(self, messages: Messages, context: grpc.ServicerContext, tenant_id: str) -> Any:
         options: dict[str, Any] = {}
         first = messages.next()
         if first is not None and first.WhichOneof("part") == "options":

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import functools
 import logging
+import uuid
 from collections.abc import Callable, Iterator
 from typing import Any, NoReturn, TypeVar
 
 import grpc
 
-from core import errors
+from geomatch_core import errors
 
 log = logging.getLogger("geomatch.service.grpc")
 
@@ -28,8 +29,10 @@ CODES: dict[type[errors.DomainError], grpc.StatusCode] = {
     # a bomb is a bad image; a big file is a limit (its own subclass first: the MRO decides)
     errors.DecompressionBomb: grpc.StatusCode.INVALID_ARGUMENT,
     errors.TooLarge: grpc.StatusCode.RESOURCE_EXHAUSTED,
+    errors.Overloaded: grpc.StatusCode.RESOURCE_EXHAUSTED,
     errors.Conflict: grpc.StatusCode.FAILED_PRECONDITION,
     errors.Unavailable: grpc.StatusCode.UNAVAILABLE,
+    errors.InsufficientStorage: grpc.StatusCode.RESOURCE_EXHAUSTED,
 }
 
 
@@ -68,10 +71,13 @@ def abort(context: grpc.ServicerContext, exc: errors.DomainError) -> NoReturn:
 
 
 def _unexpected(context: grpc.ServicerContext, name: str, exc: Exception) -> NoReturn:
+    """A bug's message stays in the log: it may hold the server's paths (an OSError names its
+    files), which are none of the client's business. The incident id ties the two together."""
     if not context.is_active():  # the client left (cancelled, deadline): nobody hears an answer
         context.abort(grpc.StatusCode.CANCELLED, "the call ended before the server answered")
-    log.exception("%s failed", name)
-    context.abort(grpc.StatusCode.INTERNAL, f"{type(exc).__name__}: {exc}")
+    incident = uuid.uuid4().hex[:12]
+    log.exception("%s failed (incident %s)", name, incident)
+    context.abort(grpc.StatusCode.INTERNAL, f"internal error (incident {incident} in the server's log)")
     raise AssertionError("context.abort returned")
 
 
@@ -90,14 +96,8 @@ def rpc(method: F) -> F:
     def wrapper(self: Any, request: Any, context: grpc.ServicerContext) -> Any:
         try:
             return method(self, request, context, _tenant(self, request, context))
-        except errors.DomainError as e:
-            abort(context, e)
-        except grpc.RpcError:  # reading a request stream the client abandoned
-            context.abort(grpc.StatusCode.CANCELLED, "the client cancelled the call")
         except Exception as e:
-            if _is_abort(e):
-                raise
-            _unexpected(context, method.__name__, e)
+            _answer(context, method.__name__, e)
 
     return wrapper  # type: ignore[return-value]
 
@@ -107,16 +107,22 @@ def rpc_stream(method: F) -> F:
     def wrapper(self: Any, request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
         try:
             yield from method(self, request, context, _tenant(self, request, context))
-        except errors.DomainError as e:
-            abort(context, e)
-        except grpc.RpcError:
-            context.abort(grpc.StatusCode.CANCELLED, "the client cancelled the call")
         except Exception as e:
-            if _is_abort(e):
-                raise
-            _unexpected(context, method.__name__, e)
+            _answer(context, method.__name__, e)
 
     return wrapper  # type: ignore[return-value]
+
+
+def _answer(context: grpc.ServicerContext, name: str, exc: Exception) -> None:
+    """The status of a call that raised ``exc`` (``context.abort`` raises; an abort goes through)."""
+    if isinstance(exc, errors.DomainError):
+        abort(context, exc)
+    elif isinstance(exc, grpc.RpcError):  # reading a request stream the client abandoned
+        context.abort(grpc.StatusCode.CANCELLED, "the client cancelled the call")
+    elif _is_abort(exc):
+        raise exc
+    else:
+        _unexpected(context, name, exc)
 
 
 def _is_abort(exc: Exception) -> bool:

@@ -1,19 +1,14 @@
-"""``geomatch submit IMAGES --grpc``: the batch client's flow over gRPC.
+"""``geomatch submit IMAGES --grpc``: the batch flow (``service.submit``) over gRPC.
 
-Same steps and output as the HTTP flow (``service/submit.py``): create a project, upload, match with
-a reconstruction queued behind it, follow both jobs, download and unpack the model. Uploads go
-as streams of a few images each: one stream per folder would make a late failure resend it all,
-one per image would pay a round trip each. Re-sending is safe (same bytes, same image), so a batch
-that meets UNAVAILABLE is sent again.
+Uploads go as streams of a few images each: one stream per folder would make a late failure resend
+it all, one per image would pay a round trip each. Re-sending is safe (same bytes, same image), so
+a batch that meets UNAVAILABLE is sent again.
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
 import time
-import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +16,7 @@ import grpc
 
 from geomatch.options import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_UNREACHABLE
 
-from ..submit import submit_inputs
+from ..submit import JobView
 from .client import GrpcClient, ImageSource, to_dict
 from .pb import pb2
 
@@ -35,7 +30,7 @@ CLIENT_ERRORS = {
     grpc.StatusCode.RESOURCE_EXHAUSTED,
     grpc.StatusCode.FAILED_PRECONDITION,
 }
-STATE = {v: k for k, v in pb2.JobState.items()}
+STATE = {v: k.removeprefix("JOB_STATE_").lower() for k, v in pb2.JobState.items()}
 
 
 def batches(images: list[ImageSource]) -> Iterator[list[ImageSource]]:
@@ -51,97 +46,69 @@ def batches(images: list[ImageSource]) -> Iterator[list[ImageSource]]:
         yield batch
 
 
-def _upload(client: GrpcClient, pid: str, batch: list[ImageSource], bar: Any) -> None:
-    sent = [0]
+class GrpcSubmitClient:
+    """``service.submit.SubmitClient`` over ``GrpcClient``."""
 
-    def count(n: int) -> None:
-        sent[0] += n
-        bar.update(n)
+    def __init__(self, target: str, key: str, **options: Any) -> None:
+        self.target = target
+        self.where = f"{target} (gRPC)"
+        self.client = GrpcClient(target, key, **options)
 
-    for attempt in range(RETRIES + 1):
-        sent[0] = 0
-        try:
-            client.upload(pid, batch, on_bytes=count)
-            return
-        except grpc.RpcError as e:
-            bar.update(-sent[0])  # the batch starts over
-            if e.code() != grpc.StatusCode.UNAVAILABLE or attempt == RETRIES:
-                raise
-            time.sleep(min(30.0, 2.0**attempt))
+    def create_project(self, name: str) -> str:
+        return str(self.client.create_project(name).id)
 
+    def upload(
+        self, project_id: str, images: list[tuple[Path, str]], on_bytes: Callable[[int], object]
+    ) -> None:
+        for batch in batches([ImageSource.of(path, capture) for path, capture in images]):
+            self._upload(project_id, batch, on_bytes)
 
-def submit(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    def _upload(self, project_id: str, batch: list[ImageSource], on_bytes: Callable[[int], object]) -> None:
+        sent = [0]
 
-    inputs = submit_inputs(args)
-    if isinstance(inputs, int):
-        return inputs
-    files, captures = inputs
-    wait = args.wait or args.out is not None
-    quiet = args.no_progress
-    server = args.grpc_server
-    client = GrpcClient(server, args.key)
-    try:
-        project = client.create_project(args.name or args.images.resolve().name)
-        pid = project.id
-        print(f"project {pid}: uploading {len(files)} images to {server} (gRPC)", file=sys.stderr)
-        images = [ImageSource.of(p, captures[p]) for p in files]
-        with tqdm(
-            total=sum(i.size() for i in images), unit="B", unit_scale=True, desc="upload", disable=quiet
-        ) as bar:
-            for batch in batches(images):
-                _upload(client, pid, batch, bar)
-        accepted = client.submit_matching(
-            pid,
-            pair_spec=args.pairs,
-            method=args.method,
-            resize=args.resize,
-            reconstruct=True,
-            mapper=args.mapper,
+        def count(n: int) -> None:
+            sent[0] += n
+            on_bytes(n)
+
+        for attempt in range(RETRIES + 1):
+            sent[0] = 0
+            try:
+                self.client.upload(project_id, batch, on_bytes=count)
+                return
+            except grpc.RpcError as e:
+                on_bytes(-sent[0])  # the batch starts over
+                if e.code() != grpc.StatusCode.UNAVAILABLE or attempt == RETRIES:
+                    raise
+                time.sleep(min(30.0, 2.0**attempt))
+
+    def match_and_reconstruct(
+        self, project_id: str, pairs: str | None, method: str | None, resize: int | None, mapper: str | None
+    ) -> tuple[str, str]:
+        accepted = self.client.submit_matching(
+            project_id, pair_spec=pairs, method=method, resize=resize, reconstruct=True, mapper=mapper
         )
-        match_id, recon_id = accepted.job.id, accepted.reconstruct_job.id
-        print(f"match job {match_id}, then reconstruct job {recon_id}", file=sys.stderr)
-        if not wait:
-            print(f"follow with: WatchJob {{job_id: {recon_id}}} on {server}")
-            print(pid)
-            return 0
-        job: Any = None
-        for job_id, desc in ((match_id, "match"), (recon_id, "reconstruct")):
-            with tqdm(total=0, unit="pair" if desc == "match" else "step", desc=desc, disable=quiet) as bar:
+        return accepted.job.id, accepted.reconstruct_job.id
 
-                def show(j: Any, bar: Any = bar) -> None:
-                    bar.total, bar.n = j.progress.total, j.progress.done
-                    bar.set_postfix_str(STATE[j.state].removeprefix("JOB_STATE_").lower())
-                    bar.refresh()
+    def follow_hint(self, job_id: str) -> str:
+        return f"WatchJob {{job_id: {job_id}}} on {self.target}"
 
-                job = client.wait(job_id, show)
-            if job.state != pb2.JOB_STATE_SUCCEEDED:
-                state = STATE[job.state].removeprefix("JOB_STATE_").lower()
-                print(f"geomatch: {desc} job {job_id} {state}: {job.error}", file=sys.stderr)
-                return EXIT_FAILED
-        summary = to_dict(job.result)
-        print(
-            f"registered {summary.get('registered', 0):.0f}/{summary.get('images', 0):.0f} images, "
-            f"{summary.get('points3D', 0):.0f} 3D points, "
-            f"mean track length {summary.get('mean_track_length', 0):.2f}, "
-            f"mean reprojection error {summary.get('mean_reprojection_error', 0):.3f} px"
-        )
-        if args.out is not None:
-            _, zpath = client.download_model(pid, Path(args.out) / "model.zip")
-            with zipfile.ZipFile(zpath) as z:
-                z.extractall(args.out)
-            zpath.unlink()
-            print(
-                f"model: {args.out}/sparse/0 (binary + text), {args.out}/points.ply, {args.out}/summary.json"
-            )
-        print(pid)
-        return 0
-    except grpc.RpcError as e:
-        code = e.code()
+    def wait(self, job_id: str, on_update: Callable[[JobView], object]) -> JobView:
+        def view(job: Any) -> JobView:
+            result = to_dict(job.result) if job.state == pb2.JOB_STATE_SUCCEEDED else {}
+            return JobView(STATE[job.state], job.progress.done, job.progress.total, job.error, result)
+
+        return view(self.client.wait(job_id, lambda job: on_update(view(job))))
+
+    def download(self, project_id: str, dest: Path) -> Path:
+        return self.client.download_model(project_id, dest)[1]
+
+    def failure(self, error: Exception) -> tuple[str, int] | None:
+        if not isinstance(error, grpc.RpcError):
+            return None
+        code = error.code()
         if code == grpc.StatusCode.UNAVAILABLE:
-            print(f"geomatch: error: {server} unreachable ({e.details()})", file=sys.stderr)
-            return EXIT_UNREACHABLE
-        print(f"geomatch: error: {code.name}: {e.details()}", file=sys.stderr)
-        return EXIT_BAD_INPUT if code in CLIENT_ERRORS else EXIT_FAILED
-    finally:
-        client.close()
+            return f"{self.target} unreachable ({error.details()})", EXIT_UNREACHABLE
+        return f"{code.name}: {error.details()}", EXIT_BAD_INPUT if code in CLIENT_ERRORS else EXIT_FAILED
+
+    def close(self) -> None:
+        self.client.close()

@@ -1,4 +1,4 @@
-"""Real gRPC servers for the tests: ``python -m app grpc-serve`` (gRPC alone, the production entry),
+"""Real gRPC servers for the tests: ``python -m geomatch_app grpc-serve`` (gRPC alone, the production entry),
 ``geomatch grpc-serve``, or ``geomatch serve`` with both APIs, on free loopback ports; ready when the
 standard health check answers SERVING. Built on ``harness.Deployment`` (its own GEOMATCH_HOME,
 Redis prefix and queue per deployment)."""
@@ -26,11 +26,11 @@ class GrpcDeployment(Deployment):
         self.target = ""
 
     def start_grpc(self, how: str = "module", timeout: float = 120.0) -> str:
-        """``how``: module (python -m app grpc-serve), grpc-serve, or serve (HTTP + gRPC)."""
+        """``how``: module (python -m geomatch_app grpc-serve), grpc-serve, or serve (HTTP + gRPC)."""
         port = free_port()
         self.root.mkdir(parents=True, exist_ok=True)
         if how == "module":
-            args = [sys.executable, "-m", "app", "grpc-serve", "--port", str(port)]
+            args = [sys.executable, "-m", "geomatch_app", "grpc-serve", "--port", str(port)]
             out = (self.root / "server.log").open("ab")
             self.server = subprocess.Popen(
                 args, env=self.env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True

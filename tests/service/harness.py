@@ -22,7 +22,7 @@ from typing import Any
 
 import httpx
 
-GEOMATCH = [sys.executable, "-m", "app"]  # the `geomatch` command (app.cli:main)
+GEOMATCH = [sys.executable, "-m", "geomatch_app"]  # the `geomatch` command (geomatch_app.cli:main)
 TERMINAL = ("succeeded", "failed", "cancelled")
 
 
@@ -134,6 +134,31 @@ class Deployment:
             return c.execute(sql, params).fetchall()
 
 
+POSTGRES_ADMIN = "postgresql://postgres@127.0.0.1:5432/postgres"
+
+
+@contextlib.contextmanager
+def postgres_database() -> Iterator[str | None]:
+    """A fresh PostgreSQL database's URL for one deployment, dropped afterwards; None when no
+    PostgreSQL answers on 127.0.0.1:5432 (the caller skips)."""
+    try:
+        import psycopg
+
+        with psycopg.connect(POSTGRES_ADMIN, connect_timeout=2, autocommit=True):
+            pass
+    except Exception:
+        yield None
+        return
+    name = f"gmtest_{uuid.uuid4().hex[:12]}"
+    with psycopg.connect(POSTGRES_ADMIN, autocommit=True) as c:
+        c.execute(f"CREATE DATABASE {name}")
+    try:
+        yield POSTGRES_ADMIN.rsplit("/", 1)[0] + f"/{name}"
+    finally:
+        with psycopg.connect(POSTGRES_ADMIN, autocommit=True) as c:
+            c.execute(f"DROP DATABASE {name} WITH (FORCE)")
+
+
 def wait_job(c: httpx.Client, job_id: str, timeout: float = 600.0, until: Any = None) -> dict[str, Any]:
     """Poll a job until it ends (or ``until(job)`` holds)."""
     deadline = time.monotonic() + timeout
@@ -185,3 +210,91 @@ def database_pairs(c: httpx.Client, project_id: str, dest: Path) -> list[tuple[s
     with contextlib.closing(sqlite3.connect(dest)) as con:
         pair_ids = [int(p) for (p,) in con.execute("SELECT pair_id FROM matches")]
     return sorted(tuple(sorted(names[i] for i in pycolmap.pair_id_to_image_pair(p))) for p in pair_ids)  # type: ignore[misc]
+
+
+# -- private servers for the chaos tests: restarted on the same port and data folder ---------------
+class PrivateRedis:
+    """`redis-server` on a free loopback port, persisting like docker-compose.yml's (append-only
+    file on, RDB snapshots at their defaults), its data in ``root``."""
+
+    BINARY = "/usr/bin/redis-server"
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.port = free_port()
+        self.url = f"redis://127.0.0.1:{self.port}/0"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self, timeout: float = 30.0) -> None:
+        import redis
+
+        self.root.mkdir(parents=True, exist_ok=True)
+        out = (self.root / "redis.log").open("ab")
+        self.proc = subprocess.Popen(
+            [
+                *(self.BINARY, "--port", str(self.port), "--bind", "127.0.0.1", "--dir", str(self.root)),
+                *("--appendonly", "yes", "--daemonize", "no", "--protected-mode", "no"),
+            ],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with contextlib.suppress(redis.RedisError):
+                if redis.Redis.from_url(self.url, socket_connect_timeout=1).ping():
+                    return
+            time.sleep(0.1)
+        raise RuntimeError(f"redis-server not ready: {(self.root / 'redis.log').read_text()[-2000:]}")
+
+    def stop(self, sig: int = signal.SIGTERM) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            Deployment.kill(self.proc, sig)
+        self.proc = None
+
+
+class PrivatePostgres:
+    """A PostgreSQL cluster of its own (initdb + pg_ctl, trust authentication, its unix socket in
+    its folder) on a free loopback port. As root, the server runs as the `postgres` user."""
+
+    def __init__(self) -> None:
+        import glob
+        import tempfile
+
+        found = sorted(glob.glob("/usr/lib/postgresql/*/bin/pg_ctl"))
+        if not found:
+            raise FileNotFoundError("no /usr/lib/postgresql/*/bin/pg_ctl")
+        self.bin = Path(found[-1]).parent
+        # not under pytest's 0700 temporary root: the postgres user must reach it
+        self.root = Path(tempfile.mkdtemp(prefix="gmtest-pg-"))
+        self.data = self.root / "data"
+        self.port = free_port()
+        self.url = f"postgresql://postgres@127.0.0.1:{self.port}/postgres"
+        self._as: list[str] = []
+        if os.geteuid() == 0:
+            import pwd
+
+            pw = pwd.getpwnam("postgres")
+            os.chown(self.root, pw.pw_uid, pw.pw_gid)
+            self._as = ["runuser", "-u", "postgres", "--"]
+        self._run("initdb", "-D", str(self.data), "-A", "trust", "-U", "postgres", "--no-sync", "-E", "UTF8")
+
+    def _run(self, tool: str, *args: str) -> None:
+        r = subprocess.run([*self._as, str(self.bin / tool), *args], capture_output=True, text=True)
+        if r.returncode != 0:
+            raise RuntimeError(f"{tool} failed: {r.stdout}\n{r.stderr}")
+
+    def start(self) -> None:
+        opts = f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1"
+        self._run("pg_ctl", "-D", str(self.data), "-o", opts, "-l", str(self.root / "pg.log"), "-w", "start")
+
+    def stop(self, mode: str = "fast") -> None:
+        """``immediate``: the server processes quit at once, as after a crash (recovery on start)."""
+        self._run("pg_ctl", "-D", str(self.data), "-m", mode, "-w", "stop")
+
+    def destroy(self) -> None:
+        import shutil
+
+        with contextlib.suppress(RuntimeError):
+            self.stop("immediate")
+        shutil.rmtree(self.root, ignore_errors=True)

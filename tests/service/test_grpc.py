@@ -1,4 +1,4 @@
-"""The gRPC API against real processes, Redis mode: ``python -m app grpc-serve`` on a loopback port
+"""The gRPC API against real processes, Redis mode: ``python -m geomatch_app grpc-serve`` on a loopback port
 and one ``geomatch worker``, real networks and pycolmap.
 
 End to end on the synthetic scene (streamed upload, WatchJob, GetModel, every image registered);

@@ -1,6 +1,6 @@
 """gRPC in the embedded default: ``geomatch serve`` runs HTTP and gRPC over one Service (one job
-runner, one configuration), MatchPair runs on that process's runner, ``geomatch submit --grpc``
-drives a whole batch; ports, and the generated code's build step and its errors."""
+runner, one configuration), MatchPair runs on that process's runner, ``geomatch submit`` (over
+gRPC and over HTTP) drives a whole batch; ports, and the generated code's build step and its errors."""
 
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def test_serve_runs_http_and_grpc_over_one_service(both: GrpcDeployment, key: st
 
 
 def test_match_pair_on_the_embedded_runner(both: GrpcDeployment, key: str, scene: Path) -> None:
-    """Matched as test_submit_over_grpc matches: that batch then finds these features on disk."""
+    """Matched as test_submit matches: its batches then find these features on disk."""
     method, resize = SUBMIT
     with both.grpc_client(key) as g:
         img = scene / "images"
@@ -78,28 +78,56 @@ def test_match_pair_on_the_embedded_runner(both: GrpcDeployment, key: str, scene
     assert both.wait_unstaged() == []
 
 
-def test_submit_over_grpc(both: GrpcDeployment, key: str, scene: Path, tmp_path: Path) -> None:
-    """`geomatch submit --grpc --out`: upload, match, reconstruct, wait, unpack the model."""
+def geomatch(args: list[str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*GEOMATCH, *args], capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.parametrize("transport", ["grpc", "http"])
+def test_submit(both: GrpcDeployment, key: str, scene: Path, tmp_path: Path, transport: str) -> None:
+    """`geomatch submit [--grpc] --out`: upload, match, reconstruct, wait, unpack the model; the one
+    flow (service.submit) through each client, with the same lines and exit codes."""
     folder = tmp_path / "batch"
     folder.mkdir()
     for n in GROUND:
         (folder / n).write_bytes((scene / "images" / n).read_bytes())
     out = tmp_path / "model"
-    args = ["submit", str(folder), "--grpc", "--grpc-server", both.target, "--key", key]
+    if transport == "grpc":
+        server, where = ["--grpc", "--grpc-server", both.target], f"{both.target} (gRPC)"
+    else:
+        server, where = ["--server", both.url], both.url
+    args = ["submit", str(folder), *server, "--key", key]
     args += ["--aerial", "aerial_*", "--method", SUBMIT[0], "--resize", str(SUBMIT[1])]
-    args += ["--out", str(out), "--no-progress"]
-    r = subprocess.run([*GEOMATCH, *args], capture_output=True, text=True, timeout=600)
+    r = geomatch([*args, "--out", str(out), "--no-progress"])
     assert r.returncode == 0, r.stderr + both.logs()
-    assert "(gRPC)" in r.stderr and "registered 4/4 images" in r.stdout, r.stdout
+    assert f"uploading 4 images to {where}\n" in r.stderr, r.stderr
+    assert "registered 4/4 images" in r.stdout, r.stdout
     pid = r.stdout.strip().splitlines()[-1]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["images"] == summary["registered"] == 4, summary  # measured: all four register
     assert (out / "sparse" / "0" / "cameras.bin").is_file() and (out / "points.ply").is_file()
     with both.grpc_client(key) as g:
         assert [i.capture for i in g.list_images(pid)] == [3] * 4  # --aerial given: the others are ground
+
+    # without --wait/--out: the jobs are queued, the command says how to follow them and ends
+    r = geomatch([*args, "--no-progress"])
+    assert r.returncode == 0, r.stderr
+    jobs = re.search(r"match job (\S+), then reconstruct job (\S+)", r.stderr)
+    assert jobs, r.stderr
+    follow, pid = r.stdout.strip().splitlines()
+    hint = (
+        f"WatchJob {{job_id: {jobs[2]}}} on {both.target}"
+        if transport == "grpc"
+        else f"{both.url}/v1/jobs/{jobs[2]}/events"
+    )
+    assert follow.startswith("follow with: ") and follow.endswith(hint), follow
+    with both.grpc_client(key) as g:
+        for job in (jobs[2], jobs[1]):
+            g.cancel_job(job)
+
     args[args.index(key)] = "gm_wrong"
-    bad = subprocess.run([*GEOMATCH, *args], capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "UNAUTHENTICATED" in bad.stderr, bad.stderr
+    bad = geomatch([*args])
+    assert bad.returncode == 2 and ("UNAUTHENTICATED" if transport == "grpc" else "HTTP 401") in bad.stderr
+    assert bad.stderr.startswith("geomatch: error: "), bad.stderr
 
 
 def test_explicit_port_taken_is_an_error(both: GrpcDeployment, tmp_path: Path) -> None:

@@ -4,23 +4,27 @@ transitions on SQLite and PostgreSQL."""
 
 from __future__ import annotations
 
+import re
+import struct
 import subprocess
 import sys
 import uuid
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image as PILImage
 from sqlalchemy import select
 
-from core import jobstate
-from core.errors import BadFile, InvalidRequest
-from core.models import Job, JobPair, Project, Tenant
-from core.store import MetadataStore
 from geomatch import steps
 from geomatch.homography import WarpedPair
 from geomatch.pairs import PairSpecError, parse_spec
+from geomatch_core import jobstate
+from geomatch_core.errors import BadFile, InvalidRequest
+from geomatch_core.models import Job, JobPair, Project, Tenant
+from geomatch_core.store import MetadataStore
 from service import validation
 
 
@@ -52,7 +56,9 @@ def test_pair_grammar_is_the_librarys(spec: str) -> None:
     assert service_ok == library_ok
 
 
-@pytest.mark.parametrize("name", ["a.jpg", "DJI_0001.JPG", "photo 1.png", "é.png", "a.b.c.tif"])
+@pytest.mark.parametrize(
+    "name", ["a.jpg", "DJI_0001.JPG", "photo 1.png", "é.png", "a.b.c.tif", "文" * 83 + ".png"]
+)
 def test_names_accepted(name: str) -> None:
     assert validation.check_name(name) == name
 
@@ -72,6 +78,9 @@ def test_names_accepted(name: str) -> None:
         ".hidden.png",
         "a\0.png",
         "x" * 300,
+        "文" * 100 + ".jpg",  # 104 characters, 304 bytes: over what a file system takes
+        "a\ud800.png",
+        "c1\x85.png",
     ],
 )
 def test_names_refused(name: str | None) -> None:
@@ -79,10 +88,79 @@ def test_names_refused(name: str | None) -> None:
         validation.check_name(name)
 
 
+ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+
+
+def png(ihdr: bytes, raw: bytes) -> bytes:
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    idat = chunk(b"IDAT", zlib.compress(raw))
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + idat + chunk(b"IEND", b"")
+
+
+def test_png_check_takes_every_kind_of_png_and_refuses_damage(tmp_path: Path) -> None:
+    """The upload check streams a PNG's data instead of decoding it: it must agree with Pillow on
+    what a whole PNG is (bit depths, palettes, interlacing) and still find damage."""
+    rng = np.random.default_rng(0)
+    rgb = (rng.random((37, 29, 3)) * 255).astype(np.uint8)
+    path = tmp_path / "x.png"
+    for mode in ("1", "L", "LA", "P", "RGB", "RGBA"):
+        PILImage.fromarray(rgb).convert(mode).save(path)
+        assert validation.check_image(path, "x.png", 10**9) == validation.ImageInfo(29, 37, "png"), mode
+    PILImage.fromarray(rgb[..., 0].astype(np.uint16) * 200).save(path)  # 16 bits
+    assert validation.check_image(path, "x.png", 10**9).width == 29
+    # Pillow writes no interlaced PNG: one by hand, Adam7 passes of unfiltered rows
+    ihdr = struct.pack(">IIBBBBB", 29, 37, 8, 2, 0, 0, 1)
+    passes = b"".join(b"\0" + r.tobytes() for x, y, dx, dy in ADAM7 for r in rgb[y::dy, x::dx] if r.size)
+    path.write_bytes(png(ihdr, passes))
+    with PILImage.open(path) as im:
+        assert im.info.get("interlace") and np.array_equal(np.asarray(im.convert("RGB")), rgb)
+    assert validation.check_image(path, "x.png", 10**9).height == 37
+
+    whole = png(struct.pack(">IIBBBBB", 29, 37, 8, 2, 0, 0, 0), b"".join(b"\0" + r.tobytes() for r in rgb))
+    flipped = bytearray(whole)
+    flipped[len(whole) // 2] ^= 0xFF
+    short = png(struct.pack(">IIBBBBB", 29, 37, 8, 2, 0, 0, 0), b"\0" * 100)  # valid CRCs, too little data
+    for label, data, message in [
+        ("cut", whole[: len(whole) // 2], "truncated file"),
+        ("cut before IEND", whole[:-12], "truncated file"),
+        ("flipped byte", bytes(flipped), "zlib: Error -3"),  # found inflating, before the CRC
+        ("too little data", short, "truncated image data (100 of"),
+    ]:
+        path.write_bytes(data)
+        with pytest.raises(BadFile, match="truncated or corrupt image data") as e:
+            validation.check_image(path, "x.png", 10**9)
+        assert message in e.value.message, (label, e.value.message)
+
+
+def test_project_name_pattern_is_the_use_cases_rule() -> None:
+    """OpenAPI's pattern and length for a project name take exactly what the use case stores:
+    every BMP character alone, between letters, and at either end, against check_project_name."""
+    pattern = re.compile(validation.PROJECT_NAME_PATTERN)
+
+    def schema_valid(name: str) -> bool:
+        return pattern.fullmatch(name) is not None and len(name) <= validation.MAX_PROJECT_NAME
+
+    def accepted(name: str) -> bool:
+        try:
+            validation.check_project_name(name)
+        except InvalidRequest:
+            return False
+        return True
+
+    for cp in [*range(0xD800), *range(0xE000, 0x10000), 0x1F600, 0x10FFFF]:
+        c = chr(cp)
+        for name in (c, f"a{c}b", f"{c}ab", f"ab{c}", f"{c}{c}"):
+            assert schema_valid(name) == accepted(name), (hex(cp), name)
+    for name in ("", " ", "a" * 200, "a" * 201, " " + "a" * 200, "\ta b\n", "a\tb"):
+        assert schema_valid(name) == accepted(name), name
+
+
 def test_service_modules_do_not_import_torch() -> None:
     code = (
-        "import sys, service.api, app.bootstrap, app.cli, service.cli, workers.celery_queue, "
-        "workers.local, workers.tasks, workers.jobs, workers.steps; "
+        "import sys, service.api, geomatch_app.bootstrap, geomatch_app.cli, service.cli, "
+        "workers.celery_queue, workers.local, workers.tasks, workers.jobs, workers.steps; "
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'geomatch', 'cv2')))"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

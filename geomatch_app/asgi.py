@@ -1,4 +1,4 @@
-"""ASGI entry point for production servers: ``uvicorn app.asgi:app``.
+"""ASGI entry point for production servers: ``uvicorn geomatch_app.asgi:app``.
 
 The HTTP API without the ``geomatch`` command around it; settings come from the environment,
 as for every process.
@@ -6,7 +6,7 @@ as for every process.
 
 from __future__ import annotations
 
-from core.config import Settings
+from geomatch_core.config import Settings
 from service import logs
 from service.api import create_app
 

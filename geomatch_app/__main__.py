@@ -1,4 +1,4 @@
-"""``python -m app``: the ``geomatch`` command."""
+"""``python -m geomatch_app``: the ``geomatch`` command."""
 
 from __future__ import annotations
 

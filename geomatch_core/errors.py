@@ -40,9 +40,18 @@ class DecompressionBomb(TooLarge):
     """Pixels over the limit: a bad image rather than a big upload (gRPC tells them apart)."""
 
 
+class Overloaded(DomainError):
+    """Too many calls of one kind open at once (a tenant's streams): retry when one has ended."""
+
+
 class Conflict(DomainError):
     """The request contradicts the project's current state."""
 
 
 class Unavailable(DomainError):
     """A dependency (workers, Redis) did not answer in time; retrying later may succeed."""
+
+
+class InsufficientStorage(DomainError):
+    """The storage root is full (ENOSPC): nothing of the request was kept; retry when space is
+    freed."""

@@ -2,7 +2,7 @@
 
 The library's commands (match, run, eval, demo, synth) come from ``geomatch.cli``, the client-side
 ones (keys, submit) from ``service.cli``; the commands that put a service together with a job
-runner (serve, grpc-serve, worker) live here, with ``app.bootstrap``. Everything heavy (FastAPI,
+runner (serve, grpc-serve, worker) live here, with ``geomatch_app.bootstrap``. Everything heavy (FastAPI,
 Celery, grpc, torch) is imported inside the command that needs it, so parsing is cheap.
 """
 
@@ -61,13 +61,32 @@ def main(argv: list[str] | None = None) -> int:
 
 
 # -- serve ---------------------------------------------------------------------------------------
+def announce(service: Any, what: str, keys_hint: str = "", curl_base: str | None = None) -> None:
+    """What a server prints once it listens: ``what`` (where), the mode, and in embedded mode the
+    key of the tenant 'local' (with a curl line against ``curl_base``)."""
+    from service.auth import embedded_key
+
+    settings = service.settings
+    if not settings.embedded:
+        print(
+            f"{what}, jobs go to Celery queue '{settings.queue}' on REDIS_URL: start workers with "
+            f"`geomatch worker`{keys_hint}",
+            flush=True,
+        )
+        return
+    key = embedded_key(service.store, settings.home)
+    print(f"{what}, embedded mode: jobs run in this process, state under {settings.home}", flush=True)
+    print(f"API key (tenant 'local'): {key}", flush=True)
+    if curl_base is not None:
+        print(f"  curl -H 'Authorization: Bearer {key}' {curl_base}/v1/projects", flush=True)
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from core.config import Settings
+    from geomatch_core.config import Settings
     from service import logs
     from service.api import create_app
-    from service.auth import embedded_key
 
     from .bootstrap import build_service, close_service
 
@@ -80,21 +99,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
         close_service(service)
         raise
     base = f"http://{args.host}:{args.port}"
-    if settings.embedded:
-        key = embedded_key(service.store, settings.home)
-        print(
-            f"geomatch API on {base} (OpenAPI: {base}/docs), embedded mode: jobs run in this process, "
-            f"state under {settings.home}",
-            flush=True,
-        )
-        print(f"API key (tenant 'local'): {key}", flush=True)
-        print(f"  curl -H 'Authorization: Bearer {key}' {base}/v1/projects", flush=True)
-    else:
-        print(
-            f"geomatch API on {base} (OpenAPI: {base}/docs), jobs go to Celery queue '{settings.queue}' "
-            "on REDIS_URL: start workers with `geomatch worker`; keys with `geomatch keys create TENANT`",
-            flush=True,
-        )
+    announce(
+        service,
+        f"geomatch API on {base} (OpenAPI: {base}/docs)",
+        keys_hint="; keys with `geomatch keys create TENANT`",
+        curl_base=base,
+    )
     server = uvicorn.Server(
         uvicorn.Config(create_app(service), host=args.host, port=args.port, log_level="warning")
     )
@@ -108,9 +118,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def cmd_grpc_serve(args: argparse.Namespace) -> int:
-    from core.config import Settings
+    from geomatch_core.config import Settings
     from service import logs
-    from service.auth import embedded_key
     from service.grpcapi.pb import GeneratedCodeMissing
 
     from .bootstrap import build_service, close_service
@@ -129,21 +138,7 @@ def cmd_grpc_serve(args: argparse.Namespace) -> int:
         except PortInUse as e:
             print(f"geomatch: error: {e}", file=sys.stderr)
             return EXIT_BAD_INPUT
-        where = address(args.host, server.port)
-        if settings.embedded:
-            key = embedded_key(service.store, settings.home)
-            print(
-                f"gRPC (geomatch.v1.Matching) on {where}, embedded mode: jobs run in this process, "
-                f"state under {settings.home}",
-                flush=True,
-            )
-            print(f"API key (tenant 'local'): {key}", flush=True)
-        else:
-            print(
-                f"gRPC (geomatch.v1.Matching) on {where}, jobs go to Celery queue '{settings.queue}' on "
-                "REDIS_URL: start workers with `geomatch worker`",
-                flush=True,
-            )
+        announce(service, f"gRPC (geomatch.v1.Matching) on {address(args.host, server.port)}")
         done = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: done.set())
@@ -156,9 +151,9 @@ def cmd_grpc_serve(args: argparse.Namespace) -> int:
 
 # -- worker --------------------------------------------------------------------------------------
 def cmd_worker(args: argparse.Namespace) -> int:
-    from core.config import Settings
-    from core.storage import Storage
-    from core.store import MetadataStore
+    from geomatch_core.config import Settings
+    from geomatch_core.storage import Storage
+    from geomatch_core.store import MetadataStore
     from service import logs
 
     settings = Settings.from_env()
@@ -177,9 +172,9 @@ def cmd_worker(args: argparse.Namespace) -> int:
     store.create_all()  # a worker may start before the first API process
     store.dispose()
     Storage(settings.home).ensure()
-    app = make_app(settings)
-    register_tasks(app)
-    app.worker_main(
+    celery = make_app(settings)
+    register_tasks(celery)
+    celery.worker_main(
         [
             "worker",
             f"--loglevel={args.loglevel}",

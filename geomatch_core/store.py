@@ -14,9 +14,10 @@ from typing import Any
 
 from sqlalchemy import create_engine, event, text
 from sqlalchemy.engine import Engine
-from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
+from .errors import Unavailable
 from .models import Base
 
 
@@ -51,9 +52,26 @@ class MetadataStore:
 
     @contextmanager
     def session(self) -> Iterator[Session]:
-        """One transaction: committed on success, rolled back on any exception."""
-        with self._sessions() as s, s.begin():
-            yield s
+        """One transaction: committed on success, rolled back on any exception.
+
+        A server database that cannot be reached (down, restarting, the connection dropped
+        mid-transaction) raises ``Unavailable``: nothing of the transaction was committed and a
+        retry may succeed (the pool pings connections before use, so the next session after a
+        restart reconnects). SQLite's own errors (a full disk, a lock) pass through as they are."""
+        try:
+            with self._sessions() as s, s.begin():
+                yield s
+        except DBAPIError as e:
+            if not self._lost_connection(e):
+                raise
+            raise Unavailable(
+                f"the metadata database is not reachable ({type(e.orig).__name__}); retry"
+            ) from e
+
+    def _lost_connection(self, e: DBAPIError) -> bool:
+        if e.connection_invalidated:
+            return True
+        return not self.url.startswith("sqlite") and isinstance(e, OperationalError | InterfaceError)
 
     def ping(self) -> None:
         with self.engine.connect() as c:

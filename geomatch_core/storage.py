@@ -15,13 +15,17 @@ sees half a file and a crash leaves only temporaries behind.
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import hashlib
 import os
 import shutil
 import sqlite3
 import tempfile
+import time
 import uuid
-from contextlib import closing
+from collections.abc import Iterator
+from contextlib import closing, contextmanager, suppress
 from pathlib import Path
 
 
@@ -73,11 +77,45 @@ class Storage:
         fd, name = tempfile.mkstemp(dir=self.tmp_dir, prefix="upload-")
         return fd, Path(name)
 
-    def work_dir(self, project_id: str, tag: str) -> Path:
-        """A fresh folder inside the project (same file system as its final place)."""
+    @contextmanager
+    def work(self, project_id: str, tag: str) -> Iterator[Path]:
+        """A fresh folder inside the project, removed on exit; its owner holds an flock on its
+        ``.owner.lock`` while it lives, which the kernel drops if the owner dies (SIGKILL), so
+        ``remove_stale_work`` can tell a crashed attempt's folder from a live one."""
         d = self.project_dir(project_id) / f".work-{tag}-{uuid.uuid4().hex[:8]}"
         d.mkdir(parents=True)
-        return d
+        fd = os.open(d / ".owner.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            yield d
+        finally:
+            shutil.rmtree(d, ignore_errors=True)
+            os.close(fd)
+
+    def remove_stale_work(self, project_id: str, grace_s: float = 60.0) -> list[str]:
+        """Remove the project's work folders whose owner is gone (its lock is free); a folder
+        without a lock file yet is left alone for ``grace_s`` (it is being created)."""
+        d = self.project_dir(project_id)
+        removed: list[str] = []
+        for w in sorted(d.glob(".work-*")) if d.is_dir() else []:
+            lock = w / ".owner.lock"
+            try:
+                if not lock.exists():
+                    if time.time() - w.stat().st_mtime < grace_s:
+                        continue
+                else:
+                    fd = os.open(lock, os.O_RDWR)
+                    try:
+                        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    except BlockingIOError:
+                        continue  # a live attempt
+                    finally:
+                        os.close(fd)
+            except FileNotFoundError:  # its owner finished meanwhile
+                continue
+            shutil.rmtree(w, ignore_errors=True)
+            removed.append(w.name)
+        return removed
 
     def replace_dir(self, src: Path, dst: Path) -> None:
         """Put ``src`` at ``dst``; the old ``dst`` (if any) goes away after the swap."""
@@ -97,6 +135,15 @@ class Storage:
             os.replace(d, trash)  # gone from its place at once; the slow part happens after
             shutil.rmtree(trash, ignore_errors=True)
 
+    def check_space(self, nbytes: int) -> None:
+        """Test hook, off unless GEOMATCH_TEST_FILL_LIMIT is set: pretend the storage root's file
+        system holds only that many bytes, and raise ENOSPC for a write of ``nbytes`` that would
+        not fit (the chaos tests' full disk without root or a small file system). Read at each
+        call; costs one walk of the root when set, nothing otherwise."""
+        limit = os.environ.get("GEOMATCH_TEST_FILL_LIMIT", "").strip()
+        if limit and disk_usage(self.root) + nbytes > int(limit):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self.root))
+
     def check_writable(self) -> None:
         self.tmp_dir.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(dir=self.tmp_dir, prefix="ready-")
@@ -105,6 +152,15 @@ class Storage:
         finally:
             os.close(fd)
             os.unlink(name)
+
+
+def disk_usage(root: Path) -> int:
+    total = 0
+    for dirpath, _dirs, files in os.walk(root):
+        for f in files:
+            with suppress(OSError):  # removed while walked
+                total += os.lstat(os.path.join(dirpath, f)).st_size
+    return total
 
 
 def picture_name(name0: str, name1: str) -> str:

@@ -6,10 +6,10 @@ embedded default), jobs run on threads of this process and writers lock with fil
 
 from __future__ import annotations
 
-from core.config import Settings
-from core.locks import FileLocks, RedisLocks
-from core.storage import Storage
-from core.store import MetadataStore
+from geomatch_core.config import Settings
+from geomatch_core.locks import FileLocks, RedisLocks
+from geomatch_core.storage import Storage
+from geomatch_core.store import MetadataStore
 from service.usecases import Service
 
 

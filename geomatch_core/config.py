@@ -33,8 +33,13 @@ class Settings:
     lock_timeout_s: int = 120  # GEOMATCH_LOCK_TIMEOUT: a dead writer's lock expires after this
     device: str = "auto"  # GEOMATCH_DEVICE: where workers run the networks
     feature_cache_mb: int = 20_000  # GEOMATCH_FEATURE_CACHE_MB: on-disk feature cache cap (0: off)
+    # GEOMATCH_CACHE_MB: in-memory caches of one worker thread (features, anchors), all matchers
+    # together; features the on-disk cache can reload are cheap to drop
+    cache_mb: int = 1536
     embedded_threads: int = 1  # GEOMATCH_EMBEDDED_THREADS: job threads of the embedded runner
     render_timeout_s: int = 120  # GEOMATCH_RENDER_TIMEOUT: how long a matches.png request waits
+    grpc_tenant_streams: int = 16  # GEOMATCH_GRPC_TENANT_STREAMS: streaming calls one tenant may hold open
+    grpc_stream_idle_s: int = 120  # GEOMATCH_GRPC_STREAM_IDLE: a request stream quiet this long is cut
 
     @property
     def embedded(self) -> bool:
@@ -55,6 +60,9 @@ class Settings:
             lock_timeout_s=_int("GEOMATCH_LOCK_TIMEOUT", 120),
             device=os.environ.get("GEOMATCH_DEVICE", "auto"),
             feature_cache_mb=_int("GEOMATCH_FEATURE_CACHE_MB", 20_000),
+            cache_mb=max(64, _int("GEOMATCH_CACHE_MB", 1536)),
             embedded_threads=max(1, _int("GEOMATCH_EMBEDDED_THREADS", 1)),
             render_timeout_s=_int("GEOMATCH_RENDER_TIMEOUT", 120),
+            grpc_tenant_streams=max(1, _int("GEOMATCH_GRPC_TENANT_STREAMS", 16)),
+            grpc_stream_idle_s=max(1, _int("GEOMATCH_GRPC_STREAM_IDLE", 120)),
         )

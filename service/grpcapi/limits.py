@@ -1,0 +1,125 @@
+"""What keeps one client from stalling the gRPC server.
+
+grpcio's synchronous server runs every call, health checks included, on one pool of threads, and
+a streaming call holds its thread for as long as it is open: 70 idle UploadImages streams of one
+tenant used to take all 64, and health and GetProject then waited for a thread that never came.
+Three rules keep the server answering:
+
+- streaming calls (UploadImages, MatchPair, WatchJob, GetModel) hold at most ``STREAMS`` threads in
+  all, so ``RESERVED`` threads are always left for unary calls and health checks;
+- one tenant holds at most ``Settings.grpc_tenant_streams`` of those, so it cannot take the others'
+  share either; a call past either limit is refused at once with RESOURCE_EXHAUSTED;
+- a request stream that sends nothing for ``Settings.grpc_stream_idle_s`` is cancelled, which
+  gives its thread (and its tenant's slot) back.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+import grpc
+
+from geomatch_core.errors import Overloaded
+
+log = logging.getLogger("geomatch.service.grpc")
+
+THREADS = 64  # the server's handler threads
+RESERVED = 16  # of those, never taken by streams: unary calls and health checks
+STREAMS = THREADS - RESERVED
+
+
+class StreamSlots:
+    """Counts open streaming calls, in all and per tenant; ``open`` refuses one over a limit."""
+
+    def __init__(self, total: int, per_tenant: int) -> None:
+        self.total = total
+        self.per_tenant = per_tenant
+        self._lock = threading.Lock()
+        self._open = 0
+        self._by_tenant: dict[str, int] = {}
+
+    @contextmanager
+    def open(self, tenant_id: str) -> Iterator[None]:
+        with self._lock:
+            mine = self._by_tenant.get(tenant_id, 0)
+            if mine >= self.per_tenant:
+                raise Overloaded(
+                    f"this key's tenant has {mine} streaming calls open, the most one tenant may "
+                    "hold at once; retry when one has ended"
+                )
+            if self._open >= self.total:
+                raise Overloaded(
+                    f"the server has {self._open} streaming calls open, the most it serves at once; "
+                    "retry shortly"
+                )
+            self._open += 1
+            self._by_tenant[tenant_id] = mine + 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._open -= 1
+                left = self._by_tenant[tenant_id] - 1
+                if left:
+                    self._by_tenant[tenant_id] = left
+                else:
+                    del self._by_tenant[tenant_id]
+
+    def counts(self) -> tuple[int, dict[str, int]]:
+        with self._lock:
+            return self._open, dict(self._by_tenant)
+
+
+class IdleStreams:
+    """Cancels request streams that went quiet. A thread blocked reading the next message of a
+    stream cannot be woken otherwise; the cancellation ends the read, the call's handler unwinds
+    (nothing is stored: uploads are all or nothing) and the client sees CANCELLED."""
+
+    def __init__(self, idle_s: float) -> None:
+        self.idle_s = idle_s
+        self._lock = threading.Lock()
+        self._last: dict[int, tuple[grpc.ServicerContext, float]] = {}
+        self._thread: threading.Thread | None = None
+
+    @contextmanager
+    def watch(self, context: grpc.ServicerContext) -> Iterator[Callable[[bool], None]]:
+        """Yields ``heard(ended)``, to call on every message received (``False``) and once the
+        client has closed its side (``True``: from then on the call waits for the server only,
+        MatchPair for its worker, and is not idle)."""
+        key = id(context)
+
+        def heard(ended: bool) -> None:
+            with self._lock:
+                if ended:
+                    self._last.pop(key, None)
+                else:
+                    self._last[key] = (context, time.monotonic())
+
+        heard(False)
+        self._start()
+        try:
+            yield heard
+        finally:
+            heard(True)
+
+    def _start(self) -> None:
+        with self._lock:
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._loop, name="geomatch-grpc-idle", daemon=True)
+                self._thread.start()
+
+    def _loop(self) -> None:
+        while True:
+            time.sleep(min(1.0, self.idle_s / 4))
+            now = time.monotonic()
+            with self._lock:
+                quiet = [(k, c) for k, (c, t) in self._last.items() if now - t > self.idle_s]
+                for k, _ in quiet:
+                    del self._last[k]
+            for _, context in quiet:
+                log.warning("gRPC: a request stream sent nothing for %ss: cancelled", self.idle_s)
+                context.cancel()

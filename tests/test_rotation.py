@@ -1,0 +1,45 @@
+"""Quarter turns: the geometry of mapping points back, and the probe on a real rotated pair."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from geomatch import Matcher
+from geomatch.homography import WarpedPair, reprojection_errors
+from geomatch.pairs import Pair, finalize
+from geomatch.rotation import best_turn, points_back, quarter_turn
+from geomatch.steps import match
+
+
+@pytest.mark.parametrize("turns", [0, 1, 2, 3])
+def test_points_come_back_to_the_same_pixel(turns: int) -> None:
+    rng = np.random.default_rng(turns)
+    img = rng.integers(0, 255, size=(7, 11, 3), dtype=np.uint8)
+    turned = quarter_turn(img, turns)
+    h, w = turned.shape[:2]
+    pts = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2).astype(np.float64)
+    back = points_back(pts, turns, img.shape[1], img.shape[0]).round().astype(int)
+    assert np.array_equal(turned[pts[:, 1].astype(int), pts[:, 0].astype(int)], img[back[:, 1], back[:, 0]])
+
+
+def test_pairs_with_an_aerial_side_are_turned() -> None:
+    plan = {(p.name0, p.name1): p.rotate for p in finalize([("a", "b"), ("a", "g"), ("g", "h")], {"a", "b"})}
+    assert plan == {("a", "b"): True, ("a", "g"): True, ("g", "h"): False}
+
+
+def test_a_turned_image_is_matched_at_its_turn_and_mapped_back(
+    matcher: Matcher, astronaut_pair: WarpedPair
+) -> None:
+    sparse = matcher.derive(method="sparse", max_keypoints=1024)  # 4 turns x LightGlue: keep it light
+    turned = quarter_turn(astronaut_pair.image1, 1)
+    assert best_turn(sparse, astronaut_pair.image0, turned) == 3  # three more make four
+    assert best_turn(sparse, astronaut_pair.image0, astronaut_pair.image1) == 0
+    upright = match(sparse, Pair("a", "b"), astronaut_pair.image0, turned)
+    m = match(sparse, Pair("a", "b", rotate=True), astronaut_pair.image0, turned)
+    assert len(m) > 3 * max(len(upright), 1)
+    # keypoints1 are in the frame of the image as given (turned once): undo that turn to compare
+    h, w = astronaut_pair.image1.shape[:2]
+    k1 = points_back(m.keypoints1, 1, w, h)
+    err = reprojection_errors(astronaut_pair.H, m.keypoints0, k1)
+    assert np.median(err) < 1.5
