@@ -76,6 +76,11 @@ class MatcherConfig:
     # the ``lightglue`` dense branch needs. Chosen by measurement: docs/benchmarks.md.
     lightglue_depth_confidence: float = -1.0
     lightglue_width_confidence: float = -1.0
+    # the quarter-turn probe (geomatch.rotation) only ranks four turns, so it matches each image's
+    # strongest ``probe_keypoints`` with LightGlue's adaptive depth and width on: on the 2-core CPU
+    # a full-strength call on 2048 + 2048 points takes ~8 s, four of them per pair dominated an
+    # aerial pair (bench/quarter_turns.py compares the two probes' choices)
+    probe_keypoints: int = 512
     dense_temperature: float | None = None  # None: the head's own (0.02 descriptor maps, 0.1 LoFTR)
     loftr_weights: str | None = DEFAULTS["loftr_weights"]
     geo: GeoOptions = field(default_factory=GeoOptions)
@@ -203,6 +208,7 @@ class Matcher:
         self._extractors: dict[str, Extractor] = {}
         self._sparse: SparseMatcher | None = None
         self._dense_lightglue: SparseMatcher | None = None
+        self._probe: SparseMatcher | None = None
         self._dense: DenseHead | None = None
         self._cache: OrderedDict[tuple[str, str, int | None], tuple[ImageFeatures, Prepared]] = OrderedDict()
         self.extract_calls = 0
@@ -226,6 +232,8 @@ class Matcher:
             return other  # networks built differently: nothing to share
         other._extractors = self._extractors
         other._cache = self._cache
+        if (a.sparse, a.lightglue_threshold) == (b.sparse, b.lightglue_threshold):
+            other._probe = self._probe
 
         def lightglue(c: MatcherConfig) -> tuple[object, ...]:
             return (
@@ -253,6 +261,16 @@ class Matcher:
         if self._sparse is None:
             self._sparse = build_sparse_matcher(self.config, self.device)
         return self._sparse
+
+    @property
+    def probe_matcher(self) -> SparseMatcher:
+        """LightGlue with its own adaptive depth and width (0.95 / 0.99): the turn probe's."""
+        if self._probe is None:
+            self._probe = build_sparse_matcher(
+                replace(self.config, lightglue_depth_confidence=0.95, lightglue_width_confidence=0.99),
+                self.device,
+            )
+        return self._probe
 
     @property
     def dense_lightglue(self) -> SparseMatcher:
@@ -370,6 +388,18 @@ class Matcher:
         sb = probe.features(image1, key1)[self.config.sparse].sparse
         assert sa is not None and sb is not None
         return int(probe._match_anchors(key0, key1, sa, sb).idx_a.numel())
+
+    @torch.inference_mode()
+    def probe_count(self, image0: np.ndarray, image1: np.ndarray) -> int:
+        """LightGlue matches among each image's ``probe_keypoints`` strongest keypoints, pruned: a
+        cheap rank of the quarter turns. Only the sparse features are extracted (a turned image the
+        probe rejects never gets dense maps); nothing is cached beyond those features."""
+        probe = self if self.config.method == "sparse" else self.derive(method="sparse")
+        sa = probe.features(image0)[self.config.sparse].sparse
+        sb = probe.features(image1)[self.config.sparse].sparse
+        assert sa is not None and sb is not None
+        n = self.config.probe_keypoints
+        return int(self.probe_matcher.match(_strongest(sa, n), _strongest(sb, n)).idx_a.numel())
 
     @torch.inference_mode()
     def match(self, image0: np.ndarray, image1: np.ndarray) -> MatchResult:
@@ -535,6 +565,13 @@ class Matcher:
                 )
         stats["coarse_matches"] = int(ci.numel())
         return ga[ci], gb[cj], conf.float()
+
+
+def _strongest(f: SparseFeatures, n: int) -> SparseFeatures:
+    if f.keypoints.shape[0] <= n:
+        return f
+    idx = torch.topk(f.scores, n).indices
+    return SparseFeatures(f.keypoints[idx], f.descriptors[idx], f.scores[idx], f.image_size)
 
 
 def _entry_nbytes(feats: ImageFeatures, prep: Prepared) -> int:
