@@ -9,6 +9,7 @@ import contextlib
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +82,19 @@ class GrpcDeployment(Deployment):
         while self.staged() and time.monotonic() < deadline:
             time.sleep(0.1)
         return self.staged()
+
+
+@contextlib.contextmanager
+def running_grpc(
+    root: Path, redis_url: str | None, how: str = "module", **env: str
+) -> Iterator[GrpcDeployment]:
+    """A deployment whose gRPC server is up (``how`` as in ``start_grpc``), stopped on exit."""
+    d = GrpcDeployment(root, redis_url, **env)
+    try:
+        d.start_grpc(how)
+        yield d
+    finally:
+        d.stop()
 
 
 def code_of(call: Any) -> grpc.StatusCode:

@@ -17,6 +17,7 @@ import sys
 import time
 import uuid
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -157,6 +158,37 @@ def postgres_database() -> Iterator[str | None]:
     finally:
         with psycopg.connect(POSTGRES_ADMIN, autocommit=True) as c:
             c.execute(f"DROP DATABASE {name} WITH (FORCE)")
+
+
+@dataclass
+class KillSetup:
+    d: Deployment
+    worker: subprocess.Popen[bytes]
+    key: str
+    c: httpx.Client
+    pid: str
+    job_id: str
+
+
+@contextlib.contextmanager
+def ground_match_under_kill(
+    root: Path, redis_url: str, scene: Path, names: list[str], tenant: str
+) -> Iterator[KillSetup]:
+    """A Redis deployment with short visibility and lock timeouts (a killed worker's task and lock
+    come back in 15 s), a server and one worker, and a project whose ground images ``names`` are
+    uploaded and being matched at 320 px; stopped on exit."""
+    d = Deployment(root, redis_url, GEOMATCH_VISIBILITY_TIMEOUT="15", GEOMATCH_LOCK_TIMEOUT="15")
+    try:
+        d.start_server()
+        worker = d.start_worker()
+        key = d.create_key(tenant)
+        c = d.client(key)
+        pid = c.post("/v1/projects", json={"name": tenant}).json()["id"]
+        assert upload(c, pid, [scene / "images" / n for n in names], "ground").status_code == 201
+        job_id = c.post(f"/v1/projects/{pid}/match", json={"resize": 320}).json()["job_id"]
+        yield KillSetup(d, worker, key, c, pid, job_id)
+    finally:
+        d.stop()
 
 
 def wait_job(c: httpx.Client, job_id: str, timeout: float = 600.0, until: Any = None) -> dict[str, Any]:

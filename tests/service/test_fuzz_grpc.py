@@ -36,7 +36,7 @@ from hypothesis import strategies as st
 from service.grpcapi.client import ImageSource
 from service.grpcapi.pb import SERVICE, pb2
 
-from .grpc_harness import GrpcDeployment
+from .grpc_harness import GrpcDeployment, running_grpc
 
 EXAMPLES = 200  # generated calls per method
 FORBIDDEN = {grpc.StatusCode.INTERNAL, grpc.StatusCode.UNKNOWN}
@@ -56,12 +56,8 @@ SETTINGS = settings(
 
 @pytest.fixture(scope="module")
 def dep(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[GrpcDeployment]:
-    d = GrpcDeployment(tmp_path_factory.mktemp("fuzz-grpc"), redis_url, GEOMATCH_MAX_UPLOAD_MB="6")
-    try:
-        d.start_grpc("module")
+    with running_grpc(tmp_path_factory.mktemp("fuzz-grpc"), redis_url, GEOMATCH_MAX_UPLOAD_MB="6") as d:
         yield d
-    finally:
-        d.stop()
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,7 @@ import pytest
 from service.grpcapi import codegen
 from service.grpcapi.client import GrpcClient, ImageSource
 
-from .grpc_harness import GrpcDeployment
+from .grpc_harness import GrpcDeployment, running_grpc
 from .harness import GEOMATCH, free_port, upload
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -31,12 +31,8 @@ SUBMIT = ("sparse", 320)  # the four ground images register at this (measured), 
 
 @pytest.fixture(scope="module")
 def both(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GrpcDeployment]:
-    d = GrpcDeployment(tmp_path_factory.mktemp("grpc-embedded"), None)
-    try:
-        d.start_grpc("serve")
+    with running_grpc(tmp_path_factory.mktemp("grpc-embedded"), None, "serve") as d:
         yield d
-    finally:
-        d.stop()
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ from service.grpcapi.client import GrpcClient, ImageSource
 from service.grpcapi.limits import STREAMS
 from service.grpcapi.pb import pb2
 
-from .grpc_harness import GrpcDeployment, error_of
+from .grpc_harness import GrpcDeployment, error_of, running_grpc
 
 PER_TENANT = 30
 IDLE_S = 15
@@ -30,17 +30,13 @@ IDLE_S = 15
 
 @pytest.fixture(scope="module")
 def dep(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[GrpcDeployment]:
-    d = GrpcDeployment(
+    with running_grpc(
         tmp_path_factory.mktemp("grpc-hardening"),
         redis_url,
         GEOMATCH_GRPC_TENANT_STREAMS=str(PER_TENANT),
         GEOMATCH_GRPC_STREAM_IDLE=str(IDLE_S),
-    )
-    try:
-        d.start_grpc("module")
+    ) as d:
         yield d
-    finally:
-        d.stop()
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from pathlib import Path
 import pycolmap
 import pytest
 
-from .harness import Deployment, database_pairs, upload, wait_job
+from .harness import Deployment, database_pairs, ground_match_under_kill, wait_job
 
 GROUND = ["ground_00.png", "ground_01.png", "ground_02.png", "ground_03.png"]
 
@@ -21,21 +21,8 @@ GROUND = ["ground_00.png", "ground_01.png", "ground_02.png", "ground_03.png"]
 def test_killed_worker_loses_nothing_and_writes_nothing_twice(
     tmp_path_factory: pytest.TempPathFactory, redis_url: str, scene: Path, tmp_path: Path
 ) -> None:
-    d = Deployment(
-        tmp_path_factory.mktemp("kill"),
-        redis_url,
-        GEOMATCH_VISIBILITY_TIMEOUT="15",
-        GEOMATCH_LOCK_TIMEOUT="15",
-    )
-    try:
-        d.start_server()
-        first = d.start_worker()
-        key = d.create_key("kill")
-        c = d.client(key)
-        pid = c.post("/v1/projects", json={"name": "kill"}).json()["id"]
-        assert upload(c, pid, [scene / "images" / n for n in GROUND], "ground").status_code == 201
-        job_id = c.post(f"/v1/projects/{pid}/match", json={"resize": 320}).json()["job_id"]
-
+    with ground_match_under_kill(tmp_path_factory.mktemp("kill"), redis_url, scene, GROUND, "kill") as k:
+        d, first, c, pid, job_id = k.d, k.worker, k.c, k.pid, k.job_id
         job = wait_job(c, job_id, timeout=300, until=lambda j: j["progress"]["done"] >= 2)
         Deployment.kill(first)  # SIGKILL to the worker and its pool child, mid-job
         assert first.returncode is not None
@@ -58,5 +45,3 @@ def test_killed_worker_loses_nothing_and_writes_nothing_twice(
             assert db.num_images() == 4 and db.num_matched_image_pairs() == 6
         finally:
             db.close()
-    finally:
-        d.stop()
