@@ -5,8 +5,8 @@ that drive a Deployment over loopback drive the image instead (`make image`, doc
 No Docker engine is needed, nor a registry: buildah with the vfs driver and chroot isolation runs as
 root without a daemon, cgroups or overlay mounts. The container shares the host's network (the
 server listens on loopback, Redis is the host's) and process table (chroot isolation makes no PID
-namespace), so the host finds the container's processes by their root directory, which is the
-container's file system.
+namespace), so the host finds the container's processes among the descendants of the `buildah run`
+that started them.
 """
 
 from __future__ import annotations
@@ -90,9 +90,6 @@ class ImageDeployment(Deployment):
         r = buildah("from", "--pull=never", "--name", f"gmtest-{self.uid}", image)
         assert r.returncode == 0, r.stderr
         self.container = r.stdout.strip().splitlines()[-1]
-        r = buildah("mount", self.container)
-        assert r.returncode == 0, r.stderr
-        self.rootfs = os.path.realpath(r.stdout.strip())
         self._hc = _healthcheck_module()
 
     def run_args(self) -> list[str]:
@@ -122,24 +119,39 @@ class ImageDeployment(Deployment):
         return [*self.run_args(), "geomatch"]
 
     # -- the container's processes ------------------------------------------------------------
-    def pids(self) -> list[int]:
-        """Every process whose root directory is this container's file system."""
-        out = []
+    @staticmethod
+    def descendants(pid: int) -> list[int]:
+        """The processes under ``pid``: a `buildah run` starts its runtime, which starts the
+        command chrooted into a mount of the container of its own (so the root directory does not
+        tell which container a process is in; its ancestry does)."""
+        children: dict[int, list[int]] = {}
         for entry in Path("/proc").iterdir():
             if entry.name.isdigit():
-                with contextlib.suppress(OSError):
-                    if os.path.realpath(entry / "root") == self.rootfs:
-                        out.append(int(entry.name))
+                with contextlib.suppress(OSError, IndexError, ValueError):
+                    stat = (entry / "stat").read_text()
+                    children.setdefault(int(stat.rsplit(")", 1)[1].split()[1]), []).append(int(entry.name))
+        out, todo = [], [pid]
+        while todo:
+            for c in children.get(todo.pop(), []):
+                out.append(c)
+                todo.append(c)
         return sorted(out)
 
     def main_pid(self, role: str, timeout: float = 60.0) -> int:
-        """The `geomatch ROLE` main process in the container (not a prefork child)."""
+        """The `geomatch ROLE` main process in the container: the image's Python running the
+        console script (not buildah's exec helper, whose arguments look alike), whose parent is not
+        one too (prefork children are)."""
+        procs = {"serve": [self.server] if self.server else [], "worker": self.workers}[role]
         deadline = time.monotonic() + timeout
         while True:
-            found = {
-                pid: args for pid in self.pids() if (args := self._hc.geomatch_args(self._hc._cmdline(pid)))
-            }
-            mains = [p for p, a in found.items() if a[0] == role and self._hc._ppid(p) not in found]
+            found = {}
+            for proc in procs:
+                for pid in self.descendants(proc.pid):
+                    argv = self._hc._cmdline(pid)
+                    args = self._hc.geomatch_args(argv)
+                    if args and args[0] == role and os.path.basename(argv[0]).startswith("python"):
+                        found[pid] = args
+            mains = [p for p in found if self._hc._ppid(p) not in found]
             if mains:
                 return min(mains)
             if time.monotonic() > deadline:
@@ -159,10 +171,11 @@ class ImageDeployment(Deployment):
         )
 
     def stop(self) -> None:
+        spawned = [*self.workers, *([self.server] if self.server else [])]
+        inside = [pid for p in spawned if p.poll() is None for pid in self.descendants(p.pid)]
         super().stop()
-        # what outlived its process group (a runtime that made its own session) goes too
-        for pid in self.pids():
+        # what left the process group of its `buildah run` goes too (found before that ended)
+        for pid in inside:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
-        buildah("umount", self.container)
         buildah("rm", self.container)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import time
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -82,6 +83,7 @@ def test_processes_run_from_the_image_as_its_user(image_deployment: ImageDeploym
 def test_healthcheck_serve(image_deployment: ImageDeployment) -> None:
     r = image_deployment.healthcheck(image_deployment.main_pid("serve"))
     assert r.returncode == 0, r.stdout + r.stderr + image_deployment.logs()
+    print(f"\n[image healthcheck serve] {(r.stdout + r.stderr).strip()}")
     assert "/healthz" in r.stdout + r.stderr, r
 
 
@@ -93,6 +95,7 @@ def test_healthcheck_worker(image_deployment: ImageDeployment) -> None:
         if r.returncode == 0:
             break
     assert r.returncode == 0, r.stdout + r.stderr + image_deployment.logs()
+    print(f"\n[image healthcheck worker] {(r.stdout + r.stderr).strip()}")
 
 
 def test_healthcheck_fails_on_what_is_not_a_server(image_deployment: ImageDeployment) -> None:
@@ -104,6 +107,7 @@ def test_rest_flow(image_deployment: Deployment, scene: Path, tmp_path: Path) ->
     """Key (made in the image), project, upload, match with the default method (the image's
     weights, on its CPU torch), reconstruct, download: all through the image's REST server."""
     d = image_deployment
+    t0 = time.perf_counter()
     c = d.client(d.create_key("tenant-image"))
     pid = c.post("/v1/projects", json={"name": "image"}).json()["id"]
     r = upload(c, pid, [scene / "images" / n for n in GROUND], capture="ground")
@@ -124,6 +128,10 @@ def test_rest_flow(image_deployment: Deployment, scene: Path, tmp_path: Path) ->
     assert (tmp_path / "sparse" / "0" / "cameras.bin").is_file()
     # written by the image's user into the host folder mounted at /data
     assert (d.home / "geomatch.sqlite").stat().st_uid == IMAGE_UID
+    print(
+        f"\n[image REST flow] 4 images, 6 pairs at 480 px, {summary['registered']} registered, "
+        f"{summary['points3D']} points, {time.perf_counter() - t0:.0f} s"
+    )
 
 
 def test_selfcheck_in_the_image() -> None:
