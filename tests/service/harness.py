@@ -65,8 +65,16 @@ class Deployment:
         self.root.mkdir(parents=True, exist_ok=True)
         out = (self.root / log).open("ab")
         return subprocess.Popen(
-            [*GEOMATCH, *args], env=self.env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True
+            [*self.command(), *args],
+            env=self.env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
         )
+
+    def command(self) -> list[str]:
+        """How this deployment runs `geomatch` (ImageDeployment: inside the built image)."""
+        return GEOMATCH
 
     def start_server(self, timeout: float = 120.0) -> str:
         port = free_port()
@@ -118,7 +126,7 @@ class Deployment:
     # -- clients -----------------------------------------------------------------------------
     def create_key(self, tenant: str) -> str:
         r = subprocess.run(
-            [*GEOMATCH, "keys", "create", tenant], env=self.env, capture_output=True, text=True
+            [*self.command(), "keys", "create", tenant], env=self.env, capture_output=True, text=True
         )
         assert r.returncode == 0, r.stderr
         key = r.stdout.strip()
