@@ -29,7 +29,7 @@ SERVERS = ("serve", "grpc-serve", "worker")
 TIMEOUT_S = 5.0
 
 
-def _cmdline(pid: int) -> list[str]:
+def cmdline(pid: int) -> list[str]:
     try:
         raw = Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:
@@ -37,7 +37,7 @@ def _cmdline(pid: int) -> list[str]:
     return [a.decode(errors="replace") for a in raw.split(b"\0") if a]
 
 
-def _ppid(pid: int) -> int:
+def ppid(pid: int) -> int:
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
     except OSError:
@@ -58,10 +58,10 @@ def find_process() -> tuple[int, list[str]]:
     found = {}
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
-            args = geomatch_args(_cmdline(int(entry.name)))
+            args = geomatch_args(cmdline(int(entry.name)))
             if args is not None:
                 found[int(entry.name)] = args
-    mains = sorted(pid for pid in found if _ppid(pid) not in found)
+    mains = sorted(pid for pid in found if ppid(pid) not in found)
     if not mains:
         raise RuntimeError(f"no `geomatch {'|'.join(SERVERS)}` process is running")
     return mains[0], found[mains[0]]
@@ -156,7 +156,7 @@ def main(argv: list[str]) -> int:
         if a.pid is None:
             pid, args = find_process()
         else:
-            found = geomatch_args(_cmdline(a.pid))
+            found = geomatch_args(cmdline(a.pid))
             if found is None:
                 raise RuntimeError(f"process {a.pid} is not a `geomatch {'|'.join(SERVERS)}` process")
             pid, args = a.pid, found

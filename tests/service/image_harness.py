@@ -147,11 +147,11 @@ class ImageDeployment(Deployment):
             found = {}
             for proc in procs:
                 for pid in self.descendants(proc.pid):
-                    argv = self._hc._cmdline(pid)
+                    argv = self._hc.cmdline(pid)
                     args = self._hc.geomatch_args(argv)
                     if args and args[0] == role and os.path.basename(argv[0]).startswith("python"):
                         found[pid] = args
-            mains = [p for p in found if self._hc._ppid(p) not in found]
+            mains = [p for p in found if self._hc.ppid(p) not in found]
             if mains:
                 return min(mains)
             if time.monotonic() > deadline:
