@@ -1,4 +1,4 @@
-"""What LightGlue's adaptive depth/width pruning buys in speed, measured side by side.
+"""What LightGlue's adaptive depth/width pruning, and the fused attention, buy in speed, side by side.
 
     python bench/lightglue_pruning.py --images ../shared/data/real/sacre_coeur --sizes 640,1024
 
@@ -23,10 +23,13 @@ from common import print_table
 from geomatch import Matcher, MatcherConfig, read_image
 from geomatch.features.lightglue import LightGlueMatcher
 
+# (depth confidence, width confidence, fused attention); the last row is kornia's own attention
+# (einsum cross-attention, flash backend off), i.e. the matcher before the fused blocks
 SETTINGS = {
-    "full (depth -1, width -1)": (-1.0, -1.0),
-    "LightGlue defaults (0.95, 0.99)": (0.95, 0.99),
-    "depth only (0.95, -1)": (0.95, -1.0),
+    "full (depth -1, width -1)": (-1.0, -1.0, True),
+    "LightGlue defaults (0.95, 0.99)": (0.95, 0.99, True),
+    "depth only (0.95, -1)": (0.95, -1.0, True),
+    "full, kornia's attention": (-1.0, -1.0, False),
 }
 
 
@@ -44,7 +47,9 @@ def main() -> None:
     for size in (int(s) for s in args.sizes.split(",")):
         m = Matcher(MatcherConfig(method="sparse", resize=size, device=args.device))
         feats = [m.features(read_image(p))["aliked"].sparse for p in names]
-        nets = {k: LightGlueMatcher("aliked", m.device, 0.1, d, w) for k, (d, w) in SETTINGS.items()}
+        nets = {
+            k: LightGlueMatcher("aliked", m.device, 0.1, d, w, fused=f) for k, (d, w, f) in SETTINGS.items()
+        }
         for net in nets.values():  # warm-up
             net.match(feats[0], feats[1])
         spent = dict.fromkeys(nets, 0.0)
