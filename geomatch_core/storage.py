@@ -20,12 +20,11 @@ import fcntl
 import hashlib
 import os
 import shutil
-import sqlite3
 import tempfile
 import time
 import uuid
 from collections.abc import Iterator
-from contextlib import closing, contextmanager, suppress
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 
@@ -165,13 +164,3 @@ def disk_usage(root: Path) -> int:
 
 def picture_name(name0: str, name1: str) -> str:
     return hashlib.sha256(f"{name0}\0{name1}".encode()).hexdigest()[:32] + ".png"
-
-
-def snapshot_sqlite(src: Path, dst: Path) -> None:
-    """A consistent copy of a live SQLite file (the COLMAP database) by SQLite's online backup:
-    the file may be mid-transaction at any moment, a plain copy could tear it."""
-    with (
-        closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True, timeout=60)) as a,
-        closing(sqlite3.connect(dst)) as b,
-    ):
-        a.backup(b)

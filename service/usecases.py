@@ -27,6 +27,7 @@ from sqlalchemy.orm import Session
 
 from geomatch.options import CAPTURES, PROJECT_OPTIONS, defaults
 from geomatch.options import PAIR_OPTIONS as PAIR_OPTIONS  # what match_two accepts of DEFAULTS
+from geomatch.sqlitecopy import snapshot_sqlite
 from geomatch_core import jobstate
 from geomatch_core.config import Settings
 from geomatch_core.errors import (
@@ -41,7 +42,7 @@ from geomatch_core.errors import (
 from geomatch_core.locks import LockFactory
 from geomatch_core.models import TERMINAL_STATES, Image, Job, Project
 from geomatch_core.queue import ENTRY_STEP, MATCH_TWO, RENDER_PAIR, JobQueue
-from geomatch_core.storage import Storage, snapshot_sqlite
+from geomatch_core.storage import Storage
 from geomatch_core.store import MetadataStore
 
 from . import auth

@@ -23,10 +23,10 @@ from typing import Any
 from sqlalchemy import select, update
 
 from geomatch.options import DEFAULTS
+from geomatch.sqlitecopy import snapshot_sqlite
 from geomatch_core import jobstate
 from geomatch_core.models import Image, Job, JobPair
 from geomatch_core.queue import EXTRACT, MATCH_PAIR, RENDER_PAIR
-from geomatch_core.storage import snapshot_sqlite
 
 from . import runtime
 from .context import Context, PermanentError
