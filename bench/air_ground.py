@@ -25,6 +25,7 @@ import json
 import re
 import shutil
 import time
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -144,6 +145,20 @@ def means(rows: list[dict[str, Any]], split: str) -> list[dict[str, Any]]:
     return out
 
 
+RUN_FIELDS = {f.name for f in fields(RunOptions)}
+
+
+def _value(v: str) -> bool | int | float | str:
+    if v.lower() in ("true", "false"):
+        return v.lower() == "true"
+    for kind in (int, float):
+        try:
+            return kind(v)
+        except ValueError:
+            pass
+    return v
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", default="0,1", help="tuning seeds")
@@ -155,7 +170,7 @@ def main() -> None:
     ap.add_argument(
         "--extra",
         default="geo:snap_radius=0;geo:tiling=off",
-        help="extra rows METHOD:option=value (RunOptions fields), ';'-separated",
+        help="extra rows METHOD:option=value (RunOptions or MatcherConfig fields), ';'-separated",
     )
     ap.add_argument("--resize", type=int, default=640)
     args = ap.parse_args()
@@ -163,7 +178,11 @@ def main() -> None:
     for spec in filter(None, args.extra.split(";")):
         method, kv = spec.split(":", 1)
         k, v = kv.split("=", 1)
-        variants.append((f"{method} {k}={v}", method, {k: float(v) if k == "snap_radius" else v}))
+        if k in RUN_FIELDS:
+            value = _value(v) if k not in ("tiling", "mapper") else v
+            variants.append((f"{method} {k}={v}", method, {k: value}))
+        else:  # a MatcherConfig option (probe_keypoints, max_keypoints, ...)
+            variants.append((f"{method} {k}={v}", method, {"matcher": {k: _value(v)}}))
     splits = [("tuning", s) for s in args.seeds.split(",") if s] + [
         ("test", s) for s in args.test_seeds.split(",") if s
     ]

@@ -42,6 +42,8 @@ class RunOptions:
     min_model_size: int = 3
     # PnP inliers the incremental mapper needs to register an image
     min_pose_inliers: int = DEFAULTS["min_pose_inliers"]
+    # drop verified pairs whose relative rotation breaks the view graph's loops (geomatch.viewgraph)
+    loop_check: bool = True
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
     match_cache: str | None = None  # folder of raw pair matches shared by runs (benchmarks, variants)
     progress: bool = True
@@ -96,6 +98,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         opts.min_model_size,
         verbose=opts.verbose,
         progress=opts.progress,
+        loop_check=opts.loop_check,
     )
     timings["mapping"] = time.perf_counter() - t_map
     timings["total"] = time.perf_counter() - t_start

@@ -21,6 +21,8 @@ from tqdm import tqdm
 from .colmaplog import colmap_log
 from .metrics import sfm_stats
 from .options import MAPPERS, MIN_POSE_INLIERS
+from .sqlitecopy import snapshot_sqlite
+from .viewgraph import filter_database
 
 
 def verify(database: Path, verbose: bool = False) -> int:
@@ -51,11 +53,15 @@ def reconstruct(
     verbose: bool = False,
     progress: bool = False,
     min_pose_inliers: int = MIN_POSE_INLIERS,
+    loop_check: bool = True,
 ) -> dict[str, Any]:
     """Map, export the largest model and return (and write) the summary.
 
-    ``verbose`` lets COLMAP's own log through (colmaplog.py); ``progress`` shows a bar of
-    registered images instead, the one line a user watching a terminal needs.
+    The mapper reads a private copy of the database in which the pairs that the view graph's
+    loops reject (viewgraph.py) are marked degenerate; ``database`` itself keeps every verified
+    pair, and the summary lists the dropped ones (``view_graph``). ``verbose`` lets COLMAP's own
+    log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
+    line a user watching a terminal needs.
     """
     if mapper not in MAPPERS:
         raise ValueError(f"unknown mapper {mapper!r}; choose from {', '.join(MAPPERS)}")
@@ -63,7 +69,10 @@ def reconstruct(
     work = out / ".mapping"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    db = pycolmap.Database.open(str(database))
+    mapped = work / "database.db"
+    snapshot_sqlite(database, mapped)
+    report = filter_database(str(mapped)) if loop_check else None
+    db = pycolmap.Database.open(str(mapped))
     try:
         n_images = int(db.num_images())
     finally:
@@ -76,7 +85,7 @@ def reconstruct(
             opts.random_seed = seed
             opts.mapper.abs_pose_min_num_inliers = min_pose_inliers
             models = pycolmap.incremental_mapping(
-                str(database),
+                str(mapped),
                 str(image_dir),
                 str(work),
                 opts,
@@ -87,7 +96,7 @@ def reconstruct(
             gopts = pycolmap.GlobalPipelineOptions()
             if hasattr(gopts, "random_seed"):
                 gopts.random_seed = seed
-            models = pycolmap.global_mapping(str(database), str(image_dir), str(work), gopts)
+            models = pycolmap.global_mapping(str(mapped), str(image_dir), str(work), gopts)
         best_count = max((r.num_reg_images() for r in models.values()), default=0)
         bar.n = best_count  # the bar ends at the largest model's count (the callbacks count tries)
         bar.refresh()
@@ -102,6 +111,7 @@ def reconstruct(
             rec.write_text(str(d))
     shutil.rmtree(work, ignore_errors=True)
     summary: dict[str, Any] = {"mapper": mapper, "models": len(ranked)}
+    summary["view_graph"] = report.as_dict() if report is not None else None
     if ranked:
         best = ranked[0]
         best.export_PLY(str(out / "points.ply"))

@@ -451,9 +451,11 @@ def reconstruct(
     min_model_size: int = 3,
     verbose: bool = False,
     progress: bool = False,
+    loop_check: bool = True,
 ) -> dict[str, Any]:
     """Map the matched database; the models land in ``out/sparse`` (the largest first) with
-    ``out/points.ply``; returns the summary."""
+    ``out/points.ply``; returns the summary. ``loop_check``: drop the pairs the view graph's
+    loops reject before mapping (geomatch.viewgraph)."""
     return sfm.reconstruct(
         database,
         image_dir,
@@ -463,6 +465,7 @@ def reconstruct(
         verbose=verbose,
         progress=progress,
         min_pose_inliers=min_pose_inliers,
+        loop_check=loop_check,
     )
 
 

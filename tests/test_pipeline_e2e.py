@@ -39,6 +39,9 @@ def test_every_image_is_registered(run_dir, scene) -> None:
     assert s["tiled_pairs"] == 8 and s["pairs"] == 15
     assert s["mean_track_length"] >= 3.0 and s["points3D"] > 300, s
     assert s["mean_reprojection_error"] < 1.5
+    # the loop check saw the graph (pairs with a rotation, loops among them) and said what it dropped
+    vg = s["view_graph"]
+    assert vg["pairs"] >= 10 and vg["loops"] >= 10 and isinstance(vg["dropped"], list), vg
 
 
 def test_outputs_open_in_colmap_formats(run_dir) -> None:

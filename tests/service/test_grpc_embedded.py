@@ -26,7 +26,9 @@ from .harness import GEOMATCH, free_port, upload
 
 ROOT = Path(__file__).resolve().parents[2]
 GROUND = ["ground_00.png", "ground_01.png", "ground_02.png", "ground_03.png"]
-SUBMIT = ("sparse", 320)  # the four ground images register at this (measured), cheaply
+# the four ground images register at this, every one right (measured); at 320 px ground_00's only
+# right pair shares no triangulated point and the view-graph check drops one of its wrong ones
+SUBMIT = ("sparse", 480)
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,70 @@
+"""The view graph's loop check (geomatch.viewgraph): wrong pairs go, right ones stay."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from geomatch.viewgraph import inconsistent_pairs, loop_error, rotation_angle
+
+
+def _graph(
+    n: int, seed: int, noise_deg: float = 0.5
+) -> tuple[list[np.ndarray], dict[tuple[int, int], list[np.ndarray]], np.random.Generator]:
+    rng = np.random.default_rng(seed)
+    world = [Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix() for _ in range(n)]
+    edges: dict[tuple[int, int], list[np.ndarray]] = {}
+    for i in range(n):
+        for j in range(i + 1, n):
+            wobble = Rotation.from_rotvec(np.radians(noise_deg) * rng.normal(size=3) / np.sqrt(3)).as_matrix()
+            edges[(i, j)] = [wobble @ world[j] @ world[i].T]
+    return world, edges, rng
+
+
+def test_wrong_pairs_are_dropped_and_right_ones_kept() -> None:
+    _, edges, rng = _graph(8, seed=0)
+    wrong = [(0, 3), (2, 5), (4, 7)]
+    for e in wrong:
+        edges[e] = [Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()]
+    # a right pair whose estimators also proposed a wrong solution (as a homography's
+    # decompositions do) is still right: some choice of candidates closes its loops
+    edges[(1, 2)].append(Rotation.from_euler("x", 80, degrees=True).as_matrix() @ edges[(1, 2)][0])
+    dropped, loops = inconsistent_pairs(edges)
+    assert loops == 56  # C(8, 3)
+    assert sorted(e for e, _, _ in dropped) == wrong
+    for _, bad, n in dropped:
+        assert bad > n - bad
+
+
+def test_ties_go_against_the_weaker_pair_and_an_image_keeps_two_pairs() -> None:
+    """Image 0's pairs with 2 and 3 are wrong: every loop through 0 breaks, the right pair
+    (0, 1)'s too, so the loops cannot tell its three pairs apart. The one with the fewest inliers
+    goes first; then 0 is down to two pairs, which it keeps."""
+    _, edges, rng = _graph(4, seed=3)
+    for e in ((0, 2), (0, 3)):
+        edges[e] = [Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()]
+    support = {e: 500 for e in edges} | {(0, 2): 40, (0, 3): 60}
+    dropped, loops = inconsistent_pairs(edges, support=support)
+    assert loops == 4
+    assert [e for e, _, _ in dropped] == [(0, 2)]
+    support[(0, 2)], support[(0, 3)] = 60, 40
+    assert [e for e, _, _ in inconsistent_pairs(edges, support=support)[0]] == [(0, 3)]
+
+
+def test_a_pair_in_no_loop_is_kept_and_an_empty_graph_is_fine() -> None:
+    _, edges, rng = _graph(4, seed=1)
+    hanging = Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()
+    edges[(3, 9)] = [hanging]  # image 9 is seen by one pair only: nothing can contradict it
+    dropped, _ = inconsistent_pairs(edges)
+    assert dropped == []
+    assert inconsistent_pairs({}) == ([], 0)
+
+
+def test_noise_below_the_tolerance_breaks_nothing_and_a_large_error_does() -> None:
+    _, edges, _ = _graph(6, seed=2, noise_deg=1.5)
+    assert inconsistent_pairs(edges)[0] == []
+    a, b, c = edges[(0, 1)], edges[(1, 2)], edges[(0, 2)]
+    assert loop_error(a, b, c) < 5.0
+    turned = [Rotation.from_euler("z", 20, degrees=True).as_matrix() @ c[0]]
+    assert 15.0 < loop_error(a, b, turned) < 25.0
+    assert rotation_angle(np.eye(3)) == 0.0
