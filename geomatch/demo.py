@@ -15,8 +15,8 @@ from .synth import write_scene
 
 def run_demo(
     out: Path,
-    n_aerial: int = 3,
-    n_ground: int = 6,
+    n_aerial: int = 2,
+    n_ground: int = 4,
     seed: int = 0,
     method: str = DEFAULTS["method"],
     resize: int = DEFAULTS["resize"],
