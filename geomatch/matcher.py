@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,7 @@ from .features.base import DenseHead, Extractor, ImageFeatures, SparseFeatures, 
 from .features.registry import build_dense_head, build_extractor, build_sparse_matcher
 from .geometry import estimate_fundamental, sampson_distance, scale_fundamental
 from .imageio import Prepared, image_key, prepare, read_image
+from .lru import trim_lru
 from .optimizer import (
     Assignment,
     GeoOptions,
@@ -99,6 +99,7 @@ class MatcherConfig:
     subpixel_options: SubpixelOptions = field(default_factory=SubpixelOptions)
     # recent images' features (dense maps included: a 640 px DISK fine map alone is ~150 MB), LRU,
     # bounded in bytes: a worker's memory must not grow with the project
+    # (the split of GEOMATCH_CACHE_MB's default, options.cache_budget)
     cache_features_mb: float = 1024.0
     cache_anchors_mb: float = 256.0  # recent pairs' LightGlue output (soft assignments included)
 
@@ -355,7 +356,7 @@ class Matcher:
         return sum(_entry_nbytes(*e) for e in self._cache.values())
 
     def _evict(self) -> None:
-        _trim_lru(self._cache, self.config.cache_features_mb, lambda e: _entry_nbytes(*e), keep=1)
+        trim_lru(self._cache, self.config.cache_features_mb, lambda e: _entry_nbytes(*e), keep=1)
 
     def _prepared(self, image: np.ndarray, key: str) -> Prepared:
         for (k, _, r), (_, prep) in self._cache.items():
@@ -374,7 +375,7 @@ class Matcher:
             return self._anchors[ak]
         out = (self.dense_lightglue if dense else self.sparse_matcher).match(sa, sb)
         self._anchors[ak] = out
-        _trim_lru(self._anchors, self.config.cache_anchors_mb, lambda m: m.nbytes(), keep=0)
+        trim_lru(self._anchors, self.config.cache_anchors_mb, lambda m: m.nbytes(), keep=0)
         return out
 
     # -- one pair --------------------------------------------------------------------------
@@ -576,16 +577,6 @@ def _strongest(f: SparseFeatures, n: int) -> SparseFeatures:
 
 def _entry_nbytes(feats: ImageFeatures, prep: Prepared) -> int:
     return feats.nbytes() + prep.tensor.numel() * prep.tensor.element_size()
-
-
-def _trim_lru(
-    cache: OrderedDict[Any, Any], budget_mb: float, nbytes: Callable[[Any], int], keep: int
-) -> None:
-    """Drop the least recently used entries until ``cache`` fits ``budget_mb`` (at least ``keep``
-    entries stay): the one byte bound both caches obey."""
-    total = sum(nbytes(v) for v in cache.values())
-    while len(cache) > keep and total > budget_mb * 2**20:
-        total -= nbytes(cache.popitem(last=False)[1])
 
 
 def _merge(

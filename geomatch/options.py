@@ -17,6 +17,7 @@ Methods are rows of flags (:data:`METHOD_TABLE`), the paper's ablations:
 from __future__ import annotations
 
 import argparse
+import os
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -77,6 +78,36 @@ PAIR_SPEC_HELP = "exhaustive | sequential:K | retrieval:K"
 # default stays COLMAP's 30 until the matcher stops producing those coherent wrong pairs; 60 is
 # one option away (--min-pose-inliers 60).
 MIN_POSE_INLIERS = 30
+
+# GEOMATCH_CACHE_MB: the in-memory caches of one job (a worker's job thread, or `geomatch run`), in
+# MiB, all together. One number because an operator sizes a process, not its caches.
+CACHE_MB = 1536
+
+
+@dataclass(frozen=True)
+class CacheBudget:
+    """How one GEOMATCH_CACHE_MB is shared by a job's in-memory caches, in MiB: decoded images
+    (1/6: a pair needs two, a tiled pair reuses its aerial image), then per matcher the per-image
+    features (4/5 of the rest, dense maps included) and recent pairs' LightGlue outputs (1/5).
+    The default 1536 gives 256 / 1024 / 256, :class:`~geomatch.matcher.MatcherConfig`'s own."""
+
+    images_mb: float
+    features_mb: float
+    anchors_mb: float
+
+
+def cache_budget(total_mb: float | None = None, matchers: int = 1) -> CacheBudget:
+    """The split of ``total_mb`` (default: GEOMATCH_CACHE_MB, else :data:`CACHE_MB`) for a job
+    that keeps up to ``matchers`` matchers (distinct option sets), each with its own caches."""
+    if total_mb is None:
+        raw = os.environ.get("GEOMATCH_CACHE_MB", "").strip()
+        try:
+            total_mb = float(raw) if raw else CACHE_MB
+        except ValueError:
+            raise OptionError(f"GEOMATCH_CACHE_MB must be a number of MiB, got {raw!r}") from None
+    total_mb = max(64.0, total_mb)
+    per_matcher = 5 / 6 * total_mb / max(1, matchers)
+    return CacheBudget(total_mb / 6, 0.8 * per_matcher, 0.2 * per_matcher)
 
 
 # -- options -----------------------------------------------------------------------------------

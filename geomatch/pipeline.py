@@ -21,7 +21,7 @@ from . import steps
 from .colmapdb import ColmapDatabase
 from .matcher import Matcher, config_from_options
 from .metadata import read_metadata
-from .options import DEFAULTS, parse_spec
+from .options import DEFAULTS, cache_budget, parse_spec
 from .steps import PipelineError as PipelineError  # a run's bad input; defined with the stages
 from .steps import list_images as list_images
 
@@ -62,14 +62,15 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     aerial = steps.aerial_set(steps.captures(names, opts.aerial_names, opts.aerial_glob), metas)
     out.mkdir(parents=True, exist_ok=True)
 
+    budget = cache_budget()  # GEOMATCH_CACHE_MB, as a worker's job thread
     config = config_from_options(
         method=opts.method,
         resize=opts.resize,
         device=opts.device,
-        **opts.matcher,
+        **{"cache_features_mb": budget.features_mb, "cache_anchors_mb": budget.anchors_mb, **opts.matcher},
     )
     matcher = Matcher(config)
-    images = steps.Images(image_dir)
+    images = steps.Images(image_dir, budget.images_mb)
     planned = steps.plan(
         image_dir, names, aerial, opts.pairs, opts.pairs_list, opts.tiling, matcher, images, opts.progress
     )

@@ -26,7 +26,6 @@ import json
 import os
 import tempfile
 import zipfile
-from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +41,7 @@ from .colmapdb import ColmapDatabase, PairWrite
 from .features.base import DenseFeatures, ImageFeatures, SparseFeatures
 from .geometry import fundamental_from_matches
 from .imageio import image_key, read_image
+from .lru import ByteLRU
 from .matcher import Matcher, MatcherConfig, MatchResult
 from .metadata import ImageMeta
 from .options import DEFAULTS, IMAGE_SUFFIXES
@@ -215,21 +215,25 @@ def list_images(folder: Path) -> list[str]:
 
 
 class Images:
-    """Decoded images of a folder, a few at a time (least recently used go first)."""
+    """Decoded images of a folder, as many as ``budget_mb`` holds (least recently used go first):
+    a 12 MP photo decodes to 36 MB, so a count bound would be a gigabyte on real projects."""
 
-    def __init__(self, folder: Path, capacity: int = 32) -> None:
-        self.folder, self.capacity = Path(folder), capacity
-        self._cache: OrderedDict[str, np.ndarray] = OrderedDict()
+    def __init__(self, folder: Path, budget_mb: float = 256.0) -> None:
+        self.folder = Path(folder)
+        self._cache: ByteLRU[str, np.ndarray] = ByteLRU(budget_mb)
 
     def __getitem__(self, name: str) -> np.ndarray:
-        if name in self._cache:
-            self._cache.move_to_end(name)
-            return self._cache[name]
-        img = read_image(self.folder / name)
-        self._cache[name] = img
-        while len(self._cache) > self.capacity:
-            self._cache.popitem(last=False)
+        img = self._cache.get(name)
+        if img is None:
+            img = read_image(self.folder / name)
+            self._cache.put(name, img)
         return img
+
+    def nbytes(self) -> int:
+        return self._cache.nbytes()
+
+    def __len__(self) -> int:
+        return len(self._cache)
 
 
 # -- plan ----------------------------------------------------------------------------------------

@@ -129,7 +129,7 @@ def extract(ctx: Context, job_id: str, name: str, full: bool, crops: bool) -> st
     job = jobstate.get(ctx.store, job_id)
     if job is None or job.state != "running":
         return "skipped"
-    image = runtime.image(ctx.storage.image_path(job.project_id, name))
+    image = runtime.image(ctx, ctx.storage.image_path(job.project_id, name))
     n = steps.extract(runtime.matcher(ctx, job.options), image, full, crops)
     return f"{n} feature entries"
 
@@ -166,8 +166,8 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             present = db.has_pair(id0, id1)  # redelivered after its write, or matched by another job
         if not present:
             t0 = time.perf_counter()
-            a = runtime.image(ctx.storage.image_path(pid, p.name0))
-            b = runtime.image(ctx.storage.image_path(pid, p.name1))
+            a = runtime.image(ctx, ctx.storage.image_path(pid, p.name0))
+            b = runtime.image(ctx, ctx.storage.image_path(pid, p.name1))
             pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, rotate=airborne)
             m = steps.match(runtime.matcher(ctx, opts), pair, a, b)
             t1 = time.perf_counter()
@@ -270,8 +270,8 @@ def render_pair(ctx: Context, project_id: str, name0: str, name1: str) -> dict[s
         inl = np.asarray(db.db.read_two_view_geometry(id0, id1).inlier_matches).reshape(-1, 2)
     is_inlier = {(int(a), int(b)) for a, b in inl}
     scores = np.array([1.0 if (int(a), int(b)) in is_inlier else 0.0 for a, b in m], np.float32)
-    a = runtime.image(ctx.storage.image_path(project_id, name0))
-    b = runtime.image(ctx.storage.image_path(project_id, name1))
+    a = runtime.image(ctx, ctx.storage.image_path(project_id, name0))
+    b = runtime.image(ctx, ctx.storage.image_path(project_id, name1))
     result = MatchResult(
         keypoints0=kp0[m[:, 0]].astype(np.float32),
         keypoints1=kp1[m[:, 1]].astype(np.float32),

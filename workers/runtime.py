@@ -13,12 +13,12 @@ if TYPE_CHECKING:
     import numpy as np
 
     from geomatch.matcher import Matcher
+    from geomatch.options import CacheBudget
 
     from .context import Context
 
 _local = threading.local()
 MAX_MATCHERS = 2  # distinct option sets kept per thread (each holds its own feature LRU)
-MAX_IMAGES = 24
 
 
 def matcher(ctx: Context, options: dict[str, Any]) -> Matcher:
@@ -36,15 +36,14 @@ def matcher(ctx: Context, options: dict[str, Any]) -> Matcher:
         return cache[key]
     cap = ctx.settings.feature_cache_mb
     store = FeatureStore(ctx.storage.features_dir, cap * 1024 * 1024 if cap > 0 else 0)
-    # the thread's memory budget, split over the matchers it may keep: 3/4 features, 1/4 anchors
-    share = ctx.settings.cache_mb / MAX_MATCHERS
+    budget = _budget(ctx)  # the thread's GEOMATCH_CACHE_MB, shared by the matchers it may keep
     m = build_matcher(
         store,
         method=method,
         resize=resize,
         device=ctx.settings.device,
-        cache_features_mb=0.75 * share,
-        cache_anchors_mb=0.25 * share,
+        cache_features_mb=budget.features_mb,
+        cache_anchors_mb=budget.anchors_mb,
     )
     cache[key] = m
     while len(cache) > MAX_MATCHERS:
@@ -52,16 +51,24 @@ def matcher(ctx: Context, options: dict[str, Any]) -> Matcher:
     return m
 
 
-def image(path: Path) -> np.ndarray:
+def image(ctx: Context, path: Path) -> np.ndarray:
+    """A decoded image, from the thread's byte-bounded LRU when it was read lately (a tiled
+    aerial image meets all its ground partners in a row)."""
     from geomatch.imageio import read_image
+    from geomatch.lru import ByteLRU
 
-    cache: OrderedDict[tuple[str, float], np.ndarray] = _local.__dict__.setdefault("images", OrderedDict())
+    cache: ByteLRU[tuple[str, float], np.ndarray] | None = getattr(_local, "images", None)
+    if cache is None:
+        cache = _local.images = ByteLRU(_budget(ctx).images_mb)
     key = (str(path), path.stat().st_mtime)
-    if key in cache:
-        cache.move_to_end(key)
-        return cache[key]
-    img = read_image(path)
-    cache[key] = img
-    while len(cache) > MAX_IMAGES:
-        cache.popitem(last=False)
+    img = cache.get(key)
+    if img is None:
+        img = read_image(path)
+        cache.put(key, img)
     return img
+
+
+def _budget(ctx: Context) -> CacheBudget:
+    from geomatch.options import cache_budget
+
+    return cache_budget(ctx.settings.cache_mb, MAX_MATCHERS)
