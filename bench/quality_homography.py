@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -44,7 +45,8 @@ def main() -> None:
     n_good: dict[str, list[int]] = {label: [] for label, _ in variants}
     errs: dict[str, list[float]] = {label: [] for label, _ in variants}
     secs = dict.fromkeys(n_all, 0.0)
-    for p in pairs:
+    for i, p in enumerate(pairs):
+        print(f"pair {i + 1}/{len(pairs)}", file=sys.stderr, flush=True)
         for label, matcher in variants:
             t0 = time.perf_counter()
             r = matcher.match(p.image0, p.image1)
