@@ -279,8 +279,10 @@ def main() -> None:
                 n.append(len(r))
             row = pose_row(split, label, errs, n)
             row["sec"] = time.perf_counter() - t0
-            split_rows.append(row)
             print(json.dumps(row), flush=True)
+            # per pair and ordering, in the JSON only: which pairs decide a difference between rows
+            row["per_pair"] = {f"{a.name} {b.name}": e for (a, b), e in zip(pairs, errs, strict=True)}
+            split_rows.append(row)
         names = ", ".join(im.name.split(".")[0] for im in groups[split])
         title = (
             f"{args.images.name} {split} ({names}): {len(pairs)} pairs, resize {args.resize}, "
