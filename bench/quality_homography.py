@@ -38,9 +38,10 @@ def main() -> None:
         (label, base.derive(method=method, **options))
         for label, method, options in parse_variants(args.variants, args.methods)
     ]
-    # pairs outside, variants inside: a pair's features (DISK maps are ~150 MB an image at 640 px)
-    # are extracted once and shared by every variant while they are in the byte-bounded cache; the
-    # other way round, an ablation of a dozen rows re-extracted all 2 x pairs images per row
+    # pairs outside, variants inside: a pair's features (DISK maps with their fp16 fine map are
+    # ~90 MB an image at 640 px) are extracted once and shared by every variant while they are in
+    # the byte-bounded cache; the other way round, an ablation of a dozen rows re-extracted all
+    # 2 x pairs images per row
     n_all: dict[str, list[int]] = {label: [] for label, _ in variants}
     n_good: dict[str, list[int]] = {label: [] for label, _ in variants}
     errs: dict[str, list[float]] = {label: [] for label, _ in variants}
