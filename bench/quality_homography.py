@@ -42,34 +42,35 @@ def main() -> None:
     # ~90 MB an image at 640 px) are extracted once and shared by every variant while they are in
     # the byte-bounded cache; the other way round, an ablation of a dozen rows re-extracted all
     # 2 x pairs images per row
-    n_all: dict[str, list[int]] = {label: [] for label, _ in variants}
-    n_good: dict[str, list[int]] = {label: [] for label, _ in variants}
-    errs: dict[str, list[float]] = {label: [] for label, _ in variants}
-    secs = dict.fromkeys(n_all, 0.0)
+    # per variant, by position (two rows may carry the same label)
+    n_all: list[list[int]] = [[] for _ in variants]
+    n_good: list[list[int]] = [[] for _ in variants]
+    errs: list[list[float]] = [[] for _ in variants]
+    secs = [0.0] * len(variants)
     for i, p in enumerate(pairs):
         print(f"pair {i + 1}/{len(pairs)}", file=sys.stderr, flush=True)
-        for label, matcher in variants:
+        for v, (_, matcher) in enumerate(variants):
             t0 = time.perf_counter()
             r = matcher.match(p.image0, p.image1)
-            secs[label] += time.perf_counter() - t0
+            secs[v] += time.perf_counter() - t0
             e = reprojection_errors(p.H, r.keypoints0, r.keypoints1)
-            n_all[label].append(len(r))
-            n_good[label].append(int((e < 3).sum()))
+            n_all[v].append(len(r))
+            n_good[v].append(int((e < 3).sum()))
             h, w = p.image0.shape[:2]
-            errs[label].append(corner_error(p.H, r.keypoints0, r.keypoints1, w, h))
+            errs[v].append(corner_error(p.H, r.keypoints0, r.keypoints1, w, h))
     rows = []
-    for label, _ in variants:
-        a3, a5, a10 = auc(errs[label], (3, 5, 10))
+    for v, (label, _) in enumerate(variants):
+        a3, a5, a10 = auc(errs[v], (3, 5, 10))
         row = {
             "method": label,
-            "matches": float(np.mean(n_all[label])),
-            "within_3px": float(np.mean(n_good[label])),
-            "precision": float(np.sum(n_good[label]) / max(np.sum(n_all[label]), 1)),
+            "matches": float(np.mean(n_all[v])),
+            "within_3px": float(np.mean(n_good[v])),
+            "precision": float(np.sum(n_good[v]) / max(np.sum(n_all[v]), 1)),
             "auc3": a3,
             "auc5": a5,
             "auc10": a10,
             # the first variant of a pair pays its feature extraction
-            "sec_per_pair": secs[label] / len(pairs),
+            "sec_per_pair": secs[v] / len(pairs),
         }
         rows.append(row)
         print(json.dumps(row), flush=True)
