@@ -13,6 +13,15 @@ from .pipeline import RunOptions, run
 from .synth import write_scene
 
 
+def _pair_costs(t: dict[str, float]) -> str:
+    if "tiled_over_plain" not in t:
+        return ""
+    return (
+        f": {t['tiled_pair_mean']:.1f}s a tiled pair, {t['plain_pair_mean']:.1f}s a plain one, "
+        f"{t['tiled_over_plain']:.1f}x"
+    )
+
+
 def run_demo(
     out: Path,
     n_aerial: int = 2,
@@ -43,7 +52,8 @@ def run_demo(
     res = out / "run"
     print(
         f"demo done in {time.perf_counter() - t0:.0f}s (matching {t['matching']:.0f}s over "
-        f"{summary['pairs']} pairs, {summary['tiled_pairs']} tiled; mapping {t['mapping']:.1f}s). "
+        f"{summary['pairs']} pairs, {summary['tiled_pairs']} tiled{_pair_costs(t)}; "
+        f"mapping {t['mapping']:.1f}s). "
         f"Model: {res / 'sparse' / '0'}, {res / 'points.ply'}; database: {res / 'database.db'}"
     )
     m = result.metrics

@@ -81,6 +81,9 @@ class MatcherConfig:
     # a full-strength call on 2048 + 2048 points takes ~8 s, four of them per pair dominated an
     # aerial pair (bench/quarter_turns.py compares the two probes' choices)
     probe_keypoints: int = 512
+    # a tiled pair (geomatch.tiling): "probe" matches only the aerial crops where the cheap probe's
+    # F-consistent matches lie (all five when it finds too few to tell), "all" the five crops
+    tile_crops: str = "probe"
     dense_temperature: float | None = None  # None: the head's own (0.02 descriptor maps, 0.1 LoFTR)
     loftr_weights: str | None = DEFAULTS["loftr_weights"]
     geo: GeoOptions = field(default_factory=GeoOptions)
@@ -110,6 +113,8 @@ class MatcherConfig:
             raise ValueError(f"unknown sparse backbone {self.sparse!r}; choose from {SPARSE_BACKBONES}")
         if self.dense not in DENSE_BACKBONES:
             raise ValueError(f"unknown dense backbone {self.dense!r}; choose from {DENSE_BACKBONES}")
+        if self.tile_crops not in ("probe", "all"):
+            raise ValueError(f"unknown tile_crops {self.tile_crops!r}; choose from probe, all")
         if self.subpixel not in ("auto", "lsm", "off"):
             raise ValueError(f"unknown subpixel mode {self.subpixel!r}; choose from auto, lsm, off")
 
@@ -390,17 +395,25 @@ class Matcher:
         assert sa is not None and sb is not None
         return int(probe._match_anchors(key0, key1, sa, sb).idx_a.numel())
 
-    @torch.inference_mode()
     def probe_count(self, image0: np.ndarray, image1: np.ndarray) -> int:
         """LightGlue matches among each image's ``probe_keypoints`` strongest keypoints, pruned: a
         cheap rank of the quarter turns. Only the sparse features are extracted (a turned image the
         probe rejects never gets dense maps); nothing is cached beyond those features."""
+        return int(self.probe_points(image0, image1)[0].shape[0])
+
+    @torch.inference_mode()
+    def probe_points(self, image0: np.ndarray, image1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The cheap probe's matches (see :meth:`probe_count`) in each image's original pixels:
+        where two images overlap, at a fraction of a full-strength LightGlue call's cost."""
         probe = self if self.config.method == "sparse" else self.derive(method="sparse")
-        sa = probe.features(image0)[self.config.sparse].sparse
-        sb = probe.features(image1)[self.config.sparse].sparse
-        assert sa is not None and sb is not None
-        n = self.config.probe_keypoints
-        return int(self.probe_matcher.match(_strongest(sa, n), _strongest(sb, n)).idx_a.numel())
+        key0, key1 = image_key(image0), image_key(image1)
+        sa = _strongest(probe.features(image0, key0)[self.config.sparse].sparse, self.config.probe_keypoints)
+        sb = _strongest(probe.features(image1, key1)[self.config.sparse].sparse, self.config.probe_keypoints)
+        m = self.probe_matcher.match(sa, sb)
+        return (
+            probe._prepared(image0, key0).to_original(sa.keypoints[m.idx_a].float()),
+            probe._prepared(image1, key1).to_original(sb.keypoints[m.idx_b].float()),
+        )
 
     @torch.inference_mode()
     def match(self, image0: np.ndarray, image1: np.ndarray) -> MatchResult:
@@ -568,7 +581,8 @@ class Matcher:
         return ga[ci], gb[cj], conf.float()
 
 
-def _strongest(f: SparseFeatures, n: int) -> SparseFeatures:
+def _strongest(f: SparseFeatures | None, n: int) -> SparseFeatures:
+    assert f is not None
     if f.keypoints.shape[0] <= n:
         return f
     idx = torch.topk(f.scores, n).indices

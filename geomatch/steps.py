@@ -39,7 +39,7 @@ from . import pairs as pairing
 from . import sfm
 from .colmapdb import ColmapDatabase, PairWrite
 from .features.base import DenseFeatures, ImageFeatures, SparseFeatures
-from .geometry import fundamental_from_matches
+from .geometry import estimate_fundamental, fundamental_from_matches
 from .imageio import image_key, read_image
 from .lru import ByteLRU
 from .matcher import Matcher, MatcherConfig, MatchResult
@@ -48,7 +48,7 @@ from .options import DEFAULTS, IMAGE_SUFFIXES
 from .pairs import Pair
 from .retrieval import vlad
 from .rotation import best_turn, points_back, quarter_turn
-from .tiling import TiledMatches, five_crops, match_tiled
+from .tiling import SELECT_MIN_PROBE, Crop, TiledMatches, five_crops, match_tiled, select_crops
 
 
 class FeatureStore:
@@ -405,7 +405,8 @@ def _match_turned(
     if pair.tiled:
         aerial, other = (image0, image1) if pair.aerial_first else (image1, image0)
         turns = best_turn(matcher, other, aerial) if pair.rotate else 0
-        t = match_tiled(matcher, quarter_turn(aerial, turns), other, pair.aerial_first)
+        turned = quarter_turn(aerial, turns)
+        t = match_tiled(matcher, turned, other, pair.aerial_first, crops=tile_crops(matcher, turned, other))
         if not turns:
             return t.keypoints0, t.keypoints1, t.scores, t
         h, w = aerial.shape[:2]
@@ -418,6 +419,31 @@ def _match_turned(
         return r.keypoints0, r.keypoints1, r.scores, r
     h, w = image1.shape[:2]
     return r.keypoints0, points_back(r.keypoints1, turns, w, h), r.scores, None
+
+
+# the probe's matches that select a tiled pair's crops must agree with one F within this many
+# network pixels (the probe runs at the working size, so its points are about that coarse)
+PROBE_F_PX = 2.0
+
+
+def tile_crops(matcher: Matcher, aerial: np.ndarray, other: np.ndarray) -> list[Crop]:
+    """The aerial image's crops a tiled pair matches: with ``tile_crops="probe"`` those holding
+    the cheap probe's matches that agree with one F (geomatch.tiling.select_crops), else all five."""
+    h, w = aerial.shape[:2]
+    crops = five_crops(w, h)
+    if matcher.config.tile_crops == "all":
+        return crops
+    pa, po = matcher.probe_points(aerial, other)
+    if len(pa) >= SELECT_MIN_PROBE:
+        # threshold: PROBE_F_PX network pixels, in the coarser image's original pixels
+        long_side = max(*aerial.shape[:2], *other.shape[:2])
+        scale = long_side / matcher.config.resize if matcher.config.resize else 1.0
+        _, mask = estimate_fundamental(
+            torch.from_numpy(pa), torch.from_numpy(po), "magsac", PROBE_F_PX * max(scale, 1.0)
+        )
+        if mask is not None:
+            pa = pa[mask.numpy()]
+    return select_crops(crops, pa)
 
 
 def snap_radius(radius: float, resize: int | None, long_side: int) -> float:

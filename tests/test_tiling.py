@@ -3,7 +3,10 @@ from __future__ import annotations
 import numpy as np
 
 from geomatch.homography import reprojection_errors
-from geomatch.tiling import five_crops, match_tiled, merge_matches
+import cv2
+
+from geomatch.steps import tile_crops
+from geomatch.tiling import SELECT_MIN_PROBE, five_crops, match_tiled, merge_matches, select_crops
 
 
 def test_crops_cover_the_image_and_map_back_exactly() -> None:
@@ -58,3 +61,35 @@ def test_tiled_matches_land_in_the_full_frame(matcher, astronaut_pair) -> None:
     rev = match_tiled(matcher, p.image0, p.image1, aerial_first=False)
     np.testing.assert_allclose(rev.keypoints1, r.keypoints0)
     np.testing.assert_allclose(rev.keypoints0, r.keypoints1)
+
+
+def test_select_crops_covers_where_the_probe_matched() -> None:
+    """Greedy cover: points in one quadrant pick that quadrant alone; points along the right
+    half pick the two right quadrants; too few points to tell pick all five."""
+    w, h = 800, 600
+    crops = five_crops(w, h)
+    rng = np.random.default_rng(0)
+    top_left = rng.uniform([10, 10], [380, 280], (200, 2))
+    assert [c.name for c in select_crops(crops, top_left)] == ["top_left"]
+    right = rng.uniform([420, 10], [790, 590], (200, 2))
+    assert [c.name for c in select_crops(crops, right)] == ["top_right", "bottom_right"]
+    assert len(select_crops(crops, right[: SELECT_MIN_PROBE - 1])) == 5
+    # a few stray points outside the overlap do not buy a crop of their own (coverage 90 %)
+    stray = np.vstack([top_left, rng.uniform([420, 320], [790, 590], (5, 2))])
+    assert [c.name for c in select_crops(crops, stray)] == ["top_left"]
+
+
+def test_probe_selects_the_crop_a_close_up_sees(matcher, astronaut_pair) -> None:
+    """Real networks: the 'ground' image is the aerial's top-left quadrant seen closer up (2x),
+    so the probe must send the pair to the crops that hold it, never to the bottom-right one,
+    and the tiled matches over those crops still obey the true map."""
+    aerial = astronaut_pair.image0
+    h, w = aerial.shape[:2]
+    close = cv2.resize(aerial[: h // 2, : w // 2], (w, h), interpolation=cv2.INTER_LINEAR)
+    chosen = [c.name for c in tile_crops(matcher, aerial, close)]
+    assert "top_left" in chosen and "bottom_right" not in chosen and len(chosen) <= 2, chosen
+    r = match_tiled(matcher, aerial, close, crops=tile_crops(matcher, aerial, close))
+    assert len(r) > 200
+    # pixel centres at integers: x_close = 2 * x_aerial + 0.5
+    err = np.linalg.norm(r.keypoints1 - (2 * r.keypoints0 + 0.5), axis=1)
+    assert np.median(err) < 2.0, np.median(err)
