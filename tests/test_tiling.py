@@ -1,10 +1,9 @@
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from geomatch.homography import reprojection_errors
-import cv2
-
 from geomatch.steps import tile_crops
 from geomatch.tiling import SELECT_MIN_PROBE, five_crops, match_tiled, merge_matches, select_crops
 
