@@ -349,6 +349,7 @@ class PairMatches:
     sizes: tuple[tuple[int, int], tuple[int, int]]  # (width, height) of image0 and image1
     tiled: bool = False
     source: MatchResult | TiledMatches | None = None  # None: read back from a match cache
+    crops: int = 0  # aerial crops matched (tiled pairs; 0 when read back from a match cache)
 
     def __len__(self) -> int:
         return int(self.keypoints0.shape[0])
@@ -386,8 +387,8 @@ def match(
         if path.is_file():
             with np.load(path) as z:
                 return PairMatches(z["k0"], z["k1"], z["scores"], sizes, pair.tiled)
-    k0, k1, scores, source = _match_turned(matcher, pair, image0, image1)
-    out = PairMatches(k0, k1, scores, sizes, pair.tiled, source)
+    k0, k1, scores, source, crops = _match_turned(matcher, pair, image0, image1)
+    out = PairMatches(k0, k1, scores, sizes, pair.tiled, source, crops)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.npz")
@@ -398,26 +399,27 @@ def match(
 
 def _match_turned(
     matcher: Matcher, pair: Pair, image0: np.ndarray, image1: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, MatchResult | TiledMatches | None]:
-    """(keypoints0, keypoints1, scores, source) of the pair; with ``pair.rotate`` the aerial side
-    (image1 of an untiled pair) is matched at its best quarter turn (geomatch.rotation) and its
-    keypoints mapped back, and the source is dropped (its F is in the turned frame)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, MatchResult | TiledMatches | None, int]:
+    """(keypoints0, keypoints1, scores, source, aerial crops matched) of the pair; with
+    ``pair.rotate`` the aerial side (image1 of an untiled pair) is matched at its best quarter
+    turn (geomatch.rotation) and its keypoints mapped back, and the source is dropped (its F is in
+    the turned frame)."""
     if pair.tiled:
         aerial, other = (image0, image1) if pair.aerial_first else (image1, image0)
         turns, crops = tiled_turn(matcher, aerial, other, pair.rotate)
         t = match_tiled(matcher, quarter_turn(aerial, turns), other, pair.aerial_first, crops=crops)
         if not turns:
-            return t.keypoints0, t.keypoints1, t.scores, t
+            return t.keypoints0, t.keypoints1, t.scores, t, len(crops)
         h, w = aerial.shape[:2]
         if pair.aerial_first:
-            return points_back(t.keypoints0, turns, w, h), t.keypoints1, t.scores, None
-        return t.keypoints0, points_back(t.keypoints1, turns, w, h), t.scores, None
+            return points_back(t.keypoints0, turns, w, h), t.keypoints1, t.scores, None, len(crops)
+        return t.keypoints0, points_back(t.keypoints1, turns, w, h), t.scores, None, len(crops)
     turns = best_turn(matcher, image0, image1) if pair.rotate else 0
     r = matcher.match(image0, quarter_turn(image1, turns))
     if not turns:
-        return r.keypoints0, r.keypoints1, r.scores, r
+        return r.keypoints0, r.keypoints1, r.scores, r, 0
     h, w = image1.shape[:2]
-    return r.keypoints0, points_back(r.keypoints1, turns, w, h), r.scores, None
+    return r.keypoints0, points_back(r.keypoints1, turns, w, h), r.scores, None, 0
 
 
 # the probe's matches that select a tiled pair's crops must agree with one F within this many
