@@ -21,8 +21,8 @@ if TYPE_CHECKING:
 
 # the demo's scene: 2 aerial + 4 ground (15 pairs, 8 tiled) runs in about 2.5 min on 2 CPU cores
 # with every camera correct (147 s measured; 230 s on the same machine before the crop probe, 185 s
-# and 368 s on two others); 3 + 6 (36 pairs, 18 tiled) in about 7 min on the faster one before the
-# crop probe (docs/pipeline.md, "The demo")
+# and 368 s on two others); 3 + 6 (36 pairs, 18 tiled) in about 7 min, 9/9 correct (docs/pipeline.md,
+# "The demo")
 DEMO_AERIAL, DEMO_GROUND = 2, 4
 
 
