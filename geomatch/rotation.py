@@ -59,23 +59,13 @@ def points_back(points: np.ndarray, turns: int, width: int, height: int) -> np.n
     return out.astype(np.asarray(points).dtype, copy=False)
 
 
-def clear_cut(counts: list[int]) -> int | None:
-    """The turn with the most matches when it has ``PROBE_MARGIN`` times the runner-up's, else
-    None (ties: fewer turns)."""
-    best, runner_up = sorted(counts, reverse=True)[:2]
-    return int(np.argmax(counts)) if best >= PROBE_MARGIN * max(runner_up, 1) else None
-
-
-def anchor_turn(matcher: _Matcher, fixed: np.ndarray, moving: np.ndarray) -> int:
-    """The turn ranked by the full-strength anchors (cached, so the chosen turn's are reused by
-    the match): the last word when cheaper probes are not clear-cut."""
-    counts = [matcher.anchor_count(fixed, quarter_turn(moving, t)) for t in TURNS]
-    return int(np.argmax(counts))
-
-
 def best_turn(matcher: _Matcher, fixed: np.ndarray, moving: np.ndarray) -> int:
     """The quarter turn of ``moving`` that gives the most matches against ``fixed`` (ties: fewer
     turns, so an upright pair stays upright): by the cheap probe when it is clear-cut, else by the
-    full-strength anchors."""
-    turn = clear_cut([matcher.probe_count(fixed, quarter_turn(moving, t)) for t in TURNS])
-    return anchor_turn(matcher, fixed, moving) if turn is None else turn
+    full-strength anchors (cached, so the chosen turn's are reused by the match)."""
+    counts = [matcher.probe_count(fixed, quarter_turn(moving, t)) for t in TURNS]
+    best, runner_up = sorted(counts, reverse=True)[:2]
+    if best >= PROBE_MARGIN * max(runner_up, 1):
+        return int(np.argmax(counts))
+    counts = [matcher.anchor_count(fixed, quarter_turn(moving, t)) for t in TURNS]
+    return int(np.argmax(counts))

@@ -463,12 +463,11 @@ def crop_probe_points(matcher: Matcher, aerial: np.ndarray, other: np.ndarray) -
     po = np.concatenate([f[1] for f in found])
     if len(pa) < SELECT_MIN_PROBE:
         return pa
-    # threshold: PROBE_F_PX network pixels, in the coarser image's original pixels
+    # threshold: PROBE_F_PX network pixels in the coarser image's original pixels, never below
+    # PROBE_F_PX (an image smaller than the working size is upsampled, not made more precise)
     long_side = max(*aerial.shape[:2], *other.shape[:2])
-    scale = long_side / matcher.config.resize if matcher.config.resize else 1.0
-    _, mask = estimate_fundamental(
-        torch.from_numpy(pa), torch.from_numpy(po), "magsac", PROBE_F_PX * max(scale, 1.0)
-    )
+    threshold = max(snap_radius(PROBE_F_PX, matcher.config.resize, long_side), PROBE_F_PX)
+    _, mask = estimate_fundamental(torch.from_numpy(pa), torch.from_numpy(po), "magsac", threshold)
     return pa if mask is None else pa[mask.numpy()]
 
 
