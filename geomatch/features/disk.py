@@ -9,7 +9,8 @@ from kornia.feature.disk.detector import heatmap_to_keypoints
 
 from ..weights import load_state_dict
 from .base import DenseFeatures, Extractor, ImageFeatures, SparseFeatures
-from .pooling import FINE_DTYPE, pool_to_grid
+from .disk_strips import disk_maps
+from .pooling import FINE_DTYPE
 
 
 class DiskExtractor(Extractor):
@@ -37,18 +38,21 @@ class DiskExtractor(Extractor):
 
     @torch.inference_mode()
     def extract(self, image: torch.Tensor, dense: bool = True) -> ImageFeatures:
-        heatmaps, descriptors = self.net.heatmap_and_dense_descriptors(image)
-        kp = heatmap_to_keypoints(heatmaps, n=self.max_keypoints, window_size=self.nms_window)[0]
-        feats = kp.merge_with_descriptors(descriptors[0])
+        # the U-Net's full-resolution block in row strips: same maps, a fraction of the peak memory
+        maps = disk_maps(self.net, image, self.stride, FINE_DTYPE)
+        kp = heatmap_to_keypoints(maps.heatmap, n=self.max_keypoints, window_size=self.nms_window)[0]
+        x, y = kp.xys.T
+        # a keypoint's descriptor is its pixel's normalised descriptor, read from the fine map
+        descriptors = F.normalize(maps.fine[:, y, x].T.float(), dim=-1)
         h, w = image.shape[-2:]
-        sparse = SparseFeatures(feats.keypoints.float(), feats.descriptors, feats.detection_scores, (w, h))
+        sparse = SparseFeatures(kp.xys.float(), descriptors, kp.detection_logp.float(), (w, h))
         if not dense:
             return ImageFeatures(sparse=sparse)
-        maps = DenseFeatures(
-            coarse=pool_to_grid(descriptors[0], self.stride),
-            fine=F.normalize(descriptors[0], dim=0).to(FINE_DTYPE),
+        dense_maps = DenseFeatures(
+            coarse=maps.coarse,
+            fine=maps.fine,
             stride=self.stride,
             image_size=(w, h),
-            heatmap=heatmaps[0, 0],
+            heatmap=maps.heatmap[0, 0],
         )
-        return ImageFeatures(sparse=sparse, dense=maps)
+        return ImageFeatures(sparse=sparse, dense=dense_maps)
