@@ -38,7 +38,7 @@ def mount(app: FastAPI) -> None:
     """``/`` (the page) and ``/console/...`` (its modules, style, vendored files), outside the
     OpenAPI schema: they are not part of the API's contract."""
 
-    @app.get("/", include_in_schema=False)
+    @app.api_route("/", methods=["GET", "HEAD"], include_in_schema=False)
     def index() -> FileResponse:
         return FileResponse(
             STATIC / "index.html", media_type="text/html", headers={"Cache-Control": "no-cache"}

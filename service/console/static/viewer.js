@@ -183,7 +183,7 @@ export class Viewer {
     this.canvas.dataset.points = String(this.stats.points);
     this.canvas.dataset.cameras = String(this.stats.cameras);
     this.canvas.dataset.drawnPoints = String(this.stats.drawnPoints);
-    window.geomatchViewer = { ...this.stats };
+    window.geomatchViewer = { ...this.stats, cameraPoint: (i) => this.cameraPoint(i) };
   }
 
   turn(dyaw, dpitch) {
