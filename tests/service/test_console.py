@@ -11,15 +11,18 @@ console log.
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import io
 import time
+import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pycolmap
 import pytest
 from PIL import Image
 
@@ -158,10 +161,10 @@ def test_names_render_as_text_and_upload_errors_show(console: Console, tmp_path:
         sign_in(page, console)
         pid = create_project(page, XSS)
         assert page.text_content("#project-title") == XSS
+        drop_file(page, f"{XSS}.jpg", jpeg(1))  # a real drop event on the drop area
         page.set_input_files(
             "#file-input",
             [
-                {"name": f"{XSS}.jpg", "mimeType": "image/jpeg", "buffer": jpeg(1)},
                 {"name": "broken.jpg", "mimeType": "image/jpeg", "buffer": b"not an image at all"},
                 {"name": "anim.gif", "mimeType": "image/gif", "buffer": gif()},
                 {"name": "big.jpg", "mimeType": "image/jpeg", "buffer": b"\xff" * (1024 * 1024 + 10)},
@@ -200,10 +203,30 @@ def test_names_render_as_text_and_upload_errors_show(console: Console, tmp_path:
         assert XSS in page.inner_text("#project-view")
         page.screenshot(path=tmp_path / "xss-project.png", full_page=True)
 
+        # the API's refusal shows as sent: one image cannot be matched
+        page.click("#start-match")
+        wait_until(page, "!document.getElementById('notice').hidden")
+        assert page.text_content("#notice") == "the project has 1 image(s); matching needs at least 2"
+
         # the project list shows the name as text too
         page.goto(console.d.url + "/#/")
         page.wait_for_selector(f"#project-rows a[href='#/projects/{pid}']")
         assert page.text_content(f"#project-rows a[href='#/projects/{pid}']") == XSS
+
+
+def drop_file(page: Any, name: str, data: bytes) -> None:
+    """Drop one file on the drop area as a person's drag would: a DataTransfer holding a File."""
+    transfer = page.evaluate_handle(
+        """([name, b64]) => {
+            const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+            const dt = new DataTransfer();
+            dt.items.add(new File([bytes], name, { type: "image/jpeg" }));
+            return dt;
+        }""",
+        [name, base64.b64encode(data).decode()],
+    )
+    page.dispatch_event("#drop", "dragenter", {"dataTransfer": transfer})
+    page.dispatch_event("#drop", "drop", {"dataTransfer": transfer})
 
 
 def gif() -> bytes:
@@ -306,6 +329,19 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         page.locator("#model-title").scroll_into_view_if_needed()
         page.screenshot(path=tmp_path / "model.png")
         page.screenshot(path=tmp_path / "project.png", full_page=True)
+
+        # a download: the model's zip, fetched with the key and saved from a blob: URL
+        with page.expect_download() as download:
+            page.click("button[data-download='model?format=zip']")
+        assert download.value.suggested_filename == f"{pid}-model.zip"
+        with zipfile.ZipFile(download.value.path()) as z:
+            assert "summary.json" in z.namelist() and "sparse/0/points3D.txt" in z.namelist()
+            z.extractall(tmp_path / "model")
+        # the scene's poses are COLMAP's: the same camera centres as pycolmap reads from the zip
+        rec = pycolmap.Reconstruction(str(tmp_path / "model" / "sparse" / "0"))
+        centres = {im.name: np.asarray(im.projection_center()) for im in rec.images.values() if im.has_pose}
+        for cam in scene_json["cameras"]:
+            assert np.allclose(cam["center"], centres[cam["name"]], atol=1e-4), cam["name"]
 
         # the same page at phone width: nothing wider than the screen
         page.set_viewport_size(PHONE)

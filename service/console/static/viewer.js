@@ -132,7 +132,7 @@ export class Viewer {
     px.fill(0xff1c1510); // #10151c, little-endian ABGR
     const depth = new Float32Array(w * h).fill(Infinity);
     const { xyz, rgb, points } = this.scene;
-    const size = Math.max(1, Math.round(2 * dpr));
+    const size = Math.max(1, Math.round((points < 20000 ? 3 : 2) * dpr)); // sparse models: bigger dots
     let drawn = 0;
     for (let i = 0; i < points; i++) {
       const s = this.project(v, [xyz[3 * i], xyz[3 * i + 1], xyz[3 * i + 2]], w, h, f);
