@@ -286,6 +286,9 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         assert drawn["cameras"] == summary["registered"], drawn
         assert page.get_attribute("#viewer", "data-points") == str(summary["points3D"])
 
+        page.evaluate("window.scrollTo(0, 0)")
+        page.screenshot(path=tmp_path / "project-top.png")
+
         # thumbnails know which images the model registered
         registration = dict(
             page.eval_on_selector_all(

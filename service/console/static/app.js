@@ -336,11 +336,11 @@ async function loadPairs() {
     el(
       "tr",
       { dataset: { name0: p.name0, name1: p.name1 } },
+      el("td", {}, el("button", { type: "button", "aria-label": `show matches of ${p.name0} and ${p.name1}`, onclick: () => showPair(p) }, "Show")),
       el("td", {}, p.name0),
       el("td", {}, p.name1),
       el("td", { class: "num" }, p.matches),
       el("td", { class: "num" }, p.inliers),
-      el("td", {}, el("button", { type: "button", onclick: () => showPair(p) }, "Show")),
     ),
   );
   if (!rows.length) rows.push(el("tr", {}, el("td", { colspan: 5, class: "muted" }, "No matched pairs yet.")));
