@@ -17,7 +17,7 @@ import io
 import time
 import zipfile
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +44,6 @@ class Console:
     d: Deployment
     key: str
     browser: Any
-    log: list[str] = field(default_factory=list)
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +86,6 @@ def page_of(c: Console, viewport: dict[str, int] = DESKTOP) -> Iterator[Any]:
 
     page.on("dialog", dialog)
     page.set_default_timeout(60_000)
-    page.dialogs = dialogs  # type: ignore[attr-defined]
     try:
         yield page
     except BaseException:
@@ -98,6 +96,8 @@ def page_of(c: Console, viewport: dict[str, int] = DESKTOP) -> Iterator[Any]:
         context.close()
     assert not dialogs, f"a dialog opened: {dialogs} (injected script?)"
     assert not [m for m in log if m.startswith("pageerror")], log
+    # the page needs nothing its policy forbids (the browser logs every refusal)
+    assert not [m for m in log if "Content Security Policy" in m], log
 
 
 def wait_until(page: Any, expression: str, timeout: float = 60_000) -> Any:
@@ -286,6 +286,11 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         assert drawn["cameras"] == summary["registered"], drawn
         assert page.get_attribute("#viewer", "data-points") == str(summary["points3D"])
 
+        wait_until(
+            page,
+            f"[...document.querySelectorAll('#thumbs img')].filter(i => i.naturalWidth === 640).length"
+            f" === {len(IMAGES)}",
+        )
         page.evaluate("window.scrollTo(0, 0)")
         page.screenshot(path=tmp_path / "project-top.png")
 

@@ -40,6 +40,7 @@ const state = {
   registered: null, // Set of registered names, null without a model
   controller: null, // aborts the current page's requests and streams
   urls: [], // object URLs of the current page, revoked when it is left
+  thumbs: new Map(), // image sha256 -> object URL of its bytes, for this visit
   job: null,
 };
 
@@ -54,6 +55,7 @@ function leavePage() {
   state.controller = new AbortController();
   for (const url of state.urls) URL.revokeObjectURL(url);
   state.urls = [];
+  state.thumbs = new Map();
   state.job = null;
 }
 
@@ -150,19 +152,28 @@ async function loadImages() {
       el("span", { class: "meta" }, `${kind} · ${im.width}×${im.height}`),
       el("span", { class: `meta reg ${registration.replace(/ /g, "-")}` }, registration),
     );
-    img.alt = im.name;
-    return { item, img, name: im.name };
+    return { item, img, im };
   });
   $("thumbs").replaceChildren(...items.map((x) => x.item));
   const signal = state.controller.signal;
-  for (const { img, name } of items) {
-    try {
-      img.src = objectUrl(await api.blob(`/projects/${pid()}/images/${api.seg(name)}`, signal));
-    } catch (error) {
-      if (error.name === "AbortError") return;
-      img.replaceWith(el("span", { class: "nothumb" }, "no preview"));
+  // a few at a time; each image's bytes are fetched once per visit (keyed by content)
+  const queue = [...items];
+  const worker = async () => {
+    for (let next = queue.shift(); next; next = queue.shift()) {
+      const { img, im } = next;
+      try {
+        if (!state.thumbs.has(im.sha256)) {
+          const blob = await api.blob(`/projects/${pid()}/images/${api.seg(im.name)}`, signal);
+          state.thumbs.set(im.sha256, objectUrl(blob));
+        }
+        img.src = state.thumbs.get(im.sha256);
+      } catch (error) {
+        if (error.name === "AbortError") return;
+        img.replaceWith(el("span", { class: "nothumb" }, "no preview"));
+      }
     }
-  }
+  };
+  await Promise.all([worker(), worker(), worker()]);
 }
 
 // -- uploads ------------------------------------------------------------------------------------
@@ -339,7 +350,7 @@ async function loadPairs() {
       el("td", {}, el("button", { type: "button", "aria-label": `show matches of ${p.name0} and ${p.name1}`, onclick: () => showPair(p) }, "Show")),
       el("td", {}, p.name0),
       el("td", {}, p.name1),
-      el("td", { class: "num" }, p.matches),
+      el("td", { class: "num opt" }, p.matches),
       el("td", { class: "num" }, p.inliers),
     ),
   );
