@@ -357,3 +357,27 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
         page.screenshot(path=tmp_path / "phone.png")
         print(f"console: photos to point cloud in {time.monotonic() - t0:.0f}s; screenshots in {tmp_path}")
+
+
+def test_cancel_from_the_page(console: Console, scene: Path, tmp_path: Path) -> None:
+    """A running match stops from its Cancel button; the page shows the state the API reports."""
+    with page_of(console) as page:
+        sign_in(page, console)
+        pid = create_project(page, "console cancel")
+        page.set_input_files(
+            "#file-input", [str(scene / "images" / n) for n in ("aerial_01.png", "ground_03.png")]
+        )
+        wait_until(page, "document.querySelectorAll('#upload-list li[data-state=done]').length === 2")
+        page.fill("#resize", "0")  # full size: long enough to be cancelled while it runs
+        page.uncheck("#with-reconstruct")
+        page.click("#start-match")
+        page.wait_for_selector("#job[data-kind=match]")
+        page.click("#cancel-job")
+        wait_until(page, "document.getElementById('job').dataset.state === 'cancelled'")
+        assert page.text_content("#job-state") == "cancelled"
+        assert page.is_disabled("#cancel-job")
+        page.screenshot(path=tmp_path / "cancelled.png")
+        job_id = page.evaluate("document.getElementById('job').dataset.id")
+        c = console.d.client(console.key)
+        assert c.get(f"/v1/jobs/{job_id}").json()["state"] == "cancelled"
+        assert c.get(f"/v1/projects/{pid}").json()["has_model"] is False

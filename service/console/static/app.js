@@ -269,6 +269,7 @@ async function loadChoices() {
 function showJob(job) {
   state.job = job;
   $("job").hidden = false;
+  $("job").dataset.id = job.id;
   $("job").dataset.kind = job.kind;
   $("job").dataset.state = job.state;
   $("job-kind").textContent = job.kind === "match" ? "Matching" : "Reconstruction";
