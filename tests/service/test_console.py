@@ -27,7 +27,7 @@ import pytest
 from PIL import Image
 
 from .browser import chromium_path, require_playwright
-from .harness import Deployment
+from .harness import Deployment, database_pairs
 from .test_embedded import printed_key
 
 # one aerial and three ground views of the session's scene, at 320 px: a minute or two on 2 cores
@@ -256,6 +256,10 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         page.wait_for_selector("#job:not([hidden])")
         page.wait_for_selector("#job[data-kind=match]")
         page.screenshot(path=tmp_path / "matching.png", full_page=True)
+        # a reload picks the jobs up again (remembered for this tab) and follows them to the end
+        page.reload()
+        page.wait_for_selector("#project-view:not([hidden])")
+        page.wait_for_selector("#job:not([hidden])")
         wait_until(
             page,
             "['failed', 'cancelled'].includes(document.getElementById('job').dataset.state) || "
@@ -308,6 +312,10 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         page.wait_for_selector("#pair-rows tr[data-name0]")
         pairs = c.get(f"/v1/projects/{pid}/pairs").json()["pairs"]
         assert len(pairs) == 6 and page.locator("#pair-rows tr[data-name0]").count() == 6
+        assert sorted(tuple(sorted((p["name0"], p["name1"]))) for p in pairs) == database_pairs(
+            c, pid, tmp_path / "database.db"
+        )
+        assert all(0 <= p["inliers"] <= p["matches"] for p in pairs) and pairs[0]["inliers"] > 0
         page.click("#pair-rows tr[data-name0] button")
         wait_until(
             page,

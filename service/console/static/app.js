@@ -124,6 +124,7 @@ async function openProject(id) {
   $("camera-image").hidden = true;
   $("camera-caption").textContent = "Click a camera (orange) to see its image.";
   await refreshProject();
+  await resume();
 }
 
 async function refreshProject() {
@@ -281,7 +282,32 @@ function showJob(job) {
   $("job-progress").value = job.state === "succeeded" ? Math.max(total, 1) : done;
   $("job-error").hidden = !job.error;
   $("job-error").textContent = job.error || "";
-  $("cancel-job").disabled = ["succeeded", "failed", "cancelled"].includes(job.state);
+  $("cancel-job").disabled = TERMINAL.includes(job.state);
+}
+
+const TERMINAL = ["succeeded", "failed", "cancelled"];
+const jobsKey = () => `geomatch.jobs.${state.project.id}`;
+
+// The page's last jobs are remembered for this tab, so that a reload (or a visit to another
+// page and back) picks up their progress again: the API has no "jobs of a project" listing.
+function remember(ids) {
+  sessionStorage.setItem(jobsKey(), JSON.stringify(ids));
+}
+
+async function resume() {
+  const ids = JSON.parse(sessionStorage.getItem(jobsKey()) || "[]");
+  const jobs = [];
+  for (const id of ids) {
+    try {
+      jobs.push(await api.get(`/jobs/${api.seg(id)}`));
+    } catch (error) {
+      if (error.status !== 404) throw error;
+    }
+  }
+  if (!jobs.length) return;
+  const open = jobs.filter((j) => !TERMINAL.includes(j.state));
+  if (open.length) follow(open.map((j) => j.id)).catch(fail);
+  else showJob(jobs[jobs.length - 1]);
 }
 
 // Follow the jobs one after the other (a match, then the reconstruct it queued).
@@ -315,7 +341,9 @@ async function startMatch(e) {
   try {
     notice("");
     const accepted = await api.post(`/projects/${pid()}/match`, body);
-    await follow([accepted.job_id, accepted.reconstruct_job_id].filter(Boolean));
+    const ids = [accepted.job_id, accepted.reconstruct_job_id].filter(Boolean);
+    remember(ids);
+    await follow(ids);
   } catch (error) {
     fail(error);
   }
@@ -326,6 +354,7 @@ async function startReconstruct() {
     notice("");
     const body = $("mapper").value ? { mapper: $("mapper").value } : {};
     const accepted = await api.post(`/projects/${pid()}/reconstruct`, body);
+    remember([accepted.job_id]);
     await follow([accepted.job_id]);
   } catch (error) {
     fail(error);

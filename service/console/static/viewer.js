@@ -62,13 +62,19 @@ export class Viewer {
     this.selected = -1;
     const n = scene.points;
     const xyz = scene.xyz;
-    // frame everything: centroid and the farthest point or camera from it
+    // frame everything: the bounding box's centre and the farthest point or camera from it
     const all = [];
     for (let i = 0; i < n; i++) all.push([xyz[3 * i], xyz[3 * i + 1], xyz[3 * i + 2]]);
     for (const c of scene.cameras) all.push(c.center);
-    let centre = [0, 0, 0];
-    for (const p of all) centre = add(centre, p);
-    centre = scale(centre, 1 / Math.max(all.length, 1));
+    const lo = [Infinity, Infinity, Infinity];
+    const hi = [-Infinity, -Infinity, -Infinity];
+    for (const p of all) {
+      for (let k = 0; k < 3; k++) {
+        lo[k] = Math.min(lo[k], p[k]);
+        hi[k] = Math.max(hi[k], p[k]);
+      }
+    }
+    const centre = all.length ? scale(add(lo, hi), 0.5) : [0, 0, 0];
     let radius = 1e-6;
     for (const p of all) radius = Math.max(radius, Math.hypot(...sub(p, centre)));
     this.target = centre;
