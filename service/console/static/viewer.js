@@ -93,7 +93,30 @@ export class Viewer {
     for (let i = 1; i < cams.length; i++) spacing += Math.hypot(...sub(cams[i].center, cams[i - 1].center));
     spacing = cams.length > 1 ? spacing / (cams.length - 1) : radius;
     this.frusta = cams.map((c) => frustum(c, Math.min(spacing * 0.3, radius * 0.2)));
+    this.fit([...all, ...this.frusta.flatMap((fr) => fr.corners)]);
     this.draw();
+  }
+
+  // The closest distance at which the first view shows every point and camera (with a margin):
+  // tighter than the bounding sphere, which leaves most of the canvas empty.
+  fit(points) {
+    const { right, up, forward } = this.view();
+    const rect = this.canvas.getBoundingClientRect();
+    const aspect = rect.width > 0 && rect.height > 0 ? rect.width / rect.height : 1.6;
+    const tanV = Math.tan(FOV / 2) * 0.9;
+    const tanH = tanV * aspect;
+    let distance = this.radius * 0.05;
+    for (const p of points) {
+      const d = sub(p, this.target);
+      const z = dot(d, forward);
+      distance = Math.max(
+        distance,
+        Math.abs(dot(d, right)) / tanH - z,
+        Math.abs(dot(d, up)) / tanV - z,
+        this.radius * 0.01 - z,
+      );
+    }
+    this.distance = distance;
   }
 
   // the eye and its axes (right, up, forward) for the current orbit
