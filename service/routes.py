@@ -26,12 +26,15 @@ from .schemas import (
     JobAccepted,
     JobOut,
     MatchIn,
+    PairOut,
+    PairsOut,
     Progress,
     ProjectCreate,
     ProjectOut,
     ReconstructIn,
+    SceneOut,
 )
-from .usecases import JobView, JobWatch, MatchRequest, Service, Upload, remove_quietly
+from .usecases import IMAGE_MEDIA, JobView, JobWatch, MatchRequest, Service, Upload, remove_quietly
 
 _bearer = HTTPBearer(auto_error=False, description="an API key from `geomatch keys create TENANT`")
 ERRORS: dict[int | str, dict[str, object]] = {
@@ -107,6 +110,18 @@ def list_images(project_id: str, svc: Svc, tenant_id: Tenant) -> ImagesOut:
     return ImagesOut(images=[ImageOut.model_validate(v, from_attributes=True) for v in views])
 
 
+@router.get(
+    "/projects/{project_id}/images/{name}",
+    tags=["images"],
+    response_class=FileResponse,
+    responses={200: {"content": {m: {} for m in IMAGE_MEDIA.values()}, "description": "the bytes"}},
+)
+def image_file(project_id: str, name: str, svc: Svc, tenant_id: Tenant) -> FileResponse:
+    """The uploaded bytes, typed by the format the upload check found (never sniffed)."""
+    path, media = svc.image_file(tenant_id, project_id, name)
+    return FileResponse(path, media_type=media, headers={"X-Content-Type-Options": "nosniff"})
+
+
 # -- jobs ----------------------------------------------------------------------------------------
 @router.post("/projects/{project_id}/match", status_code=202, response_model=JobAccepted, tags=["jobs"])
 def match(project_id: str, body: MatchIn, svc: Svc, tenant_id: Tenant) -> JobAccepted:
@@ -172,6 +187,7 @@ async def job_events(job_id: str, svc: Svc, tenant_id: Tenant) -> StreamingRespo
 
 # -- outputs -------------------------------------------------------------------------------------
 _MEDIA = {"zip": "application/zip", "ply": "application/octet-stream", "json": "application/json"}
+_FORMATS = "zip: COLMAP binary + text, ply: points, json: summary, scene: points and cameras for a viewer"
 
 
 @router.get(
@@ -184,10 +200,11 @@ def model(
     project_id: str,
     svc: Svc,
     tenant_id: Tenant,
-    format: Annotated[
-        Literal["zip", "ply", "json"], Query(description="zip: COLMAP binary + text, PLY, summary")
-    ] = "zip",
-) -> FileResponse:
+    format: Annotated[Literal["zip", "ply", "json", "scene"], Query(description=_FORMATS)] = "zip",
+) -> Response:
+    if format == "scene":  # computed from the model's text files, not a stored file
+        scene = SceneOut.model_validate(svc.model_scene(tenant_id, project_id))
+        return Response(scene.model_dump_json(), media_type="application/json")
     path = svc.model_file(tenant_id, project_id, format)
     return FileResponse(path, media_type=_MEDIA[format], filename=f"{project_id}-{path.name}")
 
@@ -206,6 +223,13 @@ def database(project_id: str, svc: Svc, tenant_id: Tenant) -> FileResponse:
         filename=f"{project_id}-database.db",
         background=BackgroundTask(remove_quietly, path),
     )
+
+
+@router.get("/projects/{project_id}/pairs", response_model=PairsOut, tags=["outputs"])
+def list_pairs(project_id: str, svc: Svc, tenant_id: Tenant) -> PairsOut:
+    """Matched pairs with their counts, most verified matches first (empty before matching)."""
+    views = svc.list_pairs(tenant_id, project_id)
+    return PairsOut(pairs=[PairOut.model_validate(v, from_attributes=True) for v in views])
 
 
 @router.get(

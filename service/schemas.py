@@ -221,3 +221,32 @@ class JobAccepted(BaseModel):
 
 class Error(BaseModel):
     detail: str
+
+
+class PairOut(BaseModel):
+    name0: str
+    name1: str
+    matches: int = Field(description="matches the matcher wrote")
+    inliers: int = Field(description="matches verified by the pair's two-view geometry")
+
+
+class PairsOut(BaseModel):
+    pairs: list[PairOut]
+
+
+class SceneCamera(BaseModel):
+    name: str
+    center: list[float] = Field(description="camera centre in model coordinates")
+    rotation: list[list[float]] = Field(description="world-to-camera rotation, 3 rows")
+    width: float
+    height: float
+    focal: float = Field(description="focal length in pixels")
+    cx: float
+    cy: float
+
+
+class SceneOut(BaseModel):
+    points: int = Field(description="number of 3D points")
+    xyz: list[float] = Field(description="x, y, z of each point, flat")
+    rgb: list[int] = Field(description="r, g, b (0-255) of each point, flat")
+    cameras: list[SceneCamera] = Field(description="the registered images")

@@ -46,6 +46,8 @@ from geomatch_core.storage import Storage
 from geomatch_core.store import MetadataStore
 
 from . import auth
+from .modelscene import read_scene
+from .pairlist import PairView, read_pairs
 from .validation import (
     ImageInfo,
     check_image,
@@ -58,6 +60,14 @@ from .validation import (
 # a project's configuration and a match job's options: geomatch.options holds them, with defaults
 DEFAULTS: dict[str, Any] = defaults(PROJECT_OPTIONS)
 MODEL_FILES = {"zip": "model.zip", "ply": "points.ply", "json": "summary.json"}
+# how a stored image is served back (the validated format, never the client's claim)
+IMAGE_MEDIA = {
+    "jpeg": "image/jpeg",
+    "png": "image/png",
+    "tiff": "image/tiff",
+    "bmp": "image/bmp",
+    "webp": "image/webp",
+}
 _CHUNK = 1 << 20
 _FULL = (
     "the storage is full (no space left on device): nothing of this upload was kept; "
@@ -373,6 +383,19 @@ class Service:
             moved.append(dest)
         return [_image_view(by_sha[v.sha256], created=v.created) for v in views]
 
+    def image_file(self, tenant_id: str, project_id: str, name: str) -> tuple[Path, str]:
+        """An uploaded image's bytes and media type, for a browser to show it (thumbnails)."""
+        with self.store.session() as s:
+            self._project(s, tenant_id, project_id)
+            img = s.scalar(select(Image).where(Image.project_id == project_id, Image.name == name))
+            if img is None:
+                raise NotFound(f"image {name!r} not found in project {project_id}")
+            fmt = img.format
+        path = self.storage.image_path(project_id, name)
+        if not path.is_file():
+            raise NotFound(f"image {name!r} not found in project {project_id}")
+        return path, IMAGE_MEDIA.get(fmt, "application/octet-stream")
+
     def list_images(self, tenant_id: str, project_id: str) -> list[ImageView]:
         with self.store.session() as s:
             self._project(s, tenant_id, project_id)
@@ -463,6 +486,16 @@ class Service:
                 raise NotFound(f"project {project_id} has no model yet: POST .../reconstruct")
             raise NotFound(f"the model of project {project_id} has no {fmt} (no 3D points)")
         return path
+
+    def model_scene(self, tenant_id: str, project_id: str) -> dict[str, Any]:
+        """Points with colours and posed cameras of the largest model, for a 3D viewer."""
+        self.get_project(tenant_id, project_id)
+        return read_scene(self.storage.model_dir(project_id))
+
+    def list_pairs(self, tenant_id: str, project_id: str) -> list[PairView]:
+        """The project's matched pairs and their counts (none before the first match job)."""
+        self.get_project(tenant_id, project_id)
+        return read_pairs(self.storage.database_path(project_id))
 
     def database_snapshot(self, tenant_id: str, project_id: str) -> Path:
         """A consistent copy of the project's COLMAP database (SQLite's online backup), which the

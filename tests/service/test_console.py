@@ -1,0 +1,391 @@
+"""The web console in a real browser (Debian's Chromium, driven by Playwright), against a real
+embedded server (`geomatch serve`: uvicorn and the in-process job runner, no Redis).
+
+A person's way from photos to a point cloud, through the page only: key, project, upload by the
+file input behind the drop area, match with reconstruct, progress from the event stream, the
+pairs' match picture, the model in the viewer. What the viewer drew is compared with the model
+endpoint's numbers fetched directly over REST. Names chosen by clients must render as text.
+Screenshots of each page land in the test's temporary folder; a failure prints the browser's
+console log.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import io
+import time
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+import pytest
+from PIL import Image
+
+from .browser import chromium_path, require_playwright
+from .harness import Deployment, database_pairs
+from .test_embedded import printed_key
+
+# one aerial and three ground views of the session's scene, at 320 px: a minute or two on 2 cores
+IMAGES = ["aerial_00.png", "ground_00.png", "ground_01.png", "ground_02.png"]
+RESIZE = 320
+XSS = "<img src=x onerror=alert(1)>"
+JOB_TIMEOUT_MS = 20 * 60 * 1000  # generous: CI machines are shared
+DESKTOP = {"width": 1280, "height": 800}
+PHONE = {"width": 390, "height": 844}
+
+
+@dataclass
+class Console:
+    d: Deployment
+    key: str
+    browser: Any
+
+
+@pytest.fixture(scope="module")
+def console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Console]:
+    require_playwright()
+    executable = chromium_path()
+    from playwright.sync_api import sync_playwright
+
+    d = Deployment(tmp_path_factory.mktemp("console"), None, GEOMATCH_MAX_UPLOAD_MB="1")
+    try:
+        d.start_server()
+        key = printed_key(d)
+        with sync_playwright() as p:
+            try:
+                browser = p.chromium.launch(executable_path=executable, args=["--no-sandbox"])
+            except Exception as e:
+                pytest.fail(f"Chromium at {executable} does not start under Playwright: {e}")
+            try:
+                yield Console(d, key, browser)
+            finally:
+                browser.close()
+    finally:
+        d.stop()
+
+
+@contextlib.contextmanager
+def page_of(c: Console, viewport: dict[str, int] = DESKTOP) -> Iterator[Any]:
+    """A fresh tab (its own sessionStorage) whose console messages, page errors and dialogs are
+    recorded; on failure they are printed with the server's log."""
+    context = c.browser.new_context(viewport=viewport)
+    page = context.new_page()
+    log: list[str] = []
+    dialogs: list[str] = []
+    page.on("console", lambda m: log.append(f"console.{m.type}: {m.text}"))
+    page.on("pageerror", lambda e: log.append(f"pageerror: {e}"))
+
+    def dialog(d: Any) -> None:
+        dialogs.append(d.message)
+        d.dismiss()
+
+    page.on("dialog", dialog)
+    page.set_default_timeout(60_000)
+    try:
+        yield page
+    except BaseException:
+        print("--- browser console log\n" + "\n".join(log or ["(empty)"]))
+        print(c.d.logs())
+        raise
+    finally:
+        context.close()
+    assert not dialogs, f"a dialog opened: {dialogs} (injected script?)"
+    assert not [m for m in log if m.startswith("pageerror")], log
+    # the page needs nothing its policy forbids (the browser logs every refusal)
+    assert not [m for m in log if "Content Security Policy" in m], log
+
+
+def wait_until(page: Any, expression: str, timeout: float = 60_000) -> Any:
+    """Poll a JavaScript expression until it is truthy. Not Playwright's wait_for_function: that
+    evaluates its predicate with eval(), which the console's policy (no unsafe-eval) rightly
+    forbids, and the tests run under the policy a user's browser enforces."""
+    deadline = time.monotonic() + timeout / 1000
+    while True:
+        value = page.evaluate(expression)
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"still false after {timeout / 1000:.0f}s: {expression}")
+        time.sleep(0.25)
+
+
+def sign_in(page: Any, c: Console, shots: Path | None = None) -> None:
+    response = page.goto(c.d.url + "/")
+    assert response.status == 200
+    page.wait_for_selector("#key-view:not([hidden])")
+    if shots:
+        page.screenshot(path=shots / "key.png")
+    page.fill("#key-input", c.key)
+    page.click("#key-form button[type=submit]")
+    page.wait_for_selector("#projects-view:not([hidden])")
+    assert c.key not in page.url
+    assert page.evaluate("sessionStorage.getItem('geomatch.key')") == c.key
+
+
+def create_project(page: Any, name: str) -> str:
+    page.fill("#project-name", name)
+    page.click("#create-form button[type=submit]")
+    page.wait_for_selector("#project-view:not([hidden])")
+    wait_until(page, "document.getElementById('project-title').textContent.length > 0")
+    return str(page.evaluate("decodeURIComponent(location.hash.split('/')[2])"))
+
+
+def jpeg(seed: int, size: tuple[int, int] = (64, 48)) -> bytes:
+    rng = np.random.default_rng(seed)
+    out = io.BytesIO()
+    Image.fromarray(rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)).save(out, "JPEG")
+    return out.getvalue()
+
+
+def test_console_security_headers(console: Console) -> None:
+    c = console.d.client(console.key)
+    for path in ("/", "/console/app.js", "/console/style.css"):
+        r = c.get(path)
+        assert r.status_code == 200, path
+        csp = r.headers["content-security-policy"]
+        assert "script-src 'self'" in csp and "frame-ancestors 'none'" in csp and "unsafe-inline" not in csp
+        assert r.headers["x-content-type-options"] == "nosniff"
+    assert "<script" not in c.get("/").text.replace('<script type="module" src="/console/app.js">', "")
+    # the API's own pages are untouched: /docs loads Swagger UI's scripts, which this policy forbids
+    assert "content-security-policy" not in c.get("/docs").headers
+    assert c.get("/healthz").json() == {"status": "ok"}
+
+
+def test_names_render_as_text_and_upload_errors_show(console: Console, tmp_path: Path, scene: Path) -> None:
+    with page_of(console) as page:
+        sign_in(page, console)
+        pid = create_project(page, XSS)
+        assert page.text_content("#project-title") == XSS
+        drop_file(page, f"{XSS}.jpg", jpeg(1))  # a real drop event on the drop area
+        page.set_input_files(
+            "#file-input",
+            [
+                {"name": "broken.jpg", "mimeType": "image/jpeg", "buffer": b"not an image at all"},
+                {"name": "anim.gif", "mimeType": "image/gif", "buffer": gif()},
+                {"name": "big.jpg", "mimeType": "image/jpeg", "buffer": b"\xff" * (1024 * 1024 + 10)},
+            ],
+        )
+        wait_until(
+            page,
+            "[...document.querySelectorAll('#upload-list li')].every("
+            "li => li.dataset.state === 'done' || li.dataset.state === 'error') "
+            "&& document.querySelectorAll('#upload-list li').length === 4",
+        )
+        status = {
+            li["name"]: li
+            for li in page.eval_on_selector_all(
+                "#upload-list li",
+                "els => els.map(li => ({name: li.dataset.name, state: li.dataset.state, "
+                "status: li.querySelector('.status').textContent}))",
+            )
+        }
+        assert status[f"{XSS}.jpg"]["state"] == "done", status
+        assert status["broken.jpg"]["state"] == "error"
+        assert status["broken.jpg"]["status"].startswith("400 broken.jpg: not a readable image"), status
+        assert status["anim.gif"]["status"].startswith("415 anim.gif: GIF images are not accepted"), status
+        assert status["big.jpg"]["status"].startswith("413 big.jpg: larger than the upload limit"), status
+
+        page.wait_for_selector("#thumbs li.thumb")
+        names = page.eval_on_selector_all("#thumbs .thumb .name", "els => els.map(e => e.textContent)")
+        assert names == [f"{XSS}.jpg"]
+        # the thumbnail itself loaded (fetched with the key, shown from a blob: URL)
+        wait_until(page, "document.querySelector('#thumbs img')?.naturalWidth === 64")
+        # nothing was injected: the only <img> elements are the console's own
+        assert (
+            page.eval_on_selector_all("img", "els => els.filter(e => e.getAttribute('src') === 'x').length")
+            == 0
+        )
+        assert XSS in page.inner_text("#project-view")
+        page.screenshot(path=tmp_path / "xss-project.png", full_page=True)
+
+        # the API's refusal shows as sent: one image cannot be matched
+        page.click("#start-match")
+        wait_until(page, "!document.getElementById('notice').hidden")
+        assert page.text_content("#notice") == "the project has 1 image(s); matching needs at least 2"
+
+        # the project list shows the name as text too
+        page.goto(console.d.url + "/#/")
+        page.wait_for_selector(f"#project-rows a[href='#/projects/{pid}']")
+        assert page.text_content(f"#project-rows a[href='#/projects/{pid}']") == XSS
+
+
+def drop_file(page: Any, name: str, data: bytes) -> None:
+    """Drop one file on the drop area as a person's drag would: a DataTransfer holding a File."""
+    transfer = page.evaluate_handle(
+        """([name, b64]) => {
+            const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+            const dt = new DataTransfer();
+            dt.items.add(new File([bytes], name, { type: "image/jpeg" }));
+            return dt;
+        }""",
+        [name, base64.b64encode(data).decode()],
+    )
+    page.dispatch_event("#drop", "dragenter", {"dataTransfer": transfer})
+    page.dispatch_event("#drop", "drop", {"dataTransfer": transfer})
+
+
+def gif() -> bytes:
+    out = io.BytesIO()
+    Image.new("RGB", (32, 32), (200, 30, 30)).save(out, "GIF")
+    return out.getvalue()
+
+
+def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) -> None:
+    t0 = time.monotonic()
+    with page_of(console) as page:
+        sign_in(page, console, tmp_path)
+        page.screenshot(path=tmp_path / "projects.png")
+        pid = create_project(page, "console e2e")
+        page.select_option("#capture", "auto")  # the aerial view is recognised from its DJI XMP
+        page.set_input_files("#file-input", [str(scene / "images" / n) for n in IMAGES])
+        wait_until(
+            page, f"document.querySelectorAll('#upload-list li[data-state=done]').length === {len(IMAGES)}"
+        )
+        wait_until(page, f"document.querySelectorAll('#thumbs li.thumb').length === {len(IMAGES)}")
+        page.screenshot(path=tmp_path / "uploaded.png", full_page=True)
+
+        page.fill("#resize", str(RESIZE))
+        page.select_option("#mapper", "incremental")
+        assert page.is_checked("#with-reconstruct")
+        page.click("#start-match")
+        page.wait_for_selector("#job:not([hidden])")
+        page.wait_for_selector("#job[data-kind=match]")
+        page.screenshot(path=tmp_path / "matching.png", full_page=True)
+        # a reload picks the jobs up again (remembered for this tab) and follows them to the end
+        page.reload()
+        page.wait_for_selector("#project-view:not([hidden])")
+        page.wait_for_selector("#job:not([hidden])")
+        wait_until(
+            page,
+            "['failed', 'cancelled'].includes(document.getElementById('job').dataset.state) || "
+            "(document.getElementById('job').dataset.kind === 'reconstruct' && "
+            "document.getElementById('job').dataset.state === 'succeeded')",
+            timeout=JOB_TIMEOUT_MS,
+        )
+        state = page.eval_on_selector("#job", "e => [e.dataset.kind, e.dataset.state]")
+        assert state == ["reconstruct", "succeeded"], (state, page.text_content("#job"))
+        assert page.text_content("#job-state") == "succeeded"
+
+        # the model as the API serves it, fetched directly
+        c = console.d.client(console.key)
+        summary = c.get(f"/v1/projects/{pid}/model", params={"format": "json"}).json()
+        scene_json = c.get(f"/v1/projects/{pid}/model", params={"format": "scene"}).json()
+        assert summary["points3D"] > 0 and summary["registered"] >= 3, summary
+        assert scene_json["points"] == summary["points3D"]
+        assert len(scene_json["cameras"]) == summary["registered"]
+        assert sorted(cam["name"] for cam in scene_json["cameras"]) == summary["registered_names"]
+
+        # what the viewer drew: every point (the first view frames the whole model) and every camera
+        wait_until(page, f"window.geomatchViewer && window.geomatchViewer.points === {summary['points3D']}")
+        drawn = page.evaluate(
+            "(({points, cameras, drawnPoints, frames}) => ({points, cameras, drawnPoints, frames}))"
+            "(window.geomatchViewer)"
+        )
+        assert drawn["points"] == drawn["drawnPoints"] == summary["points3D"], drawn
+        assert drawn["cameras"] == summary["registered"], drawn
+        assert page.get_attribute("#viewer", "data-points") == str(summary["points3D"])
+
+        wait_until(
+            page,
+            f"[...document.querySelectorAll('#thumbs img')].filter(i => i.naturalWidth === 640).length"
+            f" === {len(IMAGES)}",
+        )
+        page.evaluate("window.scrollTo(0, 0)")
+        page.screenshot(path=tmp_path / "project-top.png")
+
+        # thumbnails know which images the model registered
+        registration = dict(
+            page.eval_on_selector_all(
+                "#thumbs li.thumb", "els => els.map(e => [e.dataset.name, e.dataset.registration])"
+            )
+        )
+        assert registration == {
+            n: "registered" if n in summary["registered_names"] else "not registered" for n in IMAGES
+        }
+
+        # a pair's match picture, drawn by the worker and fetched with the key
+        page.wait_for_selector("#pair-rows tr[data-name0]")
+        pairs = c.get(f"/v1/projects/{pid}/pairs").json()["pairs"]
+        assert len(pairs) == 6 and page.locator("#pair-rows tr[data-name0]").count() == 6
+        assert sorted(tuple(sorted((p["name0"], p["name1"]))) for p in pairs) == database_pairs(
+            c, pid, tmp_path / "database.db"
+        )
+        assert all(0 <= p["inliers"] <= p["matches"] for p in pairs) and pairs[0]["inliers"] > 0
+        page.click("#pair-rows tr[data-name0] button")
+        wait_until(
+            page,
+            "(() => { const i = document.getElementById('match-picture'); "
+            "return !i.hidden && i.complete && i.naturalWidth > 0; })()",
+            timeout=180_000,
+        )
+
+        # turn the model, then click a camera: its image shows beside the viewer
+        page.locator("#viewer").scroll_into_view_if_needed()
+        box = page.locator("#viewer").bounding_box()
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.mouse.down()
+        page.mouse.move(box["x"] + box["width"] / 2 + 80, box["y"] + box["height"] / 2 + 20, steps=5)
+        page.mouse.up()
+        frames = page.evaluate("window.geomatchViewer.frames")
+        assert frames > drawn["frames"]
+        point = page.evaluate("window.geomatchViewer.cameraPoint(0)")
+        assert point is not None
+        page.mouse.click(box["x"] + point["x"], box["y"] + point["y"])
+        wait_until(
+            page,
+            "(() => { const i = document.getElementById('camera-image'); "
+            "return !i.hidden && i.complete && i.naturalWidth > 0; })()",
+        )
+        assert page.text_content("#camera-caption") in summary["registered_names"]
+        page.locator("#model-title").scroll_into_view_if_needed()
+        page.screenshot(path=tmp_path / "model.png")
+        page.screenshot(path=tmp_path / "project.png", full_page=True)
+
+        # a download: the model's zip, fetched with the key and saved from a blob: URL
+        with page.expect_download() as download:
+            page.click("button[data-download='model?format=zip']")
+        assert download.value.suggested_filename == f"{pid}-model.zip"
+        with zipfile.ZipFile(download.value.path()) as z:
+            assert "summary.json" in z.namelist() and "sparse/0/points3D.txt" in z.namelist()
+            z.extractall(tmp_path / "model")
+        # the scene's poses are COLMAP's: the same camera centres as pycolmap reads from the zip
+        rec = pycolmap.Reconstruction(str(tmp_path / "model" / "sparse" / "0"))
+        centres = {im.name: np.asarray(im.projection_center()) for im in rec.images.values() if im.has_pose}
+        for cam in scene_json["cameras"]:
+            assert np.allclose(cam["center"], centres[cam["name"]], atol=1e-4), cam["name"]
+
+        # the same page at phone width: nothing wider than the screen
+        page.set_viewport_size(PHONE)
+        page.wait_for_timeout(300)
+        assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+        page.screenshot(path=tmp_path / "phone.png")
+        print(f"console: photos to point cloud in {time.monotonic() - t0:.0f}s; screenshots in {tmp_path}")
+
+
+def test_cancel_from_the_page(console: Console, scene: Path, tmp_path: Path) -> None:
+    """A running match stops from its Cancel button; the page shows the state the API reports."""
+    with page_of(console) as page:
+        sign_in(page, console)
+        pid = create_project(page, "console cancel")
+        page.set_input_files(
+            "#file-input", [str(scene / "images" / n) for n in ("aerial_01.png", "ground_03.png")]
+        )
+        wait_until(page, "document.querySelectorAll('#upload-list li[data-state=done]').length === 2")
+        page.fill("#resize", "0")  # full size: long enough to be cancelled while it runs
+        page.uncheck("#with-reconstruct")
+        page.click("#start-match")
+        page.wait_for_selector("#job[data-kind=match]")
+        page.click("#cancel-job")
+        wait_until(page, "document.getElementById('job').dataset.state === 'cancelled'")
+        assert page.text_content("#job-state") == "cancelled"
+        assert page.is_disabled("#cancel-job")
+        page.screenshot(path=tmp_path / "cancelled.png")
+        job_id = page.evaluate("document.getElementById('job').dataset.id")
+        c = console.d.client(console.key)
+        assert c.get(f"/v1/jobs/{job_id}").json()["state"] == "cancelled"
+        assert c.get(f"/v1/projects/{pid}").json()["has_model"] is False
