@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from . import options
-from .export import FORMATS as EXPORT_FORMATS  # the package's __init__ imports no pycolmap
 from .options import EXIT_BAD_INPUT, EXIT_FAILED
 
 if TYPE_CHECKING:
@@ -148,12 +147,13 @@ def cmd_export(args: argparse.Namespace) -> int:
     except (ExportError, OSError) as e:
         print(f"geomatch: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    shown = [p for p in written if p.parent == dest] or written
     print(f"{args.format}: {len(written)} files -> {dest}")
-    for p in shown[:12]:
-        print(f"  {p.relative_to(dest)}")
-    if len(shown) < len(written) or len(shown) > 12:
-        print(f"  ... and {len(written) - min(len(shown), 12)} more (images)")
+    top = [p for p in written if p.parent == dest]
+    for p in top:
+        print(f"  {p.name}")
+    folders = sorted({p.relative_to(dest).parts[0] for p in written if p.parent != dest})
+    if folders:
+        print(f"  and {len(written) - len(top)} files in {', '.join(f + '/' for f in folders)}")
     return 0
 
 
@@ -239,7 +239,7 @@ def register(sub: Any) -> None:
 
     x = sub.add_parser("export", help="write a run's model for another tool (nerfstudio, hloc, OpenMVS ...)")
     x.add_argument("out", type=Path, help="the run's output folder (of geomatch run or demo)")
-    x.add_argument("--format", required=True, choices=EXPORT_FORMATS)
+    x.add_argument("--format", required=True, choices=options.EXPORT_FORMATS)
     x.add_argument("--to", type=Path, default=None, help="folder to write (default OUT/export/FORMAT)")
     x.add_argument(
         "--images", type=Path, default=None, help="the run's images (default: the folder the run read)"

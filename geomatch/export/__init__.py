@@ -4,7 +4,9 @@ A run folder (``geomatch run`` / ``geomatch demo``, or the service's model folde
 model in ``sparse/0`` and, beside it or elsewhere, the COLMAP database and the images. Each
 format is one module with one ``write(source, dest)``; this module finds the inputs, writes
 into a temporary sibling of ``dest`` and renames it into place, so a reader never sees half an
-export, and zips an export for the service.
+export, and zips an export for the service. Nothing here imports torch (the service's API
+process builds the exports it serves), which is why hloc reads the database with pycolmap
+rather than through colmapdb.
 """
 
 from __future__ import annotations
@@ -19,7 +21,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-FORMATS = ("nerfstudio", "colmap-text", "ply", "hloc", "openmvs")
+from ..options import EXPORT_FORMATS as FORMATS
+
 # what each format reads besides the model: the images (nerfstudio copies them, openmvs
 # undistorts them) or the database (hloc's keypoints and matches)
 NEEDS_IMAGES = frozenset({"nerfstudio", "openmvs"})
@@ -97,7 +100,8 @@ def export(source: Source, fmt: str, dest: str | Path) -> list[Path]:
     _check(source, fmt)
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}-", dir=dest.parent))
+    tmp = dest.with_name(f".{dest.name}-{uuid.uuid4().hex[:8]}")
+    tmp.mkdir()  # not mkdtemp: its mode 0700 would stay on the renamed folder
     try:
         written = _writer(fmt)(source, tmp)
         old = dest.with_name(f".old-{dest.name}-{uuid.uuid4().hex[:8]}")

@@ -9,7 +9,8 @@ in image 1, or -1) and ``matching_scores0``.
 
 Keypoints are in hloc's convention, the centre of the top-left pixel at (0, 0): hloc adds 0.5
 when it imports features into COLMAP (whose pixel centres sit at +0.5), so these are the
-database's keypoints minus 0.5, the same convention as colmapdb.ColmapDatabase.keypoints.
+database's keypoints minus 0.5, the same convention as colmapdb.ColmapDatabase.keypoints (not
+used here: colmapdb pulls torch through its image reader, and the service's API builds exports).
 
 The matches are the verified inliers of every pair in the database (its two-view geometries),
 not the raw matches: a user who imports them into COLMAP with hloc skips geometric
@@ -25,8 +26,9 @@ import h5py
 import numpy as np
 import pycolmap
 
-from ..colmapdb import ColmapDatabase
 from . import Source
+
+COLMAP_OFFSET = 0.5  # colmapdb.COLMAP_OFFSET: COLMAP's pixel centres at +0.5 of hloc's
 
 
 def names_to_pair(name0: str, name1: str, separator: str = "_") -> str:
@@ -48,19 +50,22 @@ def write(source: Source, dest: Path) -> list[Path]:
     assert source.database is not None  # checked by export()
     dest.mkdir(parents=True, exist_ok=True)
     features, matches, pairs = dest / "features.h5", dest / "matches.h5", dest / "pairs.txt"
-    with ColmapDatabase(source.database) as db:
-        names = {int(im.image_id): im.name for im in db.db.read_all_images()}
+    db = pycolmap.Database.open(str(source.database))
+    try:
+        names = {int(im.image_id): im.name for im in db.read_all_images()}
         counts: dict[int, int] = {}
         with h5py.File(features, "w") as f:
             for image_id, name in sorted(names.items(), key=lambda kv: kv[1]):
-                kp = db.keypoints(image_id).astype(np.float32)
-                cam = db.camera(image_id)
+                kp = np.zeros((0, 2), np.float32)
+                if db.exists_keypoints(image_id):
+                    kp = (db.read_keypoints(image_id)[:, :2] - COLMAP_OFFSET).astype(np.float32)
+                cam = db.read_camera(db.read_image(image_id).camera_id)
                 g = f.create_group(name)
                 g.create_dataset("keypoints", data=kp)
                 g.create_dataset("scores", data=np.ones(len(kp), np.float32))
                 g.create_dataset("image_size", data=np.array([cam.width, cam.height], np.int64))
                 counts[image_id] = len(kp)
-        pair_ids, geometries = db.db.read_two_view_geometries()
+        pair_ids, geometries = db.read_two_view_geometries()
         lines = []
         with h5py.File(matches, "w") as f:
             for pair_id, tvg in sorted(zip(pair_ids, geometries, strict=True), key=lambda pg: pg[0]):
@@ -70,5 +75,7 @@ def write(source: Source, dest: Path) -> list[Path]:
                 g.create_dataset("matches0", data=m0)
                 g.create_dataset("matching_scores0", data=(m0 > -1).astype(np.float32))
                 lines.append(f"{names[a]} {names[b]}\n")
+    finally:
+        db.close()
     pairs.write_text("".join(lines))
     return [features, matches, pairs]
