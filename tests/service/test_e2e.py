@@ -168,9 +168,12 @@ def test_model_exports(run: dict[str, Any], deployment: Deployment, tmp_path: Pa
         assert len(cached) == 1 and cached[0].read_bytes() == r.content
         assert c.get(f"/v1/projects/{pid}/model", params={"format": fmt}).content == r.content
     frames = json.loads((tmp_path / "nerfstudio" / "transforms.json").read_text())["frames"]
-    assert len(frames) == 6 and all((tmp_path / "nerfstudio" / f["file_path"]).is_file() for f in frames)
+    registered = run["recon"]["result"]["registered"]  # every image (test_model_registers_every_image)
+    assert len(frames) == registered > 0
+    assert all((tmp_path / "nerfstudio" / f["file_path"]).is_file() for f in frames)
     text = pycolmap.Reconstruction(str(tmp_path / "colmap-text"))
-    assert text.num_reg_images() == 6 and text.num_points3D() == run["recon"]["result"]["points3D"]
+    assert text.num_reg_images() == registered
+    assert text.num_points3D() == run["recon"]["result"]["points3D"]
     und = pycolmap.Reconstruction(str(tmp_path / "openmvs" / "sparse"))
     assert {cam.model.name for cam in und.cameras.values()} == {"PINHOLE"}
     assert sorted(p.name for p in (tmp_path / "openmvs" / "images").iterdir()) == sorted(
