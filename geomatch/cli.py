@@ -1,4 +1,4 @@
-"""The library's commands of ``geomatch``: match, synth, run, eval, demo.
+"""The library's commands of ``geomatch``: match, synth, run, eval, demo, export.
 
 ``register`` adds them to a parser: the ``geomatch`` command (``geomatch_app.cli``) adds the service's
 beside them. ``python -m geomatch.cli`` runs the library's commands alone. Imports stay light
@@ -138,6 +138,25 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from .export import ExportError, export, open_run
+
+    dest = args.to or args.out / "export" / args.format
+    try:
+        written = export(open_run(args.out, images=args.images), args.format, dest)
+    except (ExportError, OSError) as e:
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(f"{args.format}: {len(written)} files -> {dest}")
+    top = [p for p in written if p.parent == dest]
+    for p in top:
+        print(f"  {p.name}")
+    folders = sorted({p.relative_to(dest).parts[0] for p in written if p.parent != dest})
+    if folders:
+        print(f"  and {len(written) - len(top)} files in {', '.join(f + '/' for f in folders)}")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -217,6 +236,15 @@ def register(sub: Any) -> None:
     e.add_argument("out", type=Path, help="the run's output folder")
     e.add_argument("--gt", type=Path, required=True, help="ground-truth COLMAP model folder")
     e.set_defaults(func=cmd_eval)
+
+    x = sub.add_parser("export", help="write a run's model for another tool (nerfstudio, hloc, OpenMVS ...)")
+    x.add_argument("out", type=Path, help="the run's output folder (of geomatch run or demo)")
+    x.add_argument("--format", required=True, choices=options.EXPORT_FORMATS)
+    x.add_argument("--to", type=Path, default=None, help="folder to write (default OUT/export/FORMAT)")
+    x.add_argument(
+        "--images", type=Path, default=None, help="the run's images (default: the folder the run read)"
+    )
+    x.set_defaults(func=cmd_export)
 
     d = sub.add_parser("demo", help="synthetic air-to-ground scene -> run -> eval, in one command")
     d.add_argument("--out", type=Path, default=Path("geomatch-data/demo"))

@@ -120,6 +120,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     timings["total"] = time.perf_counter() - t_start
     timings.update(pair_timing_summary(pair_seconds))
     summary.update(
+        image_dir=str(image_dir.resolve()),  # where ``geomatch export`` finds the images
         method=opts.method,
         pairs=len(planned),
         pairs_matched_now=len(todo),

@@ -1,7 +1,7 @@
 """The ``geomatch`` command: the composition root, the one module that names every layer.
 
-The library's commands (match, run, eval, demo, synth) come from ``geomatch.cli``, the client-side
-ones (keys, submit) from ``service.cli``; the commands that put a service together with a job
+The library's commands (match, run, eval, demo, synth, export) come from ``geomatch.cli``, the
+client-side ones (keys, submit) from ``service.cli``; the commands that put a service together with a job
 runner (serve, grpc-serve, worker) live here, with ``geomatch_app.bootstrap``. Everything heavy (FastAPI,
 Celery, grpc, torch) is imported inside the command that needs it, so parsing is cheap.
 """

@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import AsyncIterator
-from typing import Annotated, Literal
+from typing import Annotated, Literal, get_args
 
 from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import FileResponse, StreamingResponse
@@ -34,7 +34,17 @@ from .schemas import (
     ReconstructIn,
     SceneOut,
 )
-from .usecases import IMAGE_MEDIA, JobView, JobWatch, MatchRequest, Service, Upload, remove_quietly
+from .usecases import (
+    EXPORT_FORMATS,
+    IMAGE_MEDIA,
+    MODEL_FORMATS,
+    JobView,
+    JobWatch,
+    MatchRequest,
+    Service,
+    Upload,
+    remove_quietly,
+)
 
 _bearer = HTTPBearer(auto_error=False, description="an API key from `geomatch keys create TENANT`")
 ERRORS: dict[int | str, dict[str, object]] = {
@@ -187,7 +197,14 @@ async def job_events(job_id: str, svc: Svc, tenant_id: Tenant) -> StreamingRespo
 
 # -- outputs -------------------------------------------------------------------------------------
 _MEDIA = {"zip": "application/zip", "ply": "application/octet-stream", "json": "application/json"}
-_FORMATS = "zip: COLMAP binary + text, ply: points, json: summary, scene: points and cameras for a viewer"
+_MEDIA.update(dict.fromkeys(EXPORT_FORMATS, "application/zip"))
+_FORMATS = (
+    "zip: COLMAP binary + text, ply: points, json: summary, scene: points and cameras for a viewer; "
+    "zips for other tools (docs/exports.md), built on first request: nerfstudio: transforms.json + "
+    "images, colmap-text: COLMAP text model, hloc: features.h5 + matches.h5 + pairs.txt, "
+    "openmvs: undistorted COLMAP folder for OpenMVS's InterfaceCOLMAP"
+)
+ModelFormat = Literal["zip", "ply", "json", "scene", "nerfstudio", "colmap-text", "hloc", "openmvs"]
 
 
 @router.get(
@@ -200,13 +217,16 @@ def model(
     project_id: str,
     svc: Svc,
     tenant_id: Tenant,
-    format: Annotated[Literal["zip", "ply", "json", "scene"], Query(description=_FORMATS)] = "zip",
+    format: Annotated[ModelFormat, Query(description=_FORMATS)] = "zip",
 ) -> Response:
     if format == "scene":  # computed from the model's text files, not a stored file
         scene = SceneOut.model_validate(svc.model_scene(tenant_id, project_id))
         return Response(scene.model_dump_json(), media_type="application/json")
     path = svc.model_file(tenant_id, project_id, format)
     return FileResponse(path, media_type=_MEDIA[format], filename=f"{project_id}-{path.name}")
+
+
+assert set(get_args(ModelFormat)) == {*MODEL_FORMATS, "scene"}  # the OpenAPI list is the use case's
 
 
 @router.get(

@@ -60,6 +60,10 @@ from .validation import (
 # a project's configuration and a match job's options: geomatch.options holds them, with defaults
 DEFAULTS: dict[str, Any] = defaults(PROJECT_OPTIONS)
 MODEL_FILES = {"zip": "model.zip", "ply": "points.ply", "json": "summary.json"}
+# built from the model on first request and kept beside it as zips (geomatch.export.FORMATS less
+# ply, which MODEL_FILES serves already as the pipeline wrote it)
+EXPORT_FORMATS = ("nerfstudio", "colmap-text", "hloc", "openmvs")
+MODEL_FORMATS = (*MODEL_FILES, *EXPORT_FORMATS)
 # how a stored image is served back (the validated format, never the client's claim)
 IMAGE_MEDIA = {
     "jpeg": "image/jpeg",
@@ -477,15 +481,54 @@ class Service:
 
     # -- outputs ---------------------------------------------------------------------------
     def model_file(self, tenant_id: str, project_id: str, fmt: str) -> Path:
-        if fmt not in MODEL_FILES:
-            raise InvalidRequest(f"format must be one of {', '.join(MODEL_FILES)}, not {fmt!r}")
+        if fmt not in MODEL_FORMATS:
+            raise InvalidRequest(f"format must be one of {', '.join(MODEL_FORMATS)}, not {fmt!r}")
         self.get_project(tenant_id, project_id)
+        if fmt in EXPORT_FORMATS:
+            return self._model_export(project_id, fmt)
         path = self.storage.model_dir(project_id) / MODEL_FILES[fmt]
         if not path.is_file():
             if not (self.storage.model_dir(project_id) / "summary.json").is_file():
                 raise NotFound(f"project {project_id} has no model yet: POST .../reconstruct")
             raise NotFound(f"the model of project {project_id} has no {fmt} (no 3D points)")
         return path
+
+    def _model_export(self, project_id: str, fmt: str) -> Path:
+        """The model exported as ``fmt`` (geomatch.export), zipped, built once and kept.
+
+        The zip lives inside the model folder, under a key of that model's summary.json: a
+        reconstruction swaps the whole folder, so a new model never serves an old export, and an
+        export still being built from the old model when the swap happens lands under the old
+        key, which the new summary never asks for. The zip is written beside and renamed (in
+        ``export_zip``), so a concurrent request sees it whole or not at all. hloc reads a
+        snapshot of the project's database (keypoints and verified matches as of the first
+        request for this model).
+        """
+        from geomatch.export import ExportError, export_zip, model_dir, open_run
+
+        model = self.storage.model_dir(project_id)
+        try:
+            summary = (model / "summary.json").read_bytes()
+        except FileNotFoundError:
+            raise NotFound(f"project {project_id} has no model yet: POST .../reconstruct") from None
+        if not (model_dir(model) / "images.bin").is_file():
+            raise NotFound(f"the model of project {project_id} has no {fmt} export (no registered images)")
+        path = model / "exports" / hashlib.sha256(summary).hexdigest()[:16] / f"{fmt}.zip"
+        if path.is_file():
+            return path
+        snapshot = None
+        try:
+            if fmt == "hloc":
+                fd, snapshot = self.storage.temp_file()
+                os.close(fd)
+                snapshot_sqlite(self.storage.database_path(project_id), snapshot)
+            source = open_run(model, images=self.storage.images_dir(project_id), database=snapshot)
+            return export_zip(source, fmt, path)
+        except ExportError as e:  # the model folder lacks an input (the images were deleted ...)
+            raise NotFound(f"project {project_id}: {e}") from None
+        finally:
+            if snapshot is not None:
+                snapshot.unlink(missing_ok=True)
 
     def model_scene(self, tenant_id: str, project_id: str) -> dict[str, Any]:
         """Points with colours and posed cameras of the largest model, for a 3D viewer."""

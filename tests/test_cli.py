@@ -84,3 +84,14 @@ def test_unavailable_device_is_a_one_line_error(pair_files, tmp_path) -> None:
     assert res.stderr.strip().splitlines() == [
         "geomatch: error: device 'cuda' requested but CUDA is not available here (use --device cpu)"
     ]
+
+
+def test_export_of_a_folder_without_a_model_is_a_one_line_error(tmp_path) -> None:
+    """The command as installed (tests/test_export.py exports a real run, every format)."""
+    res = run("export", str(tmp_path), "--format", "nerfstudio")
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [
+        f"geomatch: error: {tmp_path} is not a run folder (no summary.json): make one with `geomatch run`"
+    ]
+    assert not (tmp_path / "export").exists()
+    assert "--format {nerfstudio,colmap-text,ply,hloc,openmvs}" in run("export", "--help").stdout

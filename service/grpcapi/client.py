@@ -29,7 +29,15 @@ from .pb import pb2, pb2_grpc
 
 CHUNK = 1 << 20  # the server's limit on a chunk
 CAPTURE = {"auto": pb2.CAPTURE_AUTO, "aerial": pb2.CAPTURE_AERIAL, "ground": pb2.CAPTURE_GROUND}
-FORMAT = {"zip": pb2.MODEL_FORMAT_ZIP, "ply": pb2.MODEL_FORMAT_PLY, "json": pb2.MODEL_FORMAT_JSON}
+FORMAT = {
+    "zip": pb2.MODEL_FORMAT_ZIP,
+    "ply": pb2.MODEL_FORMAT_PLY,
+    "json": pb2.MODEL_FORMAT_JSON,
+    "nerfstudio": pb2.MODEL_FORMAT_NERFSTUDIO,
+    "colmap-text": pb2.MODEL_FORMAT_COLMAP_TEXT,
+    "hloc": pb2.MODEL_FORMAT_HLOC,
+    "openmvs": pb2.MODEL_FORMAT_OPENMVS,
+}
 TERMINAL = (pb2.JOB_STATE_SUCCEEDED, pb2.JOB_STATE_FAILED, pb2.JOB_STATE_CANCELLED)
 CHANNEL_OPTIONS = [
     ("grpc.max_receive_message_length", 64 * 1024 * 1024),  # MatchPair answers can be large

@@ -11,6 +11,7 @@ from google.protobuf import struct_pb2, timestamp_pb2
 
 from geomatch import options
 
+from ..usecases import MODEL_FORMATS as USECASE_MODEL_FORMATS
 from ..usecases import ImageView, JobView, MatchRequest, PairMatches, ProjectView
 from .framing import CAPTURES
 from .pb import pb2
@@ -31,8 +32,13 @@ MODEL_FORMATS = {
     pb2.MODEL_FORMAT_ZIP: "zip",
     pb2.MODEL_FORMAT_PLY: "ply",
     pb2.MODEL_FORMAT_JSON: "json",
+    pb2.MODEL_FORMAT_NERFSTUDIO: "nerfstudio",
+    pb2.MODEL_FORMAT_COLMAP_TEXT: "colmap-text",
+    pb2.MODEL_FORMAT_HLOC: "hloc",
+    pb2.MODEL_FORMAT_OPENMVS: "openmvs",
 }
 assert set(CAPTURES.values()) == set(CAPTURE_ENUM)
+assert set(MODEL_FORMATS.values()) == set(USECASE_MODEL_FORMATS)  # the REST formats but scene
 
 
 def optional_fields(msg: Any, names: tuple[str, ...]) -> dict[str, Any]:

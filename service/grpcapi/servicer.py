@@ -176,7 +176,7 @@ class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
 def _summary(f: IO[bytes], fmt: str, path: Path) -> dict[str, Any]:
     """The summary that belongs to the bytes sent: from inside the zip, or the file beside."""
     try:
-        if fmt == "zip":
+        if path.suffix == ".zip":  # the model's zip, or an export's (geomatch.export.export_zip)
             with zipfile.ZipFile(f) as z:
                 return dict(json.loads(z.read("summary.json")))
         if fmt == "json":

@@ -261,8 +261,10 @@ def test_matching_needs_two_images(deployment: Deployment, a: httpx.Client, scen
     assert state(deployment, pid)[1] == 0
     assert a.post(f"/v1/projects/{pid}/reconstruct", json={}).status_code == 409
     assert a.get(f"/v1/projects/{pid}/database").status_code == 404
-    r = a.get(f"/v1/projects/{pid}/model")
-    assert r.status_code == 404 and "no model yet" in r.json()["detail"]
+    for fmt in ("zip", "nerfstudio", "colmap-text", "hloc", "openmvs"):  # the exports too
+        r = a.get(f"/v1/projects/{pid}/model", params={"format": fmt})
+        assert r.status_code == 404 and "no model yet" in r.json()["detail"], (fmt, r.text)
+    assert not (deployment.home / "projects" / pid / "model").exists()  # a refusal builds nothing
 
 
 def test_bad_project_requests(a: httpx.Client) -> None:

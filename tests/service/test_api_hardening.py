@@ -233,7 +233,16 @@ def test_schema_says_what_the_server_takes(server: tuple[Deployment, httpx.Clien
         for p in schema["paths"]["/v1/projects/{project_id}/model"]["get"]["parameters"]
         if p["name"] == "format"
     )
-    assert fmt["schema"]["enum"] == ["zip", "ply", "json", "scene"]
+    assert fmt["schema"]["enum"] == [
+        "zip",
+        "ply",
+        "json",
+        "scene",
+        "nerfstudio",
+        "colmap-text",
+        "hloc",
+        "openmvs",
+    ]
     r = c.get("/v1/projects/0123/model", params={"format": "tar"})
     assert r.status_code == 422 and "format" in r.json()["detail"], r.text
 

@@ -143,6 +143,47 @@ def test_model_formats(run: dict[str, Any]) -> None:
     assert project["has_model"] and project["images"] == 6
 
 
+def test_model_exports(run: dict[str, Any], deployment: Deployment, tmp_path: Path) -> None:
+    """Each export is a zip of the latest model, with its summary, built once and then served
+    from the cache (the same bytes); tests/test_export.py checks the formats themselves."""
+    import h5py
+
+    c, pid = run["client"], run["pid"]
+    files = {
+        "nerfstudio": ["transforms.json", "sparse_pc.ply"],
+        "colmap-text": ["cameras.txt", "images.txt", "points3D.txt"],
+        "hloc": ["features.h5", "matches.h5", "pairs.txt"],
+        "openmvs": ["sparse/cameras.bin", "sparse/images.bin", "stereo/patch-match.cfg"],
+    }
+    for fmt, names in files.items():
+        r = c.get(f"/v1/projects/{pid}/model", params={"format": fmt}, timeout=600)
+        assert r.status_code == 200 and r.headers["content-type"] == "application/zip", (fmt, r.text)
+        assert f'filename="{pid}-{fmt}.zip"' in r.headers["content-disposition"]
+        out = tmp_path / fmt
+        zipfile.ZipFile(io.BytesIO(r.content)).extractall(out)
+        assert json.loads((out / "summary.json").read_text()) == run["recon"]["result"]
+        for name in names:
+            assert (out / name).is_file(), (fmt, name, sorted(p.name for p in out.rglob("*")))
+        cached = list((deployment.home / "projects" / pid / "model" / "exports").glob(f"*/{fmt}.zip"))
+        assert len(cached) == 1 and cached[0].read_bytes() == r.content
+        assert c.get(f"/v1/projects/{pid}/model", params={"format": fmt}).content == r.content
+    frames = json.loads((tmp_path / "nerfstudio" / "transforms.json").read_text())["frames"]
+    registered = run["recon"]["result"]["registered"]  # every image (test_model_registers_every_image)
+    assert len(frames) == registered > 0
+    assert all((tmp_path / "nerfstudio" / f["file_path"]).is_file() for f in frames)
+    text = pycolmap.Reconstruction(str(tmp_path / "colmap-text"))
+    assert text.num_reg_images() == registered
+    assert text.num_points3D() == run["recon"]["result"]["points3D"]
+    und = pycolmap.Reconstruction(str(tmp_path / "openmvs" / "sparse"))
+    assert {cam.model.name for cam in und.cameras.values()} == {"PINHOLE"}
+    assert sorted(p.name for p in (tmp_path / "openmvs" / "images").iterdir()) == sorted(
+        im.name for im in und.images.values()
+    )
+    with h5py.File(tmp_path / "hloc" / "matches.h5") as m, h5py.File(tmp_path / "hloc" / "features.h5") as f:
+        assert set(f) == {p.name for p in (deployment.home / "projects" / pid / "images").iterdir()}
+        assert len(m) == len((tmp_path / "hloc" / "pairs.txt").read_text().splitlines()) >= 10
+
+
 def test_match_picture(run: dict[str, Any]) -> None:
     c, pid = run["client"], run["pid"]
     r = c.get(f"/v1/projects/{pid}/pairs/ground_00.png/ground_01.png/matches.png")

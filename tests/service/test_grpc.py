@@ -233,6 +233,32 @@ def test_model_formats_and_project(run: dict[str, Any], a: GrpcClient, tmp_path:
     assert run["pid"] in [q.id for q in a.list_projects()]
 
 
+def test_model_exports_stream_the_cached_zips(
+    run: dict[str, Any], a: GrpcClient, dep: GrpcDeployment, tmp_path: Path
+) -> None:
+    """GetModel's export formats: the zip the service keeps beside the model (built by the first
+    request), its summary in ``info``; tests/test_export.py checks the formats themselves."""
+    formats = {
+        "nerfstudio": (pb2.MODEL_FORMAT_NERFSTUDIO, "transforms.json"),
+        "colmap-text": (pb2.MODEL_FORMAT_COLMAP_TEXT, "images.txt"),
+        "hloc": (pb2.MODEL_FORMAT_HLOC, "matches.h5"),
+        "openmvs": (pb2.MODEL_FORMAT_OPENMVS, "sparse/cameras.bin"),
+    }
+    exports = dep.home / "projects" / run["pid"] / "model" / "exports"
+    for fmt, (enum, inside) in formats.items():
+        info, path = a.download_model(run["pid"], tmp_path / f"{fmt}.zip", fmt, timeout=600)
+        assert info.format == enum and info.file_name == f"{run['pid']}-{fmt}.zip"
+        assert info.summary.registered == 6 and info.summary.points3d == run["info"].summary.points3d
+        assert info.size == path.stat().st_size and info.sha256 == sha256(path)
+        with zipfile.ZipFile(path) as z:
+            assert inside in z.namelist() and json.loads(z.read("summary.json"))["registered"] == 6
+        cached = list(exports.glob(f"*/{fmt}.zip"))
+        assert len(cached) == 1 and cached[0].read_bytes() == path.read_bytes()
+    with zipfile.ZipFile(tmp_path / "nerfstudio.zip") as z:
+        frames = json.loads(z.read("transforms.json"))["frames"]
+    assert sorted(f["file_path"] for f in frames) == sorted(f"images/{p.name}" for p in run["paths"])
+
+
 def test_capture_resolved_from_xmp(run: dict[str, Any], a: GrpcClient) -> None:
     images = a.list_images(run["pid"])
     assert {i.name: i.aerial for i in images} == {p.name: p.name.startswith("aerial") for p in run["paths"]}
@@ -603,6 +629,8 @@ def test_bad_requests(a: GrpcClient, dep: GrpcDeployment, scene: Path) -> None:
     assert code == grpc.StatusCode.INVALID_ARGUMENT and "matching needs at least 2" in details
     assert code_of(lambda: a.submit_reconstruction(lonely)) == grpc.StatusCode.FAILED_PRECONDITION
     code, details = error_of(lambda: a.download_model(lonely, dep.root / "x.zip"))
+    assert code == grpc.StatusCode.NOT_FOUND and "no model yet" in details
+    code, details = error_of(lambda: a.download_model(lonely, dep.root / "x.zip", "hloc"))
     assert code == grpc.StatusCode.NOT_FOUND and "no model yet" in details
     assert dep.project_state(lonely)[1] == 0
     # the same name with other bytes
