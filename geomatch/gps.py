@@ -1,0 +1,79 @@
+"""A project's GPS fixes as positions in one local ENU frame, and as COLMAP pose priors.
+
+The frame's origin is the first fix in name order (with altitude 0 when that fix has none): a
+fixed, reproducible choice, so re-running a project or adding images keeps its frame. Fixes
+without altitude are placed at the median altitude of the others (a horizontal prior is still a
+prior); when no fix has an altitude the up axis is free and the project is not georeferenced in
+height (``has_altitude`` false), which georef.py reports.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from .geodesy import EnuFrame
+from .metadata import ImageMeta
+
+
+@dataclass(frozen=True)
+class GpsFixes:
+    frame: EnuFrame
+    enu: dict[str, np.ndarray]  # image name -> (3,) ENU metres
+    has_altitude: bool
+
+
+def fixes(names: Sequence[str], metas: Mapping[str, ImageMeta]) -> GpsFixes | None:
+    """The images' fixes in the ENU frame of the first one; None when no image has GPS."""
+    located = [n for n in sorted(names) if metas[n].has_gps]
+    if not located:
+        return None
+    alts = [metas[n].altitude_m for n in located if metas[n].altitude_m is not None]
+    fallback = float(np.median(alts)) if alts else 0.0
+    first = metas[located[0]]
+    frame = EnuFrame(
+        float(first.latitude),  # type: ignore[arg-type]
+        float(first.longitude),  # type: ignore[arg-type]
+        float(first.altitude_m if first.altitude_m is not None else fallback),
+    )
+    enu = {}
+    for n in located:
+        m = metas[n]
+        alt = m.altitude_m if m.altitude_m is not None else fallback
+        enu[n] = frame.from_geodetic(m.latitude, m.longitude, alt)  # type: ignore[arg-type]
+    return GpsFixes(frame, enu, bool(alts))
+
+
+def write_pose_priors(database: Path, ids: Mapping[str, int], gps: GpsFixes, sigma_m: float = 5.0) -> int:
+    """Position priors (ENU metres, ``sigma_m`` per axis) for the images with a fix, so that the
+    database carries them for COLMAP's own tools (``colmap mapper`` with
+    ``use_prior_position``, ``model_aligner``); returns how many were written. An existing prior
+    is replaced, so a re-run with other fixes does not keep stale ones."""
+    db = pycolmap.Database.open(str(database))
+    written = 0
+    try:
+        existing = {int(p.corr_data_id.id): p for p in db.read_all_pose_priors()}
+        with pycolmap.DatabaseTransaction(db):
+            for name, pos in gps.enu.items():
+                if name not in ids:
+                    continue
+                image = db.read_image(ids[name])
+                prior = pycolmap.PosePrior()
+                prior.corr_data_id = image.data_id
+                prior.position = np.asarray(pos, np.float64).reshape(3, 1)
+                prior.position_covariance = np.eye(3) * sigma_m**2
+                prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+                old = existing.get(int(image.image_id))
+                if old is not None:
+                    prior.pose_prior_id = old.pose_prior_id
+                    db.update_pose_prior(prior)
+                else:
+                    db.write_pose_prior(prior)
+                written += 1
+    finally:
+        db.close()
+    return written
