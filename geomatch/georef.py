@@ -172,3 +172,27 @@ def ply_origin_comment(path: Path, frame: EnuFrame) -> None:
         f"comment frame ENU metres\ncomment origin {frame.lat:.9f} {frame.lon:.9f} {frame.alt:.4f}\n"
     ).encode("ascii")
     path.write_bytes(data[:first] + comment + data[first:])
+
+
+def errors_against(rec: pycolmap.Reconstruction, truth: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    """How far a georeferenced model's camera centres are from the true positions (``truth``:
+    name -> ENU metres in the model's frame), with no further alignment: what a user measuring
+    in the model gets. ``scale_error``: |s - 1| of the least-squares similarity model -> truth
+    (a model at true scale needs none)."""
+    centres = camera_centres(rec)
+    names = sorted(n for n in centres if n in truth)
+    if not names:
+        return {"images": 0}
+    src = np.stack([centres[n] for n in names])
+    dst = np.stack([np.asarray(truth[n], np.float64) for n in names])
+    err = np.linalg.norm(src - dst, axis=1)
+    out: dict[str, Any] = {
+        "images": len(names),
+        "mean_m": float(err.mean()),
+        "median_m": float(np.median(err)),
+        "max_m": float(err.max()),
+        "per_image_m": {n: float(e) for n, e in zip(names, err, strict=True)},
+    }
+    if len(names) >= 3:
+        out["scale_error"] = abs(umeyama(src, dst).scale - 1.0)
+    return out
