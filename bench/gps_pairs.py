@@ -10,7 +10,9 @@ with the line direction; 75 % / 60 %) as the held-out test, with other seeds.
 Covisibility is geometric: ground points on a 2 m grid, a camera sees those inside its image;
 a pair is covisible when the points both see are at least ``--min-overlap`` of the smaller of
 their footprints. Recall is the share of covisible pairs that ``gps:K`` plans (fixes with
-``--gps-noise`` metres of noise); "pairs" is the plan's size as a share of exhaustive.
+``--gps-noise`` metres of noise), pairing by the fixes themselves and by the look points that
+``geomatch run`` uses when DJI XMP gives gimbal pitch and yaw (2 deg / 1 deg of gimbal error);
+"of exhaustive" is the plan's size as a share of all pairs.
 
     python bench/gps_pairs.py --k 5,10,15,20 --min-overlap 0.1,0.3,0.5
 """
@@ -18,16 +20,21 @@ their footprints. Recall is the share of covisible pairs that ``gps:K`` plans (f
 from __future__ import annotations
 
 import argparse
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 from common import print_table
 
+from geomatch.gps import look_point
+from geomatch.metadata import ImageMeta
 from geomatch.pairs import gps_neighbours
 from geomatch.synth import look_at
 
 WIDTH, HEIGHT = 4000, 3000
 FOCAL = 24.0 / 36.0 * WIDTH  # 24 mm equivalent on the 36 mm long side
+# what gps:K pairs by: the fix itself, or the look point the gimbal's XMP gives (gps.look_point)
+BY = ("position", "look point")
 
 
 @dataclass(frozen=True)
@@ -47,12 +54,13 @@ LAYOUTS = {
 }
 
 
-def flight(layout: Layout, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Camera centres (N, 3) and cam_from_world rotations (N, 3, 3) of one survey."""
+def flight(layout: Layout, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, list[ImageMeta]]:
+    """Camera centres (N, 3), cam_from_world rotations (N, 3, 3) and the DJI XMP a drone would
+    write (relative altitude, gimbal pitch and yaw, each with the gimbal's error) of one survey."""
     foot_w = layout.altitude * WIDTH / FOCAL  # across the line (image x across track)
     foot_h = layout.altitude * HEIGHT / FOCAL  # along the line
     step, spacing = foot_h * (1 - layout.front), foot_w * (1 - layout.side)
-    centres, rots = [], []
+    centres, rots, metas = [], [], []
     for line in range(layout.lines):
         direction = 1.0 if line % 2 == 0 else -1.0
         for i in range(layout.per_line):
@@ -65,7 +73,14 @@ def flight(layout: Layout, rng: np.random.Generator) -> tuple[np.ndarray, np.nda
             R, _ = look_at(C, target, up=fwd)
             centres.append(C)
             rots.append(R)
-    return np.array(centres), np.array(rots)
+            heading = np.degrees(np.arctan2(fwd[0], fwd[1])) + rng.normal(0, 2.0)
+            pitch = -90.0 + np.degrees(tilt) + rng.normal(0, 1.0)
+            metas.append(
+                ImageMeta(
+                    WIDTH, HEIGHT, relative_altitude_m=C[2], gimbal_pitch_deg=pitch, gimbal_yaw_deg=heading
+                )
+            )
+    return np.array(centres), np.array(rots), metas
 
 
 def covisible_overlap(centres: np.ndarray, rots: np.ndarray, grid: float = 2.0) -> np.ndarray:
@@ -89,16 +104,18 @@ def covisible_overlap(centres: np.ndarray, rots: np.ndarray, grid: float = 2.0) 
 
 def evaluate(layout: Layout, seed: int, ks: list[int], overlaps: list[float], noise: float) -> list[dict]:
     rng = np.random.default_rng(seed)
-    centres, rots = flight(layout, rng)
+    centres, rots, metas = flight(layout, rng)
     ov = covisible_overlap(centres, rots)
     n = len(centres)
     names = [f"img_{i:04d}" for i in range(n)]
     fixes = {nm: c + rng.normal(0, [noise, noise, 1.5 * noise]) for nm, c in zip(names, centres, strict=True)}
+    looks = {nm: look_point(fixes[nm], m) for nm, m in zip(names, metas, strict=True)}
     index = {nm: i for i, nm in enumerate(names)}
     exhaustive = n * (n - 1) // 2
     rows = []
-    for k in ks:
-        plan = {(index[a], index[b]) for a, b in gps_neighbours(names, fixes, k)}
+    for k, by in itertools.product(ks, BY):
+        points = fixes if by == "position" else looks
+        plan = {(index[a], index[b]) for a, b in gps_neighbours(names, points, k)}
         plan |= {(j, i) for i, j in plan}
         for t in overlaps:
             iu = np.triu_indices(n, 1)
@@ -109,6 +126,7 @@ def evaluate(layout: Layout, seed: int, ks: list[int], overlaps: list[float], no
                     "layout": layout.name,
                     "seed": seed,
                     "k": k,
+                    "by": by,
                     "min_overlap": t,
                     "covisible": len(cov),
                     "recall": hit / max(len(cov), 1),
@@ -133,6 +151,7 @@ def main() -> None:
         ("layout", "layout", "s"),
         ("seed", "seed", "d"),
         ("K", "k", "d"),
+        ("by", "by", "s"),
         ("min overlap", "min_overlap", ".1f"),
         ("covisible", "covisible", "d"),
         ("recall %", "recall", "%"),

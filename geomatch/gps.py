@@ -77,3 +77,27 @@ def write_pose_priors(database: Path, ids: Mapping[str, int], gps: GpsFixes, sig
     finally:
         db.close()
     return written
+
+
+MAX_LOOK_FACTOR = 3.0  # an oblique's look point at most this many heights ahead (near-horizontal views)
+MIN_TILT_PITCH_DEG = -10.0  # a gimbal pitched above this looks at the horizon: no ground point
+
+
+def look_point(position: np.ndarray, meta: ImageMeta) -> np.ndarray:
+    """Where on the ground an aerial camera looks (east, north), from the gimbal's pitch and yaw
+    and the height above take-off in the DJI XMP; the position itself when the metadata does
+    not say (no XMP, a ground camera, a view near the horizon). An oblique survey flown in
+    alternating directions puts two neighbouring lines' footprints two offsets apart, so
+    pairing by position would pair images that see different ground; the look point pairs
+    those whose footprints overlap. ``gps:K`` plans by it (pairs.gps_neighbours)."""
+    xy = np.asarray(position, np.float64)[:2]
+    pitch, yaw, h = meta.gimbal_pitch_deg, meta.gimbal_yaw_deg, meta.relative_altitude_m
+    if pitch is None or yaw is None or h is None or h <= 0 or pitch > MIN_TILT_PITCH_DEG:
+        return xy
+    ahead = min(h * np.tan(np.radians(90.0 + pitch)), MAX_LOOK_FACTOR * h)
+    return xy + ahead * np.array([np.sin(np.radians(yaw)), np.cos(np.radians(yaw))])
+
+
+def plan_points(gps: GpsFixes, metas: Mapping[str, ImageMeta]) -> dict[str, np.ndarray]:
+    """The east-north point each located image is paired by (its look point)."""
+    return {n: look_point(p, metas[n]) for n, p in gps.enu.items()}

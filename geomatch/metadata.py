@@ -43,6 +43,7 @@ class ImageMeta:
     # metres: DJI XMP AbsoluteAltitude where present (the drone's fused altitude), else EXIF
     # GPSAltitude; None when neither says (a fix without altitude is still a horizontal prior)
     altitude_m: float | None = None
+    gimbal_yaw_deg: float | None = None  # DJI XMP, clockwise from north
 
     @property
     def has_gps(self) -> bool:
@@ -102,10 +103,11 @@ def read_metadata(path: str | Path) -> ImageMeta:
     alt = _xmp_value(xmp, "RelativeAltitude") if xmp else None
     pitch = _xmp_value(xmp, "GimbalPitchDegree") if xmp else None
     abs_alt = _xmp_value(xmp, "AbsoluteAltitude") if xmp else None
+    yaw = _xmp_value(xmp, "GimbalYawDegree") if xmp else None
     if lat is None or lon is None:
         lat = lon = None
     return ImageMeta(
-        w, h, make, model, focal, alt, pitch, lat, lon, abs_alt if abs_alt is not None else gps_alt
+        w, h, make, model, focal, alt, pitch, lat, lon, abs_alt if abs_alt is not None else gps_alt, yaw
     )
 
 

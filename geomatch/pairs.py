@@ -63,10 +63,12 @@ def gps_neighbours(
     names: Sequence[str], enu: Mapping[str, np.ndarray], k: int, unlocated_all: bool = True
 ) -> list[tuple[str, str]]:
     """Each image with a fix paired with its k nearest others by horizontal (east-north)
-    distance; symmetric pairs counted once. Horizontal, because what decides overlap from the
-    air is the ground footprint, which height above the ground does not move (a drone 40 m
-    above a ground camera sees what it sees). Images without a fix are paired with every other
-    image when ``unlocated_all`` (nothing says where they are), else left to the other parts
+    distance; symmetric pairs counted once. ``enu``: where each image is, or better where it
+    looks (gps.look_point: an oblique's footprint lies ahead of it); only east and north count,
+    because what decides overlap from the air is the ground footprint, which height above the
+    ground does not move (a drone 40 m above a ground camera sees what it sees). Images
+    without a fix are paired with every other image when ``unlocated_all`` (nothing says
+    where they are), else left to the other parts
     of the plan (``gps:K+retrieval:K``: retrieval pairs them)."""
     located = [n for n in names if n in enu]
     out: set[tuple[str, str]] = set()

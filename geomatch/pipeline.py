@@ -98,7 +98,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         matcher,
         images,
         opts.progress,
-        gps_enu=fixes.enu if fixes is not None else None,
+        gps_enu=gpsfix.plan_points(fixes, metas) if fixes is not None else None,
     )
 
     timings: dict[str, float] = {"matching": 0.0, "writing": 0.0}
