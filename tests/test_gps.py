@@ -17,7 +17,7 @@ from geomatch.cli import main
 from geomatch.colmapdb import ColmapDatabase
 from geomatch.geodesy import EnuFrame
 from geomatch.georef import errors_against, robust_similarity, umeyama
-from geomatch.metadata import exif_for, gps_exif, read_metadata
+from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata
 from geomatch.options import OptionError, check, parse_plan
 from geomatch.synth import GPS_ORIGIN, write_scene
 
@@ -45,7 +45,8 @@ def test_no_gps_and_dji_absolute_altitude(tmp_path: Path) -> None:
     info = PngInfo()
     info.add_itxt(
         "XML:com.adobe.xmp",
-        '<rdf:Description drone-dji:AbsoluteAltitude="+512.30" drone-dji:RelativeAltitude="+80.10"/>',
+        '<rdf:Description drone-dji:AbsoluteAltitude="+512.30" drone-dji:RelativeAltitude="+80.10" '
+        'drone-dji:GimbalYawDegree="-92.5"/>',
     )
     exif = gps_exif(Image.Exif(), 47.0, 8.0, 500.0)
     Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(
@@ -53,6 +54,7 @@ def test_no_gps_and_dji_absolute_altitude(tmp_path: Path) -> None:
     )
     m = read_metadata(tmp_path / "dji.png")
     assert m.altitude_m == pytest.approx(512.3) and m.relative_altitude_m == pytest.approx(80.1)
+    assert m.gimbal_yaw_deg == pytest.approx(-92.5)
 
 
 def test_synth_writes_fixes_and_leaves_renders_alone(tmp_path: Path) -> None:
@@ -119,6 +121,21 @@ def test_gps_plans() -> None:
     assert set(with_all) == set(got) | {(n, "nofix") for n in names[:5]}
     two = pairs.gps_neighbours(names, enu, 2, unlocated_all=False)
     assert two == [("a", "b"), ("a", "c"), ("b", "c"), ("c", "d"), ("c", "e"), ("d", "e")]
+
+
+def test_look_point_is_ahead_of_an_oblique_only() -> None:
+    here = np.array([100.0, 50.0, 80.0])
+    nadir = ImageMeta(8, 8, relative_altitude_m=80.0, gimbal_pitch_deg=-90.0, gimbal_yaw_deg=45.0)
+    np.testing.assert_allclose(gps.look_point(here, nadir), [100.0, 50.0], atol=1e-9)
+    # 30 deg off nadir, heading east (yaw 90, clockwise from north): 80 tan 30 = 46.2 m east
+    east = ImageMeta(8, 8, relative_altitude_m=80.0, gimbal_pitch_deg=-60.0, gimbal_yaw_deg=90.0)
+    np.testing.assert_allclose(gps.look_point(here, east), [100.0 + 80.0 / np.sqrt(3), 50.0], atol=1e-9)
+    # near the horizon: capped at three heights ahead; level or silent: the position
+    low = ImageMeta(8, 8, relative_altitude_m=80.0, gimbal_pitch_deg=-11.0, gimbal_yaw_deg=180.0)
+    np.testing.assert_allclose(gps.look_point(here, low), [100.0, 50.0 - 240.0], atol=1e-9)
+    level = ImageMeta(8, 8, relative_altitude_m=80.0, gimbal_pitch_deg=0.0, gimbal_yaw_deg=180.0)
+    np.testing.assert_allclose(gps.look_point(here, level), [100.0, 50.0])
+    np.testing.assert_allclose(gps.look_point(here, ImageMeta(8, 8)), [100.0, 50.0])
 
 
 def test_pose_priors_are_written_and_replaced(tmp_path: Path) -> None:
