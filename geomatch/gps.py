@@ -17,7 +17,7 @@ import numpy as np
 import pycolmap
 
 from .geodesy import EnuFrame
-from .metadata import ImageMeta
+from .metadata import ImageMeta, read_metadata
 
 
 @dataclass(frozen=True)
@@ -101,3 +101,17 @@ def look_point(position: np.ndarray, meta: ImageMeta) -> np.ndarray:
 def plan_points(gps: GpsFixes, metas: Mapping[str, ImageMeta]) -> dict[str, np.ndarray]:
     """The east-north point each located image is paired by (its look point)."""
     return {n: look_point(p, metas[n]) for n, p in gps.enu.items()}
+
+
+def fixes_of_database(database: Path, image_dir: Path) -> GpsFixes | None:
+    """The fixes of the images a COLMAP database holds, read from their files in ``image_dir``
+    (a reconstruct job has the database and the folder, not the run's metadata); files gone
+    from the folder are left out."""
+    db = pycolmap.Database.open(str(database))
+    try:
+        names = [im.name for im in db.read_all_images()]
+    finally:
+        db.close()
+    names = [n for n in names if (image_dir / n).is_file()]
+    metas = {n: read_metadata(image_dir / n) for n in names}
+    return fixes(names, metas)
