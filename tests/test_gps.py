@@ -82,6 +82,13 @@ def test_synth_writes_fixes_and_leaves_renders_alone(tmp_path: Path) -> None:
     assert not (tmp_path / "plain" / "gt" / "gps.json").exists()
 
 
+def test_synth_command_takes_gps_noise(tmp_path: Path) -> None:
+    args = ["synth", str(tmp_path), "--aerial", "1", "--ground", "1", "--width", "32", "--height", "24"]
+    assert main([*args, "--gps-noise", "1.5"]) == 0
+    assert json.loads((tmp_path / "gt" / "gps.json").read_text())["sigma_m"] == 1.5
+    assert all(read_metadata(f).has_gps for f in (tmp_path / "images").iterdir())
+
+
 def test_robust_similarity_recovers_sim3_among_30_percent_outliers() -> None:
     rng = np.random.default_rng(7)
     src = rng.uniform(-50, 50, (40, 3))
