@@ -164,6 +164,9 @@ def test_pose_priors_are_written_and_replaced(tmp_path: Path) -> None:
     finally:
         db.close()
     assert len(priors) == 3 and ids["3.png"] not in priors
+    # a reconstruct job finds the same fixes from the database and the folder
+    again = gps.fixes_of_database(tmp_path / "db.db", tmp_path)
+    assert again is not None and again.frame == fixes.frame and set(again.enu) == set(fixes.enu)
     p2 = np.ravel(priors[ids["2.png"]].position)
     np.testing.assert_allclose(p2, fixes.enu["2.png"], atol=1e-9)
     assert 22.0 < p2[1] < 22.5 and p2[2] == pytest.approx(2.0, abs=0.01)  # 2e-4 deg north, 2 m up
