@@ -254,7 +254,6 @@ def given(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Any]:
 
 # -- the pair-spec grammar ---------------------------------------------------------------------
 _SPEC = re.compile(r"(exhaustive)|(sequential|retrieval|gps):(\d+)")
-PLAN_KINDS = ("sequential", "retrieval", "gps")
 
 
 def parse_plan(spec: str) -> list[tuple[str, int]]:
