@@ -178,7 +178,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
             f"ground truth in {args.out}/gt, depth in {args.out}/depth"
         )
         return 0
-    cams = write_scene(args.out, args.aerial, args.ground, args.seed, args.width, args.height)
+    cams = write_scene(args.out, args.aerial, args.ground, args.seed, args.width, args.height, args.gps_noise)
     print(
         f"{len(cams)} images ({args.aerial} aerial, {args.ground} ground) in {time.perf_counter() - t0:.1f}s "
         f"-> {args.out}/images, ground truth in {args.out}/gt, aerial names in {args.out}/aerial.txt"
@@ -215,6 +215,14 @@ def register(sub: Any) -> None:
     )
     s.add_argument("--width", type=int, default=640)
     s.add_argument("--height", type=int, default=480)
+    s.add_argument(
+        "--gps-noise",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="write EXIF GPS fixes (scene metres as ENU around lat 47.3769, lon 8.5417, alt 408), "
+        "noise N(0, METRES) east/north and 1.5x that up; gt/gps.json has the truth",
+    )
     s.set_defaults(func=cmd_synth)
 
     r = sub.add_parser("run", help="images to a sparse COLMAP model, in one process")

@@ -1,8 +1,9 @@
-"""What an image file says about its camera: EXIF focal length and device, DJI XMP altitude and pitch.
+"""What an image file says about its camera: EXIF focal length and device, GPS, DJI XMP altitude and pitch.
 
 The focal length becomes COLMAP's prior (``has_prior_focal_length``); make/model/size group
 images into one shared camera per device; relative altitude or gimbal pitch says whether an
-image is aerial, which decides tiling.
+image is aerial, which decides tiling; the GPS fix (EXIF GPSInfo, DJI XMP AbsoluteAltitude)
+becomes a position prior and puts the model in a real-world frame (gps.py, georef.py).
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ _EXIF_IFD = 0x8769
 _FOCAL, _FOCAL35 = 0x920A, 0xA405
 _FP_XRES, _FP_UNIT = 0xA20E, 0xA210
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # FocalPlaneResolutionUnit -> mm per unit
+_GPS_IFD = 0x8825
+_GPS_LAT_REF, _GPS_LAT, _GPS_LON_REF, _GPS_LON, _GPS_ALT_REF, _GPS_ALT = 1, 2, 3, 4, 5, 6
 
 
 @dataclass(frozen=True)
@@ -35,6 +38,16 @@ class ImageMeta:
     focal_px: float | None = None  # from EXIF, None when the file does not say
     relative_altitude_m: float | None = None
     gimbal_pitch_deg: float | None = None
+    latitude: float | None = None  # degrees, north positive (EXIF GPSInfo)
+    longitude: float | None = None  # degrees, east positive
+    # metres: DJI XMP AbsoluteAltitude where present (the drone's fused altitude), else EXIF
+    # GPSAltitude; None when neither says (a fix without altitude is still a horizontal prior)
+    altitude_m: float | None = None
+    gimbal_yaw_deg: float | None = None  # DJI XMP, clockwise from north
+
+    @property
+    def has_gps(self) -> bool:
+        return self.latitude is not None and self.longitude is not None
 
     @property
     def device(self) -> tuple[str, str, int, int, float | None]:
@@ -86,9 +99,68 @@ def read_metadata(path: str | Path) -> ImageMeta:
         model = str(exif.get(_MODEL, "")).strip("\x00 ") if exif else ""
         focal = _focal_px(sub, w, h)
         xmp = _xmp_text(im)
+        lat, lon, gps_alt = _gps(exif.get_ifd(_GPS_IFD) if exif else {})
     alt = _xmp_value(xmp, "RelativeAltitude") if xmp else None
     pitch = _xmp_value(xmp, "GimbalPitchDegree") if xmp else None
-    return ImageMeta(w, h, make, model, focal, alt, pitch)
+    abs_alt = _xmp_value(xmp, "AbsoluteAltitude") if xmp else None
+    yaw = _xmp_value(xmp, "GimbalYawDegree") if xmp else None
+    if lat is None or lon is None:
+        lat = lon = None
+    return ImageMeta(
+        w, h, make, model, focal, alt, pitch, lat, lon, abs_alt if abs_alt is not None else gps_alt, yaw
+    )
+
+
+def _dms(value: object, ref: object, negative: str) -> float | None:
+    try:
+        d, m, sec = (float(v) for v in value)  # type: ignore[attr-defined]
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    deg = d + m / 60.0 + sec / 3600.0
+    if isinstance(ref, bytes):
+        ref = ref.decode("ascii", "replace")
+    return -deg if str(ref).strip("\x00 ").upper() == negative else deg
+
+
+def _gps(gps: dict[int, object]) -> tuple[float | None, float | None, float | None]:
+    """Latitude, longitude (degrees) and altitude (metres) of an EXIF GPSInfo IFD; a field that
+    is missing or malformed is None (a camera without a fix writes zeros or nothing)."""
+    if not gps or _GPS_LAT not in gps or _GPS_LON not in gps:
+        return None, None, None
+    lat = _dms(gps[_GPS_LAT], gps.get(_GPS_LAT_REF, "N"), "S")
+    lon = _dms(gps[_GPS_LON], gps.get(_GPS_LON_REF, "E"), "W")
+    if lat is None or lon is None or not (-90 <= lat <= 90 and -180 <= lon <= 180):
+        return None, None, None
+    alt = None
+    try:
+        if _GPS_ALT in gps:
+            alt = float(gps[_GPS_ALT])  # type: ignore[arg-type]
+            ref = gps.get(_GPS_ALT_REF, 0)
+            below = ref in (1, b"\x01") or (isinstance(ref, bytes) and ref[:1] == b"\x01")
+            alt = -alt if below else alt
+    except (TypeError, ValueError, ZeroDivisionError):
+        alt = None
+    return lat, lon, alt
+
+
+def gps_exif(exif: Image.Exif, lat: float, lon: float, alt: float) -> Image.Exif:
+    """Add a GPSInfo IFD (degrees/minutes/seconds, altitude with its sign in GPSAltitudeRef) to
+    ``exif``, as a camera with a fix writes it; seconds carry 1e-6 arcsec (~3e-5 m)."""
+
+    def dms(v: float) -> tuple[float, float, float]:
+        v = abs(v)
+        d = int(v)
+        m = int((v - d) * 60.0)
+        return float(d), float(m), round((v - d - m / 60.0) * 3600.0, 6)
+
+    gps = exif.get_ifd(_GPS_IFD)
+    gps[_GPS_LAT_REF] = "N" if lat >= 0 else "S"
+    gps[_GPS_LAT] = dms(lat)
+    gps[_GPS_LON_REF] = "E" if lon >= 0 else "W"
+    gps[_GPS_LON] = dms(lon)
+    gps[_GPS_ALT_REF] = b"\x00" if alt >= 0 else b"\x01"
+    gps[_GPS_ALT] = round(abs(alt), 3)
+    return exif
 
 
 def _focal_px(sub: dict[int, object], width: int, height: int) -> float | None:

@@ -69,7 +69,7 @@ CAMERAS = ("auto", "per-image")
 EXPORT_FORMATS = ("nerfstudio", "colmap-text", "ply", "hloc", "openmvs")
 CAPTURES = ("aerial", "ground", "auto")  # how an uploaded image was taken (auto: EXIF/XMP decides)
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
-PAIR_SPEC_HELP = "exhaustive | sequential:K | retrieval:K"
+PAIR_SPEC_HELP = "exhaustive | sequential:K | retrieval:K | gps:K | a union such as gps:K+retrieval:K"
 
 # COLMAP registers an image from 30 PnP inliers, a count made for sparse SIFT matches. With dense
 # matches a genuinely overlapping image has hundreds of 2D-3D correspondences, while a repeated
@@ -135,11 +135,11 @@ class Option:
             if not isinstance(value, str):
                 raise OptionError(f"pairs must be a spec or a list of name pairs, not {value!r}")
             try:
-                parse_spec(value)
+                parse_plan(value)
             except PairSpecError:
                 raise OptionError(
-                    f"bad pairs {value!r}: use exhaustive, sequential:K, retrieval:K (K >= 1) "
-                    "or a list of name pairs"
+                    f"bad pairs {value!r}: use exhaustive, sequential:K, retrieval:K, gps:K (K >= 1), "
+                    "a union of those joined by + or a list of name pairs"
                 ) from None
             return value.strip()
         if self.choices:
@@ -255,14 +255,27 @@ def given(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Any]:
 
 
 # -- the pair-spec grammar ---------------------------------------------------------------------
-_SPEC = re.compile(r"(exhaustive)|(sequential|retrieval):(\d+)")
+_SPEC = re.compile(r"(exhaustive)|(sequential|retrieval|gps):(\d+)")
+
+
+def parse_plan(spec: str) -> list[tuple[str, int]]:
+    """A plan: one spec, or a union of ``sequential:K`` / ``retrieval:K`` / ``gps:K`` parts
+    joined by ``+`` (``gps:10+retrieval:5``: a drone project's neighbours by position plus
+    those by appearance), each kind at most once; ``exhaustive`` stands alone (a union with it
+    is exhaustive)."""
+    parts = [parse_spec(p) for p in spec.strip().split("+")] if spec.strip() else [parse_spec(spec)]
+    kinds = [k for k, _ in parts]
+    if len(parts) > 1 and ("exhaustive" in kinds or len(set(kinds)) != len(kinds)):
+        raise PairSpecError(f"bad pair spec {spec!r}: a union joins different kinds, without exhaustive")
+    return parts
 
 
 def parse_spec(spec: str) -> tuple[str, int]:
-    """``exhaustive`` -> ("exhaustive", 0); ``sequential:K`` / ``retrieval:K`` -> (kind, K >= 1)."""
+    """``exhaustive`` -> ("exhaustive", 0); ``sequential:K`` / ``retrieval:K`` / ``gps:K`` ->
+    (kind, K >= 1). One part of a plan (:func:`parse_plan` reads unions)."""
     m = _SPEC.fullmatch(spec.strip())
     if not m:
-        raise PairSpecError(f"bad pair spec {spec!r}: use exhaustive, sequential:K or retrieval:K")
+        raise PairSpecError(f"bad pair spec {spec!r}: use exhaustive, sequential:K, retrieval:K or gps:K")
     if m.group(1):
         return "exhaustive", 0
     k = int(m.group(3))

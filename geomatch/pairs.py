@@ -5,18 +5,21 @@ flight line is numbered); ``retrieval:K`` (each image with its K nearest neighbo
 descriptor, see retrieval.py); or an explicit list. Global descriptors do not bridge the
 air-to-ground gap (that is the problem tiling solves), so ``retrieval:K`` keeps every
 aerial x ground pair as a candidate instead of trusting the ranking across views. A pair with
-exactly one aerial image is tiled when tiling is ``auto`` or ``on``.
+exactly one aerial image is tiled when tiling is ``auto`` or ``on``. ``gps:K`` pairs each image
+with its K nearest by GPS position (how a drone project of thousands of images stays
+near-linear in pairs); parts join into a union with ``+`` (``gps:10+retrieval:5``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from .options import TILING
 from .options import PairSpecError as PairSpecError  # the grammar lives with the other options
+from .options import parse_plan as parse_plan
 from .options import parse_spec as parse_spec
 
 
@@ -54,6 +57,34 @@ def nearest_neighbours(descriptors: np.ndarray, names: Sequence[str], k: int) ->
         for j in np.argsort(-sim[i], kind="stable")[: min(k, len(names) - 1)]:
             out.add((min(i, int(j)), max(i, int(j))))
     return [(names[i], names[j]) for i, j in sorted(out)]
+
+
+def gps_neighbours(
+    names: Sequence[str], enu: Mapping[str, np.ndarray], k: int, unlocated_all: bool = True
+) -> list[tuple[str, str]]:
+    """Each image with a fix paired with its k nearest others by horizontal (east-north)
+    distance; symmetric pairs counted once. ``enu``: where each image is, or better where it
+    looks (gps.look_point: an oblique's footprint lies ahead of it); only east and north count,
+    because what decides overlap from the air is the ground footprint, which height above the
+    ground does not move (a drone 40 m above a ground camera sees what it sees). Images
+    without a fix are paired with every other image when ``unlocated_all`` (nothing says
+    where they are), else left to the other parts
+    of the plan (``gps:K+retrieval:K``: retrieval pairs them)."""
+    located = [n for n in names if n in enu]
+    out: set[tuple[str, str]] = set()
+    if len(located) > 1:
+        xy = np.stack([np.asarray(enu[n], np.float64)[:2] for n in located])
+        d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+        np.fill_diagonal(d, np.inf)
+        for i, a in enumerate(located):
+            for j in np.argsort(d[i], kind="stable")[: min(k, len(located) - 1)]:
+                b = located[int(j)]
+                out.add((a, b) if a < b else (b, a))
+    if unlocated_all:
+        for a in names:
+            if a not in enu:
+                out.update((a, b) if a < b else (b, a) for b in names if b != a)
+    return sorted(out)
 
 
 def cross_view(names: Sequence[str], aerial: set[str]) -> list[tuple[str, str]]:

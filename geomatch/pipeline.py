@@ -17,11 +17,12 @@ from typing import Any
 
 from tqdm import tqdm
 
+from . import gps as gpsfix
 from . import steps
 from .colmapdb import ColmapDatabase
 from .matcher import Matcher, config_from_options
 from .metadata import read_metadata
-from .options import DEFAULTS, cache_budget, parse_spec
+from .options import DEFAULTS, cache_budget, parse_plan
 from .steps import PipelineError as PipelineError  # a run's bad input; defined with the stages
 from .steps import list_images as list_images
 
@@ -44,6 +45,8 @@ class RunOptions:
     min_pose_inliers: int = DEFAULTS["min_pose_inliers"]
     # drop verified pairs whose relative rotation breaks the view graph's loops (geomatch.viewgraph)
     loop_check: bool = True
+    # images with EXIF GPS: pose priors in the database, the model moved into ENU metres
+    georeference: bool = True
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
     match_cache: str | None = None  # folder of raw pair matches shared by runs (benchmarks, variants)
     progress: bool = True
@@ -69,10 +72,11 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     image_dir, out = Path(image_dir), Path(out)
     t_start = time.perf_counter()
     if opts.pairs_list is None:
-        parse_spec(opts.pairs)  # a bad spec fails before any work
+        parse_plan(opts.pairs)  # a bad spec fails before any work
     names = steps.list_images(image_dir)
     metas = {n: read_metadata(image_dir / n) for n in names}
     aerial = steps.aerial_set(steps.captures(names, opts.aerial_names, opts.aerial_glob), metas)
+    fixes = gpsfix.fixes(names, metas) if opts.georeference else None
     out.mkdir(parents=True, exist_ok=True)
 
     budget = cache_budget()  # GEOMATCH_CACHE_MB, as a worker's job thread
@@ -85,13 +89,24 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     matcher = Matcher(config)
     images = steps.Images(image_dir, budget.images_mb)
     planned = steps.plan(
-        image_dir, names, aerial, opts.pairs, opts.pairs_list, opts.tiling, matcher, images, opts.progress
+        image_dir,
+        names,
+        aerial,
+        opts.pairs,
+        opts.pairs_list,
+        opts.tiling,
+        matcher,
+        images,
+        opts.progress,
+        gps_enu=gpsfix.plan_points(fixes, metas) if fixes is not None else None,
     )
 
     timings: dict[str, float] = {"matching": 0.0, "writing": 0.0}
     pair_seconds: dict[str, list[float]] = {"tiled": [], "plain": []}
     with ColmapDatabase(out / "database.db") as db:
         ids = steps.register(db, names, metas, opts.share_camera)
+    priors = gpsfix.write_pose_priors(out / "database.db", ids, fixes) if fixes is not None else 0
+    with ColmapDatabase(out / "database.db") as db:
         todo = steps.unmatched(db, ids, planned)
         bar = tqdm(todo, desc=f"matching ({opts.method})", unit="pair", disable=not opts.progress)
         for p in bar:
@@ -115,7 +130,9 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         verbose=opts.verbose,
         progress=opts.progress,
         loop_check=opts.loop_check,
+        gps=fixes,
     )
+    summary["pose_priors"] = priors
     timings["mapping"] = time.perf_counter() - t_map
     timings["total"] = time.perf_counter() - t_start
     timings.update(pair_timing_summary(pair_seconds))

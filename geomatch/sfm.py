@@ -18,7 +18,9 @@ from typing import Any
 import pycolmap
 from tqdm import tqdm
 
+from . import georef
 from .colmaplog import colmap_log
+from .gps import GpsFixes
 from .metrics import sfm_stats
 from .options import MAPPERS, MIN_POSE_INLIERS
 from .sqlitecopy import snapshot_sqlite
@@ -54,8 +56,14 @@ def reconstruct(
     progress: bool = False,
     min_pose_inliers: int = MIN_POSE_INLIERS,
     loop_check: bool = True,
+    gps: GpsFixes | None = None,
 ) -> dict[str, Any]:
     """Map, export the largest model and return (and write) the summary.
+
+    With ``gps`` every model with three or more registered images that have a fix is moved into
+    the fixes' ENU frame (georef.py) before it is written, so ``sparse/``, ``points.ply`` and the
+    summary are all in ENU metres; the summary says whether the largest model was
+    (``georeferenced``) and how well its cameras fit their fixes (``alignment``).
 
     The mapper reads a private copy of the database in which the pairs that the view graph's
     loops reject (viewgraph.py) are marked degenerate; ``database`` itself keeps every verified
@@ -101,6 +109,7 @@ def reconstruct(
         bar.n = best_count  # the bar ends at the largest model's count (the callbacks count tries)
         bar.refresh()
     ranked = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
+    alignments = [georef.align(rec, gps.enu) if gps is not None else None for rec in ranked]
     sparse = out / "sparse"
     shutil.rmtree(sparse, ignore_errors=True)
     for i, rec in enumerate(ranked):
@@ -112,9 +121,12 @@ def reconstruct(
     shutil.rmtree(work, ignore_errors=True)
     summary: dict[str, Any] = {"mapper": mapper, "models": len(ranked)}
     summary["view_graph"] = report.as_dict() if report is not None else None
+    summary.update(georef.summary_fields(gps, alignments[0] if alignments else None))
     if ranked:
         best = ranked[0]
         best.export_PLY(str(out / "points.ply"))
+        if gps is not None and alignments[0] is not None:
+            georef.ply_origin_comment(out / "points.ply", gps.frame)
         summary.update(sfm_stats(best, n_images))
         summary["registered_names"] = sorted(im.name for im in best.images.values() if im.has_pose)
     else:

@@ -40,6 +40,7 @@ from . import sfm
 from .colmapdb import ColmapDatabase, PairWrite
 from .features.base import DenseFeatures, ImageFeatures, SparseFeatures
 from .geometry import estimate_fundamental, fundamental_from_matches
+from .gps import GpsFixes
 from .imageio import image_key, read_image
 from .lru import ByteLRU
 from .matcher import Matcher, MatcherConfig, MatchResult
@@ -275,24 +276,31 @@ def plan(
     matcher: Matcher | None = None,
     images: Images | None = None,
     progress: bool = False,
+    gps_enu: Mapping[str, np.ndarray] | None = None,
 ) -> list[Pair]:
-    """The pairs to match (``pairs_list``, else ``spec``), tiled where ``tiling`` says, in a
-    cache-friendly order: all pairs of one aerial image (its five crops) together.
-    ``retrieval:K`` needs ``matcher`` (global descriptors come from its sparse features)."""
+    """The pairs to match (``pairs_list``, else ``spec``, a union of its parts), tiled where
+    ``tiling`` says, in a cache-friendly order: all pairs of one aerial image (its five crops)
+    together. ``retrieval:K`` needs ``matcher`` (global descriptors come from its sparse
+    features); ``gps:K`` needs ``gps_enu`` (images without a fix: see pairs.gps_neighbours)."""
     names = list(names)
     if pairs_list is not None:
         raw = pairing.explicit(pairs_list, names)
     else:
-        kind, k = pairing.parse_spec(spec)
-        if kind == "exhaustive":
-            raw = pairing.exhaustive(names)
-        elif kind == "sequential":
-            raw = pairing.sequential(names, k)
-        else:
-            assert matcher is not None
-            descriptors = global_descriptors(matcher, images or Images(image_dir), names, progress)
-            raw = pairing.nearest_neighbours(descriptors, names, k)
-            raw += pairing.cross_view(names, aerial)
+        parts = pairing.parse_plan(spec)
+        kinds = {kind for kind, _ in parts}
+        raw = []
+        for kind, k in parts:
+            if kind == "exhaustive":
+                raw += pairing.exhaustive(names)
+            elif kind == "sequential":
+                raw += pairing.sequential(names, k)
+            elif kind == "gps":
+                raw += pairing.gps_neighbours(names, gps_enu or {}, k, unlocated_all="retrieval" not in kinds)
+            else:
+                assert matcher is not None
+                descriptors = global_descriptors(matcher, images or Images(image_dir), names, progress)
+                raw += pairing.nearest_neighbours(descriptors, names, k)
+                raw += pairing.cross_view(names, aerial)
     planned = pairing.finalize(raw, aerial, tiling)
     return sorted(planned, key=lambda p: (not p.tiled, p.name0 if p.aerial_first else p.name1, p.key))
 
@@ -517,10 +525,11 @@ def reconstruct(
     verbose: bool = False,
     progress: bool = False,
     loop_check: bool = True,
+    gps: GpsFixes | None = None,
 ) -> dict[str, Any]:
     """Map the matched database; the models land in ``out/sparse`` (the largest first) with
     ``out/points.ply``; returns the summary. ``loop_check``: drop the pairs the view graph's
-    loops reject before mapping (geomatch.viewgraph)."""
+    loops reject before mapping (geomatch.viewgraph). ``gps``: georeference to these fixes."""
     return sfm.reconstruct(
         database,
         image_dir,
@@ -531,6 +540,7 @@ def reconstruct(
         progress=progress,
         min_pose_inliers=min_pose_inliers,
         loop_check=loop_check,
+        gps=gps,
     )
 
 

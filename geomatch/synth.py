@@ -9,11 +9,16 @@ depth test), rendered at 2x and area-downsampled against aliasing.
 
 Output of :func:`write_scene`: ``images/`` (PNG), ``gt/`` (COLMAP text model: cameras.txt,
 images.txt, empty points3D.txt; poses are cam_from_world as COLMAP stores them) and
-``aerial.txt`` (the aerial image names, one per line).
+``aerial.txt`` (the aerial image names, one per line). With ``gps_noise`` (metres) every image
+also carries an EXIF GPS fix: the scene's metres are East-North-Up around :data:`GPS_ORIGIN`
+(so ``gt/`` is already in that ENU frame), each camera centre is perturbed by N(0, sigma) east and
+north and N(0, 1.5 sigma) up (consumer GNSS is worse vertically) and converted to WGS84;
+``gt/gps.json`` keeps the origin, sigma and every image's true and noisy ENU position.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,8 +27,9 @@ import numpy as np
 from PIL import Image
 from PIL.PngImagePlugin import PngInfo
 
+from .geodesy import EnuFrame
 from .homography import photo
-from .metadata import dji_xmp, exif_for
+from .metadata import dji_xmp, exif_for, gps_exif
 
 TEXTURES = (
     "astronaut",
@@ -45,6 +51,8 @@ TEXTURES = (
     "logo",
 )
 SKY = np.array([200.0, 215.0, 235.0])
+GPS_ORIGIN = EnuFrame(47.3769, 8.5417, 408.0)  # Zurich; the scene's (0, 0, 0), ellipsoidal height
+GPS_VERTICAL_FACTOR = 1.5  # vertical GNSS noise over horizontal
 
 
 def scribble(img: np.ndarray, rng: np.random.Generator, n: int, max_radius: int | None = None) -> None:
@@ -337,30 +345,69 @@ def write_gt(cams: list[Camera], gt: Path) -> None:
     (gt / "points3D.txt").write_text("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n")
 
 
-def save_png(path: Path, image: np.ndarray, cam: Camera) -> None:
-    """PNG with the EXIF a camera would write (exact focal length, one device per capture type)
-    and, for aerial images, the DJI XMP a drone would (relative altitude, gimbal pitch)."""
+def save_png(path: Path, image: np.ndarray, cam: Camera, gps_enu: np.ndarray | None = None) -> None:
+    """PNG with the EXIF a camera would write (exact focal length, one device per capture type,
+    the GPS fix at ``gps_enu`` metres in :data:`GPS_ORIGIN`'s frame when given) and, for aerial
+    images, the DJI XMP a drone would (relative altitude, gimbal pitch)."""
     info = PngInfo()
     if cam.aerial:
         pitch = float(np.degrees(np.arcsin(np.clip(cam.R[2, 2], -1, 1))))
         info.add_itxt("XML:com.adobe.xmp", dji_xmp(float(cam.centre[2]), pitch))
     model = "synth-drone" if cam.aerial else "synth-handheld"
     exif = exif_for("geomatch", model, float(cam.K[0, 0]) / 100.0, 100.0)
+    if gps_enu is not None:
+        lat, lon, alt = GPS_ORIGIN.to_geodetic(np.asarray(gps_enu, np.float64))
+        gps_exif(exif, float(lat), float(lon), float(alt))
     Image.fromarray(image).save(path, exif=exif.tobytes(), pnginfo=info)
 
 
+def gps_fixes(cams: list[Camera], sigma: float, seed: int) -> dict[str, np.ndarray]:
+    """Noisy ENU positions of the camera centres. A generator of its own (not the scene's), so
+    that asking for GPS leaves the scene and its renders bit-identical."""
+    rng = np.random.default_rng([seed, 0x675])
+    scale = np.array([sigma, sigma, GPS_VERTICAL_FACTOR * sigma])
+    return {c.name: c.centre + rng.normal(0.0, 1.0, 3) * scale for c in cams}
+
+
 def write_scene(
-    out: str | Path, n_aerial: int = 8, n_ground: int = 12, seed: int = 0, width: int = 640, height: int = 480
+    out: str | Path,
+    n_aerial: int = 8,
+    n_ground: int = 12,
+    seed: int = 0,
+    width: int = 640,
+    height: int = 480,
+    gps_noise: float | None = None,
+    gps_names: set[str] | None = None,
 ) -> list[Camera]:
-    """Render a scene into ``out`` (images/, gt/, aerial.txt) and return its cameras."""
+    """Render a scene into ``out`` (images/, gt/, aerial.txt) and return its cameras.
+    ``gps_noise``: write GPS fixes with that sigma (metres); ``gps_names``: only into these
+    images (a mixed project), all when None."""
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     scene = Scene(seed)
     cams = scene.cameras(n_aerial, n_ground, width, height)
+    fixes = gps_fixes(cams, gps_noise, seed) if gps_noise is not None else {}
+    if gps_names is not None:
+        fixes = {n: v for n, v in fixes.items() if n in gps_names}
     for c in cams:
         img, _ = scene.render(c)
-        save_png(out / "images" / c.name, img, c)
+        save_png(out / "images" / c.name, img, c, fixes.get(c.name))
     write_gt(cams, out / "gt")
+    if gps_noise is not None:
+        (out / "gt" / "gps.json").write_text(
+            json.dumps(
+                {
+                    "origin": GPS_ORIGIN.as_dict(),
+                    "frame": "ENU",
+                    "sigma_m": gps_noise,
+                    "vertical_factor": GPS_VERTICAL_FACTOR,
+                    "true_enu": {c.name: c.centre.tolist() for c in cams},
+                    "gps_enu": {n: v.tolist() for n, v in fixes.items()},
+                },
+                indent=1,
+            )
+            + "\n"
+        )
     (out / "aerial.txt").write_text("".join(f"{c.name}\n" for c in cams if c.aerial))
     return cams
 

@@ -50,7 +50,9 @@ Timestamp = Annotated[
 
 # What parse_spec takes, as a pattern (ASCII digits and white space: the JSON Schema dialect's \\d and
 # \\s are narrower than Python's, and the schema must not promise what the server refuses)
-PAIR_SPEC_PATTERN = r"^[ \t\n\r]*(?:exhaustive|(?:sequential|retrieval):0*[1-9][0-9]*)[ \t\n\r]*$"
+# (a union's kinds differ: the pattern lets a repeated kind through, options.check refuses it)
+_PART = r"[ \t\n\r]*(?:sequential|retrieval|gps):0*[1-9][0-9]*[ \t\n\r]*"
+PAIR_SPEC_PATTERN = rf"^(?:[ \t\n\r]*exhaustive[ \t\n\r]*|{_PART}(?:\+{_PART}){{0,2}})$"
 
 
 def _option_schema(o: options.Option) -> dict[str, Any]:
@@ -77,7 +79,9 @@ def _checked(name: str) -> Any:
         if isinstance(value, list):
             return value
         if name == "pairs" and not re.fullmatch(PAIR_SPEC_PATTERN, value):
-            raise ValueError(f"bad pairs {value!r}: use exhaustive, sequential:K, retrieval:K (K >= 1)")
+            raise ValueError(
+                f"bad pairs {value!r}: use exhaustive, sequential:K, retrieval:K, gps:K (K >= 1) or a union"
+            )
         return options.check(name, value)
 
     return AfterValidator(check)

@@ -45,7 +45,7 @@ def plan_match(ctx: Context, job_id: str) -> str:
 
 
 def _plan(ctx: Context, job: Job) -> None:
-    from geomatch import steps
+    from geomatch import gps, steps
     from geomatch.colmapdb import ColmapDatabase
     from geomatch.metadata import read_metadata
 
@@ -67,15 +67,19 @@ def _plan(ctx: Context, job: Job) -> None:
     share_camera = False if opts.get("camera") == "per-image" else None
     spec = opts["pairs"] if isinstance(opts["pairs"], str) else DEFAULTS["pairs"]
     pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
-    matcher = runtime.matcher(ctx, opts) if spec.startswith("retrieval") and pairs_list is None else None
+    matcher = runtime.matcher(ctx, opts) if "retrieval" in spec and pairs_list is None else None
     tiling = opts.get("tiling", DEFAULTS["tiling"])
-    planned = steps.plan(image_dir, names, aerial, spec, pairs_list, tiling, matcher)
+    fixes = gps.fixes(names, metas)
+    points = gps.plan_points(fixes, metas) if fixes is not None else None
+    planned = steps.plan(image_dir, names, aerial, spec, pairs_list, tiling, matcher, gps_enu=points)
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
             return
         with ColmapDatabase(ctx.storage.database_path(pid)) as db:
             ids = steps.register(db, names, metas, share_camera)
             todo = steps.unmatched(db, ids, planned)
+        if fixes is not None:
+            gps.write_pose_priors(ctx.storage.database_path(pid), ids, fixes)
     with ctx.store.session() as s:
         row = s.get(Job, job.id, with_for_update=True)
         if row is None or row.planned:  # a duplicate of this step planned it first
@@ -206,7 +210,7 @@ def _image_id(db: Any, name: str) -> int:
 
 # -- reconstruct jobs ---------------------------------------------------------------------------
 def reconstruct(ctx: Context, job_id: str) -> str:
-    from geomatch import steps
+    from geomatch import gps, steps
     from geomatch.colmapdb import ColmapDatabase
 
     job = jobstate.claim(ctx.store, job_id)
@@ -224,8 +228,13 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         with ctx.locks.project(pid):  # a consistent copy; matching may go on while we map
             snapshot_sqlite(db_path, snapshot)
         out = work / "model"
+        images = ctx.storage.images_dir(pid)
         summary = steps.reconstruct(
-            snapshot, ctx.storage.images_dir(pid), out, job.options.get("mapper", DEFAULTS["mapper"])
+            snapshot,
+            images,
+            out,
+            job.options.get("mapper", DEFAULTS["mapper"]),
+            gps=gps.fixes_of_database(snapshot, images),
         )
         with ColmapDatabase(snapshot) as db:
             summary["database"] = db.stats()

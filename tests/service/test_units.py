@@ -20,7 +20,7 @@ from sqlalchemy import select
 
 from geomatch import steps
 from geomatch.homography import WarpedPair
-from geomatch.pairs import PairSpecError, parse_spec
+from geomatch.pairs import PairSpecError, parse_plan
 from geomatch_core import jobstate
 from geomatch_core.errors import BadFile, InvalidRequest
 from geomatch_core.models import Job, JobPair, Project, Tenant
@@ -40,11 +40,22 @@ from service import validation
         "nearest:3",
         "x",
         "",
+        "gps:8",
+        " gps:8+retrieval:4 ",
+        "sequential:2+gps:3+retrieval:1",
+        "gps:0",
+        "gps:3+gps:4",
+        "exhaustive+gps:3",
+        "gps:3+",
     ],
 )
 def test_pair_grammar_is_the_librarys(spec: str) -> None:
+    """The service, its OpenAPI pattern and the library take the same specs (the pattern may
+    let a repeated kind through: the validator behind it refuses it)."""
+    from service.schemas import PAIR_SPEC_PATTERN
+
     try:
-        parse_spec(spec)
+        parse_plan(spec)
         library_ok = True
     except PairSpecError:
         library_ok = False
@@ -54,6 +65,10 @@ def test_pair_grammar_is_the_librarys(spec: str) -> None:
     except InvalidRequest:
         service_ok = False
     assert service_ok == library_ok
+    if library_ok:
+        assert re.fullmatch(PAIR_SPEC_PATTERN, spec)
+    elif spec != "gps:3+gps:4":
+        assert not re.fullmatch(PAIR_SPEC_PATTERN, spec)
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,117 @@
+"""A project's GPS fixes as positions in one local ENU frame, and as COLMAP pose priors.
+
+The frame's origin is the first fix in name order (with altitude 0 when that fix has none): a
+fixed, reproducible choice, so re-running a project or adding images keeps its frame. Fixes
+without altitude are placed at the median altitude of the others (a horizontal prior is still a
+prior); when no fix has an altitude the up axis is free and the project is not georeferenced in
+height (``has_altitude`` false), which georef.py reports.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from .geodesy import EnuFrame
+from .metadata import ImageMeta, read_metadata
+
+
+@dataclass(frozen=True)
+class GpsFixes:
+    frame: EnuFrame
+    enu: dict[str, np.ndarray]  # image name -> (3,) ENU metres
+    has_altitude: bool
+
+
+def fixes(names: Sequence[str], metas: Mapping[str, ImageMeta]) -> GpsFixes | None:
+    """The images' fixes in the ENU frame of the first one; None when no image has GPS."""
+    located = [n for n in sorted(names) if metas[n].has_gps]
+    if not located:
+        return None
+    alts = [metas[n].altitude_m for n in located if metas[n].altitude_m is not None]
+    fallback = float(np.median(alts)) if alts else 0.0
+    first = metas[located[0]]
+    frame = EnuFrame(
+        float(first.latitude),  # type: ignore[arg-type]
+        float(first.longitude),  # type: ignore[arg-type]
+        float(first.altitude_m if first.altitude_m is not None else fallback),
+    )
+    enu = {}
+    for n in located:
+        m = metas[n]
+        alt = m.altitude_m if m.altitude_m is not None else fallback
+        enu[n] = frame.from_geodetic(m.latitude, m.longitude, alt)  # type: ignore[arg-type]
+    return GpsFixes(frame, enu, bool(alts))
+
+
+def write_pose_priors(database: Path, ids: Mapping[str, int], gps: GpsFixes, sigma_m: float = 5.0) -> int:
+    """Position priors (ENU metres, ``sigma_m`` per axis) for the images with a fix, so that the
+    database carries them for COLMAP's own tools (``colmap mapper`` with
+    ``use_prior_position``, ``model_aligner``); returns how many were written. An existing prior
+    is replaced, so a re-run with other fixes does not keep stale ones."""
+    db = pycolmap.Database.open(str(database))
+    written = 0
+    try:
+        existing = {int(p.corr_data_id.id): p for p in db.read_all_pose_priors()}
+        with pycolmap.DatabaseTransaction(db):
+            for name, pos in gps.enu.items():
+                if name not in ids:
+                    continue
+                image = db.read_image(ids[name])
+                prior = pycolmap.PosePrior()
+                prior.corr_data_id = image.data_id
+                prior.position = np.asarray(pos, np.float64).reshape(3, 1)
+                prior.position_covariance = np.eye(3) * sigma_m**2
+                prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+                old = existing.get(int(image.image_id))
+                if old is not None:
+                    prior.pose_prior_id = old.pose_prior_id
+                    db.update_pose_prior(prior)
+                else:
+                    db.write_pose_prior(prior)
+                written += 1
+    finally:
+        db.close()
+    return written
+
+
+MAX_LOOK_FACTOR = 3.0  # an oblique's look point at most this many heights ahead (near-horizontal views)
+MIN_TILT_PITCH_DEG = -10.0  # a gimbal pitched above this looks at the horizon: no ground point
+
+
+def look_point(position: np.ndarray, meta: ImageMeta) -> np.ndarray:
+    """Where on the ground an aerial camera looks (east, north), from the gimbal's pitch and yaw
+    and the height above take-off in the DJI XMP; the position itself when the metadata does
+    not say (no XMP, a ground camera, a view near the horizon). An oblique survey flown in
+    alternating directions puts two neighbouring lines' footprints two offsets apart, so
+    pairing by position would pair images that see different ground; the look point pairs
+    those whose footprints overlap. ``gps:K`` plans by it (pairs.gps_neighbours)."""
+    xy = np.asarray(position, np.float64)[:2]
+    pitch, yaw, h = meta.gimbal_pitch_deg, meta.gimbal_yaw_deg, meta.relative_altitude_m
+    if pitch is None or yaw is None or h is None or h <= 0 or pitch > MIN_TILT_PITCH_DEG:
+        return xy
+    ahead = min(h * np.tan(np.radians(90.0 + pitch)), MAX_LOOK_FACTOR * h)
+    return xy + ahead * np.array([np.sin(np.radians(yaw)), np.cos(np.radians(yaw))])
+
+
+def plan_points(gps: GpsFixes, metas: Mapping[str, ImageMeta]) -> dict[str, np.ndarray]:
+    """The east-north point each located image is paired by (its look point)."""
+    return {n: look_point(p, metas[n]) for n, p in gps.enu.items()}
+
+
+def fixes_of_database(database: Path, image_dir: Path) -> GpsFixes | None:
+    """The fixes of the images a COLMAP database holds, read from their files in ``image_dir``
+    (a reconstruct job has the database and the folder, not the run's metadata); files gone
+    from the folder are left out."""
+    db = pycolmap.Database.open(str(database))
+    try:
+        names = [im.name for im in db.read_all_images()]
+    finally:
+        db.close()
+    names = [n for n in names if (image_dir / n).is_file()]
+    metas = {n: read_metadata(image_dir / n) for n in names}
+    return fixes(names, metas)

@@ -1,0 +1,222 @@
+"""GPS: EXIF fixes written and read back, the robust similarity, gps:K plans, pose priors, and a
+run of a small synthetic scene (half of it without GPS) that comes out in ENU metres."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from PIL import Image
+from scipy.spatial.transform import Rotation
+
+from geomatch import gps, pairs
+from geomatch.cli import main
+from geomatch.colmapdb import ColmapDatabase
+from geomatch.geodesy import EnuFrame
+from geomatch.georef import align, errors_against, robust_similarity, umeyama
+from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata
+from geomatch.options import OptionError, check, parse_plan
+from geomatch.synth import GPS_ORIGIN, write_scene
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+@pytest.mark.parametrize(("lat", "lon", "alt"), [(47.3769, 8.5417, 408.25), (-33.8568, -151.2153, -12.5)])
+def test_exif_gps_round_trip(tmp_path: Path, suffix: str, lat: float, lon: float, alt: float) -> None:
+    exif = gps_exif(exif_for("geomatch", "cam", 4.0, 100.0), lat, lon, alt)
+    path = tmp_path / f"x{suffix}"
+    Image.fromarray(np.full((16, 16, 3), 128, np.uint8)).save(path, exif=exif.tobytes())
+    m = read_metadata(path)
+    assert m.has_gps and m.focal_px == pytest.approx(400.0)
+    # 1e-6 arcsec in the seconds and millimetres in the altitude: far below any GPS noise
+    assert m.latitude == pytest.approx(lat, abs=1e-9) and m.longitude == pytest.approx(lon, abs=1e-9)
+    assert m.altitude_m == pytest.approx(alt, abs=1e-3)
+
+
+def test_no_gps_and_dji_absolute_altitude(tmp_path: Path) -> None:
+    path = tmp_path / "plain.png"
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(path)
+    assert not read_metadata(path).has_gps and read_metadata(path).altitude_m is None
+    # a DJI file: the XMP's AbsoluteAltitude wins over the EXIF altitude
+    from PIL.PngImagePlugin import PngInfo
+
+    info = PngInfo()
+    info.add_itxt(
+        "XML:com.adobe.xmp",
+        '<rdf:Description drone-dji:AbsoluteAltitude="+512.30" drone-dji:RelativeAltitude="+80.10" '
+        'drone-dji:GimbalYawDegree="-92.5"/>',
+    )
+    exif = gps_exif(Image.Exif(), 47.0, 8.0, 500.0)
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(
+        tmp_path / "dji.png", exif=exif.tobytes(), pnginfo=info
+    )
+    m = read_metadata(tmp_path / "dji.png")
+    assert m.altitude_m == pytest.approx(512.3) and m.relative_altitude_m == pytest.approx(80.1)
+    assert m.gimbal_yaw_deg == pytest.approx(-92.5)
+
+
+def test_synth_writes_fixes_and_leaves_renders_alone(tmp_path: Path) -> None:
+    plain = write_scene(tmp_path / "plain", 2, 2, seed=3, width=64, height=48)
+    noisy = write_scene(tmp_path / "gps", 2, 2, seed=3, width=64, height=48, gps_noise=2.0)
+    truth = json.loads((tmp_path / "gps" / "gt" / "gps.json").read_text())
+    assert truth["origin"] == GPS_ORIGIN.as_dict() and truth["sigma_m"] == 2.0
+    names = [c.name for c in noisy]
+    metas = {n: read_metadata(tmp_path / "gps" / "images" / n) for n in names}
+    fixes = gps.fixes(names, metas)
+    assert fixes is not None and fixes.has_altitude and set(fixes.enu) == set(names)
+    first = sorted(names)[0]
+    assert fixes.frame.lat == pytest.approx(metas[first].latitude)
+    offsets = []
+    for c in noisy:
+        # the fix, back in the scene's frame, is where gps.json says the noisy fix is
+        back = GPS_ORIGIN.from_ecef(fixes.frame.to_ecef(fixes.enu[c.name]))
+        np.testing.assert_allclose(back, truth["gps_enu"][c.name], atol=2e-3)
+        offsets.append(back - c.centre)
+    assert 0.1 < np.abs(offsets).max() < 15.0  # noise was added, of the size asked
+    for c0, c1 in zip(plain, noisy, strict=True):
+        a = np.asarray(Image.open(tmp_path / "plain" / "images" / c0.name))
+        b = np.asarray(Image.open(tmp_path / "gps" / "images" / c1.name))
+        assert np.array_equal(a, b) and not read_metadata(tmp_path / "plain" / "images" / c0.name).has_gps
+    assert not (tmp_path / "plain" / "gt" / "gps.json").exists()
+
+
+def test_synth_command_takes_gps_noise(tmp_path: Path) -> None:
+    args = ["synth", str(tmp_path), "--aerial", "1", "--ground", "1", "--width", "32", "--height", "24"]
+    assert main([*args, "--gps-noise", "1.5"]) == 0
+    assert json.loads((tmp_path / "gt" / "gps.json").read_text())["sigma_m"] == 1.5
+    assert all(read_metadata(f).has_gps for f in (tmp_path / "images").iterdir())
+
+
+def test_robust_similarity_recovers_sim3_among_30_percent_outliers() -> None:
+    rng = np.random.default_rng(7)
+    src = rng.uniform(-50, 50, (40, 3))
+    R = Rotation.random(random_state=11).as_matrix()
+    dst = 0.37 * src @ R.T + np.array([120.0, -40.0, 9.0]) + rng.normal(0, 0.05, (40, 3))
+    bad = rng.choice(40, 12, replace=False)
+    dst[bad] += rng.uniform(15, 80, (12, 3)) * rng.choice([-1, 1], (12, 3))
+    a = robust_similarity(src, dst, threshold=1.0)
+    assert a is not None
+    assert set(np.flatnonzero(~a.inliers)) == set(bad)
+    assert a.sim.scale == pytest.approx(0.37, rel=1e-3)
+    assert np.degrees(np.arccos(np.clip((np.trace(a.sim.R.T @ R) - 1) / 2, -1, 1))) < 0.2
+    assert a.as_dict()["rmse_m"] < 0.15
+    # plain least squares is pulled far off by the same outliers
+    good = np.setdiff1d(np.arange(40), bad)
+    ls = umeyama(src, dst)
+    assert np.linalg.norm(ls.apply(src[good]) - dst[good], axis=1).mean() > 5.0
+    assert robust_similarity(src[:2], dst[:2]) is None
+
+
+def test_gps_plans() -> None:
+    assert parse_plan("gps:5") == [("gps", 5)]
+    assert parse_plan("gps:8+retrieval:4") == [("gps", 8), ("retrieval", 4)]
+    for bad in ("gps", "gps:0", "gps:3+gps:4", "exhaustive+gps:3", "gps:3+", "gps:3 retrieval:3"):
+        with pytest.raises(pairs.PairSpecError):
+            parse_plan(bad)
+    assert check("pairs", " gps:10+retrieval:5 ") == "gps:10+retrieval:5"
+    with pytest.raises(OptionError):
+        check("pairs", "gps:2+gps:3")
+    # five images on a line 10 m apart, one without a fix
+    names = ["a", "b", "c", "d", "e", "nofix"]
+    enu = {n: np.array([10.0 * i, 0.0, 100.0 * (i % 2)]) for i, n in enumerate(names[:5])}
+    got = pairs.gps_neighbours(names, enu, 1, unlocated_all=False)
+    # horizontal distance: height (0 or 100 m) does not move a neighbour
+    assert got == [("a", "b"), ("b", "c"), ("c", "d"), ("d", "e")]
+    with_all = pairs.gps_neighbours(names, enu, 1)
+    assert set(with_all) == set(got) | {(n, "nofix") for n in names[:5]}
+    two = pairs.gps_neighbours(names, enu, 2, unlocated_all=False)
+    assert two == [("a", "b"), ("a", "c"), ("b", "c"), ("c", "d"), ("c", "e"), ("d", "e")]
+
+
+def test_look_point_is_ahead_of_an_oblique_only() -> None:
+    here = np.array([100.0, 50.0, 80.0])
+    nadir = ImageMeta(8, 8, relative_altitude_m=80.0, gimbal_pitch_deg=-90.0, gimbal_yaw_deg=45.0)
+    np.testing.assert_allclose(gps.look_point(here, nadir), [100.0, 50.0], atol=1e-9)
+    # 30 deg off nadir, heading east (yaw 90, clockwise from north): 80 tan 30 = 46.2 m east
+    east = ImageMeta(8, 8, relative_altitude_m=80.0, gimbal_pitch_deg=-60.0, gimbal_yaw_deg=90.0)
+    np.testing.assert_allclose(gps.look_point(here, east), [100.0 + 80.0 / np.sqrt(3), 50.0], atol=1e-9)
+    # near the horizon: capped at three heights ahead; level or silent: the position
+    low = ImageMeta(8, 8, relative_altitude_m=80.0, gimbal_pitch_deg=-11.0, gimbal_yaw_deg=180.0)
+    np.testing.assert_allclose(gps.look_point(here, low), [100.0, 50.0 - 240.0], atol=1e-9)
+    level = ImageMeta(8, 8, relative_altitude_m=80.0, gimbal_pitch_deg=0.0, gimbal_yaw_deg=180.0)
+    np.testing.assert_allclose(gps.look_point(here, level), [100.0, 50.0])
+    np.testing.assert_allclose(gps.look_point(here, ImageMeta(8, 8)), [100.0, 50.0])
+
+
+def test_pose_priors_are_written_and_replaced(tmp_path: Path) -> None:
+    for i in range(3):
+        exif = gps_exif(exif_for("g", "cam", 4.0, 100.0), 47.0 + i * 1e-4, 8.0, 400.0 + i)
+        Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(tmp_path / f"{i}.png", exif=exif.tobytes())
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(tmp_path / "3.png")
+    names = [f"{i}.png" for i in range(4)]
+    metas = {n: read_metadata(tmp_path / n) for n in names}
+    fixes = gps.fixes(names, metas)
+    assert fixes is not None and "3.png" not in fixes.enu
+    with ColmapDatabase(tmp_path / "db.db") as db:
+        ids = {n: db.add_image(n, metas[n]) for n in names}
+    for _ in range(2):  # a re-run replaces, it does not add
+        assert gps.write_pose_priors(tmp_path / "db.db", ids, fixes) == 3
+    db = pycolmap.Database.open(str(tmp_path / "db.db"))
+    try:
+        priors = {p.corr_data_id.id: p for p in db.read_all_pose_priors()}
+    finally:
+        db.close()
+    assert len(priors) == 3 and ids["3.png"] not in priors
+    # a reconstruct job finds the same fixes from the database and the folder
+    again = gps.fixes_of_database(tmp_path / "db.db", tmp_path)
+    assert again is not None and again.frame == fixes.frame and set(again.enu) == set(fixes.enu)
+    p2 = np.ravel(priors[ids["2.png"]].position)
+    np.testing.assert_allclose(p2, fixes.enu["2.png"], atol=1e-9)
+    assert 22.0 < p2[1] < 22.5 and p2[2] == pytest.approx(2.0, abs=0.01)  # 2e-4 deg north, 2 m up
+
+
+# -- end to end: half the images without GPS --------------------------------------------------
+E2E_SEED = 1
+WITH_GPS = {"aerial_00.png", "ground_00.png", "ground_02.png"}
+
+
+@pytest.fixture(scope="module")
+def gps_run(tmp_path_factory):
+    scene = tmp_path_factory.mktemp("gps_scene")
+    write_scene(scene, 2, 4, seed=E2E_SEED, gps_noise=0.5, gps_names=WITH_GPS)
+    out = tmp_path_factory.mktemp("gps_run")
+    args = ["run", str(scene / "images"), "--out", str(out), "--aerial-list", str(scene / "aerial.txt")]
+    assert main([*args, "--resize", "480", "--pairs", "gps:2"]) == 0
+    return scene, out
+
+
+def test_run_is_georeferenced_and_registers_images_without_gps(gps_run) -> None:
+    scene, out = gps_run
+    s = json.loads((out / "summary.json").read_text())
+    assert s["registered"] == s["images"] == 6, s
+    # gps:2 pairs the three located images with their neighbours and the unlocated with all
+    # (here that is every pair: three of six images have no fix)
+    assert s["pairs"] == 15 and s["pose_priors"] == 3 and s["gps_images"] == 3
+    assert s["georeferenced"] is True and s["frame"] == "ENU"
+    first = read_metadata(scene / "images" / "aerial_00.png")
+    assert s["origin"]["lat"] == pytest.approx(first.latitude) and s["alignment"]["inliers"] == 3
+    header = (out / "points.ply").read_bytes()[:400]
+    assert f"comment origin {first.latitude:.9f} {first.longitude:.9f}".encode() in header
+
+
+def test_model_is_in_enu_metres(gps_run) -> None:
+    scene, out = gps_run
+    s = json.loads((out / "summary.json").read_text())
+    frame = EnuFrame(**s["origin"])
+    gt = json.loads((scene / "gt" / "gps.json").read_text())
+    truth = {n: frame.from_ecef(GPS_ORIGIN.to_ecef(np.array(v))) for n, v in gt["true_enu"].items()}
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    e = errors_against(rec, truth)
+    # a perfect reconstruction (the ground truth) moved onto the same three fixes: what GPS alone
+    # allows (three 0.5 m fixes carry the whole similarity: metres at the far cameras)
+    perfect = pycolmap.Reconstruction(str(scene / "gt"))
+    assert align(perfect, {n: np.array(v) for n, v in gt["gps_enu"].items()}) is not None
+    bound = errors_against(perfect, {n: np.array(v) for n, v in gt["true_enu"].items()})
+    assert e["images"] == bound["images"] == 6, e
+    # every camera, those without a fix too, lands where the perfect model does (within 0.5 m):
+    # the frame, the origin and the transform of the run are right; the rest is the fixes' noise
+    for n, err in e["per_image_m"].items():
+        assert abs(err - bound["per_image_m"][n]) < 0.5, (n, e, bound)
+    assert e["max_m"] < 3.5 and abs(e["scale_error"] - bound["scale_error"]) < 0.01, (e, bound)
