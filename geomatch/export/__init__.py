@@ -18,29 +18,17 @@ import tempfile
 import uuid
 import zipfile
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 from ..options import EXPORT_FORMATS as FORMATS
+from .source import ExportError, Source
+
+__all__ = ["FORMATS", "ExportError", "Source", "export", "export_zip", "model_dir", "open_run"]
 
 # what each format reads besides the model: the images (nerfstudio copies them, openmvs
 # undistorts them) or the database (hloc's keypoints and matches)
 NEEDS_IMAGES = frozenset({"nerfstudio", "openmvs"})
 NEEDS_DATABASE = frozenset({"hloc"})
-
-
-class ExportError(ValueError):
-    """The run folder cannot give what the format needs (no model, no images, no database)."""
-
-
-@dataclass(frozen=True)
-class Source:
-    """Where an export reads from: the model folder (COLMAP binary), the database, the images."""
-
-    model: Path
-    database: Path | None = None
-    images: Path | None = None
-    summary: Path | None = None
 
 
 def model_dir(run: Path) -> Path:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pycolmap
 
-from . import Source
+from .source import Source
 
 
 def write(source: Source, dest: Path) -> list[Path]:

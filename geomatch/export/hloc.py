@@ -26,7 +26,7 @@ import h5py
 import numpy as np
 import pycolmap
 
-from . import Source
+from .source import Source
 
 COLMAP_OFFSET = 0.5  # colmapdb.COLMAP_OFFSET: COLMAP's pixel centres at +0.5 of hloc's
 

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pycolmap
 
-from . import Source
+from .source import Source
 
 # nerfstudio's world from COLMAP's: x stays, y <- z, z <- -y (colmap_utils.colmap_to_json)
 APPLIED_TRANSFORM = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0]])

@@ -13,7 +13,7 @@ from pathlib import Path
 import pycolmap
 
 from ..colmaplog import colmap_log
-from . import Source
+from .source import Source
 
 
 def write(source: Source, dest: Path) -> list[Path]:
