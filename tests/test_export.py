@@ -20,18 +20,12 @@ from geomatch.colmapdb import COLMAP_OFFSET  # the database side of the conventi
 from geomatch.export import FORMATS
 from geomatch.synth import write_scene
 
+from .small_scene import PAIRS
+
 SEED = 1
 # the gRPC end-to-end run's choice (tests/service/test_grpc.py, measured there to register every
-# image): the sparse method at 480 px, every ground pair, the aerial pair and each aerial image
-# with its two best ground partners; the exports need a model, not the paper's matcher
-GROUND = [f"ground_0{i}.png" for i in range(4)]
-PAIRS = [(a, b) for i, a in enumerate(GROUND) for b in GROUND[i + 1 :]] + [
-    ("aerial_00.png", "aerial_01.png"),
-    ("aerial_00.png", "ground_00.png"),
-    ("aerial_00.png", "ground_01.png"),
-    ("aerial_01.png", "ground_02.png"),
-    ("aerial_01.png", "ground_03.png"),
-]
+# image): the sparse method at 480 px on tests/small_scene.py's pairs; the exports need a model,
+# not the paper's matcher
 # nerfstudio's world from COLMAP's, as its colmap_to_json writes it: (x, y, z) -> (x, z, -y)
 NERFSTUDIO_APPLIED = [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0]]
 

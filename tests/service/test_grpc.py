@@ -34,6 +34,7 @@ from grpc_reflection.v1alpha.proto_reflection_descriptor_database import ProtoRe
 from service.grpcapi.client import GrpcClient, ImageSource, to_dict
 from service.grpcapi.pb import pb2
 
+from ..small_scene import PAIRS  # the measured pair list (tests/small_scene.py)
 from .grpc_harness import GrpcDeployment, code_of, error_of
 from .test_api import bad_files
 
@@ -43,17 +44,6 @@ from .test_api import bad_files
 # the ground truth.
 RESIZE, METHOD = 480, "sparse"
 PAIR_RESIZE = 320
-# Every ground pair, both aerial images, and for each aerial image its two best ground partners
-# (measured) rather than all eight aerial x ground pairs: those are tiled (five matchings each),
-# and half of them connect the model as well as all of them.
-GROUND = [f"ground_0{i}.png" for i in range(4)]
-PAIRS = [(a, b) for i, a in enumerate(GROUND) for b in GROUND[i + 1 :]] + [
-    ("aerial_00.png", "aerial_01.png"),
-    ("aerial_00.png", "ground_00.png"),
-    ("aerial_00.png", "ground_01.png"),
-    ("aerial_01.png", "ground_02.png"),
-    ("aerial_01.png", "ground_03.png"),
-]
 MiB = 1024 * 1024
 METHODS = {
     "CreateProject",
