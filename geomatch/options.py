@@ -261,13 +261,18 @@ _SPEC = re.compile(r"(exhaustive)|(sequential|retrieval|gps):(\d+)")
 def parse_plan(spec: str) -> list[tuple[str, int]]:
     """A plan: one spec, or a union of ``sequential:K`` / ``retrieval:K`` / ``gps:K`` parts
     joined by ``+`` (``gps:10+retrieval:5``: a drone project's neighbours by position plus
-    those by appearance), each kind at most once; ``exhaustive`` stands alone (a union with it
-    is exhaustive)."""
+    those by appearance); ``exhaustive`` stands alone (a union with it is exhaustive). A kind
+    named twice is the union of both, which is its larger K (``gps:3+gps:4`` is ``gps:4``): the
+    service's published pattern cannot tell repeats apart, so the library gives them a meaning
+    rather than refusing what the schema allows."""
     parts = [parse_spec(p) for p in spec.strip().split("+")] if spec.strip() else [parse_spec(spec)]
     kinds = [k for k, _ in parts]
-    if len(parts) > 1 and ("exhaustive" in kinds or len(set(kinds)) != len(kinds)):
-        raise PairSpecError(f"bad pair spec {spec!r}: a union joins different kinds, without exhaustive")
-    return parts
+    if len(parts) > 1 and "exhaustive" in kinds:
+        raise PairSpecError(f"bad pair spec {spec!r}: exhaustive stands alone, not in a union")
+    largest: dict[str, int] = {}
+    for kind, k in parts:
+        largest[kind] = max(k, largest.get(kind, 0))
+    return list(largest.items())
 
 
 def parse_spec(spec: str) -> tuple[str, int]:

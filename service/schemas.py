@@ -50,9 +50,9 @@ Timestamp = Annotated[
 
 # What parse_spec takes, as a pattern (ASCII digits and white space: the JSON Schema dialect's \\d and
 # \\s are narrower than Python's, and the schema must not promise what the server refuses)
-# (a union's kinds differ: the pattern lets a repeated kind through, options.check refuses it)
+# (a union may name a kind twice: options.parse_plan reads it as the larger K)
 _PART = r"[ \t\n\r]*(?:sequential|retrieval|gps):0*[1-9][0-9]*[ \t\n\r]*"
-PAIR_SPEC_PATTERN = rf"^(?:[ \t\n\r]*exhaustive[ \t\n\r]*|{_PART}(?:\+{_PART}){{0,2}})$"
+PAIR_SPEC_PATTERN = rf"^(?:[ \t\n\r]*exhaustive[ \t\n\r]*|{_PART}(?:\+{_PART})*)$"
 
 
 def _option_schema(o: options.Option) -> dict[str, Any]:
