@@ -40,19 +40,15 @@ class Similarity:
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> Similarity:
-    """Least-squares similarity taking ``src`` (N, 3) to ``dst`` (N >= 3, not collinear)."""
-    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    cov = b.T @ a / len(src)
-    u, d, vt = np.linalg.svd(cov)
-    s = np.ones(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        s[2] = -1.0
-    R = u @ np.diag(s) @ vt
-    var = (a**2).sum() / len(src)
-    scale = float((d * s).sum() / var) if var > 0 else 1.0
-    return Similarity(scale, R, mu_d - scale * R @ mu_s)
+    """Least-squares similarity taking ``src`` (N, 3) to ``dst`` (N >= 3, not collinear):
+    pycolmap's Umeyama (``estimate_sim3d``, as alignment.py uses); a degenerate set gives a
+    NaN scale, which the callers skip."""
+    sim = pycolmap.estimate_sim3d(np.asarray(src, np.float64), np.asarray(dst, np.float64))
+    if sim is None:
+        return Similarity(float("nan"), np.eye(3), np.zeros(3))
+    M = np.asarray(sim.matrix())  # [scale * R | t]
+    scale = float(sim.scale)
+    return Similarity(scale, M[:, :3] / scale, M[:, 3].copy())
 
 
 @dataclass(frozen=True)
