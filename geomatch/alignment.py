@@ -2,7 +2,7 @@
 
 Hypotheses come from triples of camera centres (paired by image name): every triple when there
 are at most ``max_hypotheses`` of them, else that many random ones (fixed seed). Each similarity
-(Umeyama, pycolmap's ``estimate_sim3d``) is scored by how many cameras it makes *correct*, i.e.
+(Umeyama, similarity.py) is scored by how many cameras it makes *correct*, i.e.
 within BOTH the rotation and the position threshold; the best one is refined by refitting on its
 correct cameras until that set stops changing (the local optimisation of LO-RANSAC).
 
@@ -20,7 +20,8 @@ from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
-import pycolmap
+
+from .similarity import umeyama
 
 
 @dataclass(frozen=True)
@@ -50,15 +51,12 @@ def _fit(
     max_position: float,
 ) -> Alignment | None:
     """The similarity that maps ``src`` centres onto ``dst`` (least squares), judged on every camera."""
-    sim = pycolmap.estimate_sim3d(src, dst)
-    if sim is None:
+    sim = umeyama(src, dst)  # gt_from_model
+    if not np.isfinite(sim.scale) or sim.scale <= 0:
         return None
-    M = np.asarray(sim.matrix())  # [scale * R | t], gt_from_model
-    scale = float(sim.scale)
-    R = M[:, :3] / scale
-    pos = np.linalg.norm(C_model @ M[:, :3].T + M[:, 3] - C_gt, axis=1)
-    rot = _angles_deg(R_model @ R.T, R_gt)  # cam_from_gt = cam_from_model @ model_from_gt
-    return Alignment(scale, R, M[:, 3], rot, pos, (rot <= max_rotation_deg) & (pos <= max_position))
+    pos = np.linalg.norm(sim.apply(C_model) - C_gt, axis=1)
+    rot = _angles_deg(R_model @ sim.R.T, R_gt)  # cam_from_gt = cam_from_model @ model_from_gt
+    return Alignment(sim.scale, sim.R, sim.t, rot, pos, (rot <= max_rotation_deg) & (pos <= max_position))
 
 
 def align(

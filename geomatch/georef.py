@@ -2,7 +2,7 @@
 
 SfM fixes the shape up to a similarity; GPS fixes where the cameras are, within metres and with
 the odd wild fix (multipath near walls, a stale fix after take-off). So the similarity comes
-from RANSAC over minimal 3-centre samples (Umeyama's closed form on each), scored by how many
+from RANSAC over minimal 3-centre samples (Umeyama's closed form on each, similarity.py), scored by how many
 centres land within ``threshold`` metres of their fix, then Umeyama least squares on the
 inliers. Only the shape of the reconstruction and the similarity's 7 parameters come from the
 data, so with n fixes of sigma s the centres' error is about s * sqrt(7 / (3 n)) (the
@@ -22,33 +22,7 @@ import pycolmap
 
 from .geodesy import EnuFrame
 from .gps import GpsFixes
-
-
-@dataclass(frozen=True)
-class Similarity:
-    """dst = scale * R @ src + t."""
-
-    scale: float
-    R: np.ndarray
-    t: np.ndarray
-
-    def apply(self, x: np.ndarray) -> np.ndarray:
-        return self.scale * np.asarray(x, np.float64) @ self.R.T + self.t
-
-    def to_pycolmap(self) -> pycolmap.Sim3d:
-        return pycolmap.Sim3d(self.scale, pycolmap.Rotation3d(self.R), self.t.reshape(3, 1))
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> Similarity:
-    """Least-squares similarity taking ``src`` (N, 3) to ``dst`` (N >= 3, not collinear):
-    pycolmap's Umeyama (``estimate_sim3d``, as alignment.py uses); a degenerate set gives a
-    NaN scale, which the callers skip."""
-    sim = pycolmap.estimate_sim3d(np.asarray(src, np.float64), np.asarray(dst, np.float64))
-    if sim is None:
-        return Similarity(float("nan"), np.eye(3), np.zeros(3))
-    M = np.asarray(sim.matrix())  # [scale * R | t]
-    scale = float(sim.scale)
-    return Similarity(scale, M[:, :3] / scale, M[:, 3].copy())
+from .similarity import Similarity, umeyama
 
 
 @dataclass(frozen=True)

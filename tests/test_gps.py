@@ -109,6 +109,19 @@ def test_robust_similarity_recovers_sim3_among_30_percent_outliers() -> None:
     assert robust_similarity(src[:2], dst[:2]) is None
 
 
+def test_three_fixes_with_the_first_at_the_origin_align() -> None:
+    """The ENU frame is centred on the first fix, so one fix is exactly (0, 0, 0); pycolmap's
+    estimate_sim3d answers None for such a triple and left three-fix projects unreferenced."""
+    rng = np.random.default_rng(3)
+    src = rng.normal(0, 3, (3, 3))
+    R = Rotation.random(random_state=5).as_matrix()
+    dst = 4.0 * src @ R.T + rng.normal(0, 0.1, (3, 3))
+    dst -= dst[0]
+    a = robust_similarity(src, dst)
+    assert a is not None and a.inliers.all() and a.sim.scale == pytest.approx(4.0, rel=0.05)
+    assert np.isnan(umeyama(np.ones((3, 3)), dst).scale)  # no spread: no similarity
+
+
 def test_gps_plans() -> None:
     assert parse_plan("gps:5") == [("gps", 5)]
     assert parse_plan("gps:8+retrieval:4") == [("gps", 8), ("retrieval", 4)]
