@@ -26,15 +26,16 @@ from dataclasses import dataclass
 import numpy as np
 from common import print_table
 
-from geomatch.gps import look_point
+from geomatch.gps import footprint, look_point
 from geomatch.metadata import ImageMeta
 from geomatch.pairs import gps_neighbours
 from geomatch.synth import look_at
 
 WIDTH, HEIGHT = 4000, 3000
 FOCAL = 24.0 / 36.0 * WIDTH  # 24 mm equivalent on the 36 mm long side
-# what gps:K pairs by: the fix itself, or the look point the gimbal's XMP gives (gps.look_point)
-BY = ("position", "look point")
+# what gps:K pairs by: the fix itself, the look point the gimbal's XMP gives (gps.look_point), or
+# the footprint it gives (gps.footprint, what ``geomatch run`` does: most shared ground first)
+BY = ("position", "look point", "footprint")
 
 
 @dataclass(frozen=True)
@@ -77,7 +78,12 @@ def flight(layout: Layout, rng: np.random.Generator) -> tuple[np.ndarray, np.nda
             pitch = -90.0 + np.degrees(tilt) + rng.normal(0, 1.0)
             metas.append(
                 ImageMeta(
-                    WIDTH, HEIGHT, relative_altitude_m=C[2], gimbal_pitch_deg=pitch, gimbal_yaw_deg=heading
+                    WIDTH,
+                    HEIGHT,
+                    focal_px=FOCAL,
+                    relative_altitude_m=C[2],
+                    gimbal_pitch_deg=pitch,
+                    gimbal_yaw_deg=heading,
                 )
             )
     return np.array(centres), np.array(rots), metas
@@ -110,12 +116,14 @@ def evaluate(layout: Layout, seed: int, ks: list[int], overlaps: list[float], no
     names = [f"img_{i:04d}" for i in range(n)]
     fixes = {nm: c + rng.normal(0, [noise, noise, 1.5 * noise]) for nm, c in zip(names, centres, strict=True)}
     looks = {nm: look_point(fixes[nm], m) for nm, m in zip(names, metas, strict=True)}
+    feet = {nm: footprint(fixes[nm], m) for nm, m in zip(names, metas, strict=True)}
     index = {nm: i for i, nm in enumerate(names)}
     exhaustive = n * (n - 1) // 2
     rows = []
     for k, by in itertools.product(ks, BY):
         points = fixes if by == "position" else looks
-        plan = {(index[a], index[b]) for a, b in gps_neighbours(names, points, k)}
+        fp = feet if by == "footprint" else None
+        plan = {(index[a], index[b]) for a, b in gps_neighbours(names, points, k, footprints=fp)}
         plan |= {(j, i) for i, j in plan}
         for t in overlaps:
             iu = np.triu_indices(n, 1)
@@ -142,7 +150,7 @@ def main() -> None:
     ap.add_argument("--k", default="5,10,15,20")
     ap.add_argument("--min-overlap", default="0.1,0.3,0.5")
     ap.add_argument("--gps-noise", type=float, default=2.0)
-    ap.add_argument("--tune", default="nadir:0", help="layout:seed,... (tuning split)")
+    ap.add_argument("--tune", default="nadir:0,oblique:0", help="layout:seed,... (tuning split)")
     ap.add_argument("--test", default="oblique:1,oblique:2,nadir:3", help="layout:seed,... (held out)")
     args = ap.parse_args()
     ks = [int(k) for k in args.k.split(",")]

@@ -10,14 +10,14 @@ height (``has_altitude`` false), which georef.py reports.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 from .geodesy import EnuFrame
-from .metadata import ImageMeta, read_metadata
+from .metadata import ImageMeta, read_metadata, up_in_camera
 
 
 @dataclass(frozen=True)
@@ -25,6 +25,9 @@ class GpsFixes:
     frame: EnuFrame
     enu: dict[str, np.ndarray]  # image name -> (3,) ENU metres
     has_altitude: bool
+    # image name -> the world's up in that camera's frame, from the gimbal (metadata.up_in_camera);
+    # images without a fix count too: gravity constrains the model's rotation wherever it comes from
+    up: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def fixes(names: Sequence[str], metas: Mapping[str, ImageMeta]) -> GpsFixes | None:
@@ -45,7 +48,8 @@ def fixes(names: Sequence[str], metas: Mapping[str, ImageMeta]) -> GpsFixes | No
         m = metas[n]
         alt = m.altitude_m if m.altitude_m is not None else fallback
         enu[n] = frame.from_geodetic(m.latitude, m.longitude, alt)  # type: ignore[arg-type]
-    return GpsFixes(frame, enu, bool(alts))
+    up = {n: u for n in names if (u := up_in_camera(metas[n])) is not None}
+    return GpsFixes(frame, enu, bool(alts), up)
 
 
 def write_pose_priors(database: Path, ids: Mapping[str, int], gps: GpsFixes, sigma_m: float = 5.0) -> int:
@@ -96,6 +100,69 @@ def look_point(position: np.ndarray, meta: ImageMeta) -> np.ndarray:
         return xy
     ahead = min(h * np.tan(np.radians(90.0 + pitch)), MAX_LOOK_FACTOR * h)
     return xy + ahead * np.array([np.sin(np.radians(yaw)), np.cos(np.radians(yaw))])
+
+
+FALLBACK_HFOV_DEG = 73.0  # a 24 mm-equivalent lens (DJI Mavic / Phantom) when EXIF has no focal length
+FOOTPRINT_GRID = (4, 3)  # corner-to-corner samples across and down the image for the footprint's outline
+
+
+def camera_from_gimbal(meta: ImageMeta) -> np.ndarray | None:
+    """cam_from_world rotation (world ENU; camera x right, y down, z forward) of DJI gimbal
+    pitch, yaw and roll (synth.gimbal_angles is the inverse); None without pitch and yaw.
+    A missing roll is 0: DJI gimbals hold the horizon level."""
+    if meta.gimbal_pitch_deg is None or meta.gimbal_yaw_deg is None:
+        return None
+    angles = (meta.gimbal_pitch_deg, meta.gimbal_yaw_deg, meta.gimbal_roll_deg or 0.0)
+    p, y, r = (np.radians(v) for v in angles)
+    h = np.array([np.sin(y), np.cos(y), 0.0])  # heading
+    z = np.array([np.cos(p) * h[0], np.cos(p) * h[1], np.sin(p)])
+    ydown = np.array([np.sin(p) * h[0], np.sin(p) * h[1], -np.cos(p)])
+    x = np.cross(ydown, z)
+    return np.stack([np.cos(r) * x + np.sin(r) * ydown, -np.sin(r) * x + np.cos(r) * ydown, z])
+
+
+def footprint(position: np.ndarray, meta: ImageMeta) -> np.ndarray | None:
+    """The ground an aerial image sees, as a polygon (M, 2) east-north, counter-clockwise: the
+    image's outline cast onto flat ground at the take-off height (DJI relative altitude), each
+    ray cut at MAX_LOOK_FACTOR heights (an oblique's upper edge reaches the horizon). None when
+    the metadata cannot say (no gimbal or altitude, a ground camera)."""
+    R = camera_from_gimbal(meta)
+    h = meta.relative_altitude_m
+    if R is None or h is None or h <= 0 or meta.gimbal_pitch_deg > MIN_TILT_PITCH_DEG:  # type: ignore[operator]
+        return None
+    w, ht = meta.width, meta.height
+    f = meta.focal_px or (w / 2) / np.tan(np.radians(FALLBACK_HFOV_DEG / 2))
+    gx, gy = FOOTPRINT_GRID
+    us, vs = np.linspace(0, w, gx + 1), np.linspace(0, ht, gy + 1)
+    # the outline clockwise in the image (top, right, bottom, left): counter-clockwise on the ground
+    # seen from above, since the image's y runs down
+    border = (
+        [(u, 0.0) for u in us[:-1]]
+        + [(w, v) for v in vs[:-1]]
+        + [(u, ht) for u in us[::-1][:-1]]
+        + [(0.0, v) for v in vs[::-1][:-1]]
+    )
+    rays = np.array([[(u - w / 2) / f, (v - ht / 2) / f, 1.0] for u, v in border]) @ R  # world
+    reach = MAX_LOOK_FACTOR * h
+    horizontal = np.linalg.norm(rays[:, :2], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(rays[:, 2] < 0, h / -rays[:, 2], np.inf)
+    t = np.minimum(t, reach / np.maximum(horizontal, 1e-12))
+    outline = np.asarray(position, np.float64)[:2] + t[:, None] * rays[:, :2]
+    x, y = outline[:, 0], outline[:, 1]
+    if (x * np.roll(y, -1) - np.roll(x, -1) * y).sum() < 0:  # shoelace: keep counter-clockwise
+        outline = outline[::-1]
+    return outline
+
+
+def footprints(gps: GpsFixes, metas: Mapping[str, ImageMeta]) -> dict[str, np.ndarray]:
+    """The footprints (above) of the located images whose metadata gives one."""
+    out = {}
+    for n, p in gps.enu.items():
+        fp = footprint(p, metas[n])
+        if fp is not None:
+            out[n] = fp
+    return out
 
 
 def plan_points(gps: GpsFixes, metas: Mapping[str, ImageMeta]) -> dict[str, np.ndarray]:

@@ -12,6 +12,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from PIL import Image
 
 from .imageio import ImageReadError
@@ -44,6 +45,7 @@ class ImageMeta:
     # GPSAltitude; None when neither says (a fix without altitude is still a horizontal prior)
     altitude_m: float | None = None
     gimbal_yaw_deg: float | None = None  # DJI XMP, clockwise from north
+    gimbal_roll_deg: float | None = None  # DJI XMP, positive: the image's right side down
 
     @property
     def has_gps(self) -> bool:
@@ -66,6 +68,22 @@ class ImageMeta:
         if self.gimbal_pitch_deg is not None:
             return self.gimbal_pitch_deg <= AERIAL_MAX_PITCH_DEG
         return None
+
+
+NADIR_PITCH_DEG = -85.0  # at or below, roll barely moves "up" in the image (cos 85 deg = 0.09)
+
+
+def up_in_camera(meta: ImageMeta) -> np.ndarray | None:
+    """The world's up direction in the camera's frame (x right, y down, z forward) from the
+    gimbal's pitch and roll (DJI XMP), or None when the file does not say. A DJI gimbal levels
+    itself against gravity with the drone's IMU: pitch and roll are good to a fraction of a
+    degree, while yaw follows the compass (degrees off near steel and power lines) and is not
+    used. Without a roll only a near-nadir pitch decides (roll then hardly matters)."""
+    p = meta.gimbal_pitch_deg
+    if p is None or (meta.gimbal_roll_deg is None and p > NADIR_PITCH_DEG):
+        return None
+    p, r = np.radians(p), np.radians(meta.gimbal_roll_deg or 0.0)
+    return np.array([-np.cos(p) * np.sin(r), -np.cos(p) * np.cos(r), np.sin(p)])
 
 
 def _xmp_value(xmp: str, key: str) -> float | None:
@@ -104,10 +122,11 @@ def read_metadata(path: str | Path) -> ImageMeta:
     pitch = _xmp_value(xmp, "GimbalPitchDegree") if xmp else None
     abs_alt = _xmp_value(xmp, "AbsoluteAltitude") if xmp else None
     yaw = _xmp_value(xmp, "GimbalYawDegree") if xmp else None
+    roll = _xmp_value(xmp, "GimbalRollDegree") if xmp else None
     if lat is None or lon is None:
         lat = lon = None
     return ImageMeta(
-        w, h, make, model, focal, alt, pitch, lat, lon, abs_alt if abs_alt is not None else gps_alt, yaw
+        w, h, make, model, focal, alt, pitch, lat, lon, abs_alt if abs_alt is not None else gps_alt, yaw, roll
     )
 
 
@@ -190,11 +209,21 @@ def exif_for(make: str, model: str, focal_mm: float, px_per_mm: float) -> Image.
     return exif
 
 
-def dji_xmp(relative_altitude: float, gimbal_pitch: float) -> str:
+def dji_xmp(
+    relative_altitude: float,
+    gimbal_pitch: float,
+    gimbal_yaw: float | None = None,
+    gimbal_roll: float | None = None,
+) -> str:
+    angles = "".join(
+        f'drone-dji:{key}="{value:+.1f}" '
+        for key, value in (("GimbalYawDegree", gimbal_yaw), ("GimbalRollDegree", gimbal_roll))
+        if value is not None
+    )
     return (
         '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
         '<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '
-        f'drone-dji:RelativeAltitude="{relative_altitude:+.2f}" '
+        f'drone-dji:RelativeAltitude="{relative_altitude:+.2f}" {angles}'
         f'drone-dji:GimbalPitchDegree="{gimbal_pitch:+.1f}"/>'
         "</rdf:RDF></x:xmpmeta>"
     )

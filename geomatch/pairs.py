@@ -59,8 +59,33 @@ def nearest_neighbours(descriptors: np.ndarray, names: Sequence[str], k: int) ->
     return [(names[i], names[j]) for i, j in sorted(out)]
 
 
+def footprint_overlap(polygons: Sequence[np.ndarray]) -> np.ndarray:
+    """(N, N) share of the smaller of two ground footprints (convex polygons, counter-clockwise,
+    east-north) that the other covers, estimated from points spread over each footprint (its
+    centroid and three rings towards its outline): max(part of i in j, part of j in i)."""
+    rings = (1 / 3, 2 / 3, 0.98)
+    samples = []
+    for poly in polygons:
+        c = poly.mean(0)
+        samples.append(np.concatenate([c[None], *(c + a * (poly - c) for a in rings)]))
+    S = np.stack(samples)  # (N, P, 2): every footprint has the same vertex count
+    pts = S.reshape(-1, 2)
+    inside = np.empty((len(polygons), S.shape[1], len(polygons)), bool)  # [i, sample, j]
+    for j, poly in enumerate(polygons):  # one polygon at a time keeps memory at (N * P, M)
+        poly = np.asarray(poly, np.float64)
+        e = np.roll(poly, -1, axis=0) - poly
+        rel = pts[:, None, :] - poly[None]
+        inside[:, :, j] = ((e[:, 0] * rel[..., 1] - e[:, 1] * rel[..., 0]) >= 0).all(-1).reshape(S.shape[:2])
+    part = inside.mean(1)  # part[i, j]: share of i's samples inside j
+    return np.maximum(part, part.T)
+
+
 def gps_neighbours(
-    names: Sequence[str], enu: Mapping[str, np.ndarray], k: int, unlocated_all: bool = True
+    names: Sequence[str],
+    enu: Mapping[str, np.ndarray],
+    k: int,
+    unlocated_all: bool = True,
+    footprints: Mapping[str, np.ndarray] | None = None,
 ) -> list[tuple[str, str]]:
     """Each image with a fix paired with its k nearest others by horizontal (east-north)
     distance; symmetric pairs counted once. ``enu``: where each image is, or better where it
@@ -69,15 +94,27 @@ def gps_neighbours(
     ground does not move (a drone 40 m above a ground camera sees what it sees). Images
     without a fix are paired with every other image when ``unlocated_all`` (nothing says
     where they are), else left to the other parts
-    of the plan (``gps:K+retrieval:K``: retrieval pairs them)."""
+    of the plan (``gps:K+retrieval:K``: retrieval pairs them).
+
+    ``footprints`` (gps.footprints: the ground each aerial image sees, from its gimbal and
+    height): between two images that both have one, the K "nearest" are those sharing most
+    ground (footprint_overlap), distance breaking ties; an oblique's footprint is a trapezoid
+    reaching far ahead, which no single point stands for."""
     located = [n for n in names if n in enu]
     out: set[tuple[str, str]] = set()
     if len(located) > 1:
         xy = np.stack([np.asarray(enu[n], np.float64)[:2] for n in located])
         d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
         np.fill_diagonal(d, np.inf)
+        overlap = np.zeros_like(d)
+        with_fp = [i for i, n in enumerate(located) if footprints and n in footprints]
+        if len(with_fp) > 1:
+            ov = footprint_overlap([footprints[located[i]] for i in with_fp])  # type: ignore[index]
+            overlap[np.ix_(with_fp, with_fp)] = ov
+        np.fill_diagonal(overlap, -1.0)
         for i, a in enumerate(located):
-            for j in np.argsort(d[i], kind="stable")[: min(k, len(located) - 1)]:
+            order = np.lexsort((d[i], -overlap[i]))  # most shared ground first, then nearest
+            for j in order[: min(k, len(located) - 1)]:
                 b = located[int(j)]
                 out.add((a, b) if a < b else (b, a))
     if unlocated_all:

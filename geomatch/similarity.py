@@ -48,3 +48,38 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> Similarity:
     R = u @ np.diag(s) @ vt
     scale = float((d * s).sum() / var)
     return Similarity(scale, R, mu_d - scale * R @ mu_s)
+
+
+def umeyama_upright(src: np.ndarray, dst: np.ndarray, up: np.ndarray, vertical_weight: float) -> Similarity:
+    """Least-squares similarity whose rotation takes ``up`` (a unit vector in ``src``'s frame) to
+    +z of ``dst``: only the turn about the vertical, the scale and the translation are fitted
+    (5 parameters, not 7), and vertical residuals weigh ``vertical_weight`` (1 / variance ratio)
+    against horizontal ones. Closed form: the best turn does not depend on the scale (2D
+    Procrustes), and the weighted cost is then a quadratic in the scale."""
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    Ru = _rotation_between(np.asarray(up, np.float64), np.array([0.0, 0.0, 1.0]))
+    a = src @ Ru.T
+    mu_a, mu_d = a.mean(0), dst.mean(0)
+    A, B = a - mu_a, dst - mu_d
+    theta = np.arctan2((A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]).sum(), (A[:, :2] * B[:, :2]).sum())
+    c, s = np.cos(theta), np.sin(theta)
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    rotated = A @ Rz.T
+    denom = (A[:, :2] ** 2).sum() + vertical_weight * (A[:, 2] ** 2).sum()
+    if not denom > 0:
+        return Similarity(float("nan"), np.eye(3), np.zeros(3))
+    scale = float(((rotated[:, :2] * B[:, :2]).sum() + vertical_weight * (A[:, 2] * B[:, 2]).sum()) / denom)
+    R = Rz @ Ru
+    return Similarity(scale, R, mu_d - scale * R @ src.mean(0))
+
+
+def _rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector ``u`` to unit vector ``v`` (Rodrigues)."""
+    u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
+    axis, c = np.cross(u, v), float(u @ v)
+    if c < -1.0 + 1e-12:  # opposite: half a turn about any axis normal to u
+        n = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+        n /= np.linalg.norm(n)
+        return 2.0 * np.outer(n, n) - np.eye(3)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + K + K @ K / (1.0 + c)

@@ -277,11 +277,13 @@ def plan(
     images: Images | None = None,
     progress: bool = False,
     gps_enu: Mapping[str, np.ndarray] | None = None,
+    gps_footprints: Mapping[str, np.ndarray] | None = None,
 ) -> list[Pair]:
     """The pairs to match (``pairs_list``, else ``spec``, a union of its parts), tiled where
     ``tiling`` says, in a cache-friendly order: all pairs of one aerial image (its five crops)
     together. ``retrieval:K`` needs ``matcher`` (global descriptors come from its sparse
-    features); ``gps:K`` needs ``gps_enu`` (images without a fix: see pairs.gps_neighbours)."""
+    features); ``gps:K`` needs ``gps_enu`` (images without a fix: see pairs.gps_neighbours) and
+    ranks by shared ground where ``gps_footprints`` (gps.footprints) has both images."""
     names = list(names)
     if pairs_list is not None:
         raw = pairing.explicit(pairs_list, names)
@@ -295,7 +297,9 @@ def plan(
             elif kind == "sequential":
                 raw += pairing.sequential(names, k)
             elif kind == "gps":
-                raw += pairing.gps_neighbours(names, gps_enu or {}, k, unlocated_all="retrieval" not in kinds)
+                raw += pairing.gps_neighbours(
+                    names, gps_enu or {}, k, "retrieval" not in kinds, footprints=gps_footprints
+                )
             else:
                 assert matcher is not None
                 descriptors = global_descriptors(matcher, images or Images(image_dir), names, progress)

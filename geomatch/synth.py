@@ -345,14 +345,26 @@ def write_gt(cams: list[Camera], gt: Path) -> None:
     (gt / "points3D.txt").write_text("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n")
 
 
+def gimbal_angles(R: np.ndarray) -> tuple[float, float, float]:
+    """DJI's gimbal pitch, yaw and roll (degrees) of a camera ``R`` (world -> camera, world ENU,
+    camera x right, y down, z forward). Pitch: the optical axis above the horizon (-90 nadir).
+    Yaw: clockwise from north, of the image's top-forward direction (the optical axis for a
+    level view, the image top for a nadir one: where the drone heads). Roll: positive when the
+    image's right side is down. metadata.up_in_camera inverts pitch and roll."""
+    pitch = float(np.degrees(np.arcsin(np.clip(R[2, 2], -1, 1))))
+    heading = R[2, :2] - R[1, :2]  # forward minus down, horizontal: the heading at any pitch
+    yaw = float(np.degrees(np.arctan2(heading[0], heading[1])))
+    roll = float(np.degrees(np.arctan2(-R[0, 2], -R[1, 2]))) if abs(R[2, 2]) < 0.999 else 0.0
+    return pitch, yaw, roll
+
+
 def save_png(path: Path, image: np.ndarray, cam: Camera, gps_enu: np.ndarray | None = None) -> None:
     """PNG with the EXIF a camera would write (exact focal length, one device per capture type,
     the GPS fix at ``gps_enu`` metres in :data:`GPS_ORIGIN`'s frame when given) and, for aerial
-    images, the DJI XMP a drone would (relative altitude, gimbal pitch)."""
+    images, the DJI XMP a drone would (relative altitude, gimbal pitch, yaw and roll)."""
     info = PngInfo()
     if cam.aerial:
-        pitch = float(np.degrees(np.arcsin(np.clip(cam.R[2, 2], -1, 1))))
-        info.add_itxt("XML:com.adobe.xmp", dji_xmp(float(cam.centre[2]), pitch))
+        info.add_itxt("XML:com.adobe.xmp", dji_xmp(float(cam.centre[2]), *gimbal_angles(cam.R)))
     model = "synth-drone" if cam.aerial else "synth-handheld"
     exif = exif_for("geomatch", model, float(cam.K[0, 0]) / 100.0, 100.0)
     if gps_enu is not None:

@@ -71,7 +71,10 @@ def _plan(ctx: Context, job: Job) -> None:
     tiling = opts.get("tiling", DEFAULTS["tiling"])
     fixes = gps.fixes(names, metas)
     points = gps.plan_points(fixes, metas) if fixes is not None else None
-    planned = steps.plan(image_dir, names, aerial, spec, pairs_list, tiling, matcher, gps_enu=points)
+    feet = gps.footprints(fixes, metas) if fixes is not None else None
+    planned = steps.plan(
+        image_dir, names, aerial, spec, pairs_list, tiling, matcher, gps_enu=points, gps_footprints=feet
+    )
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
             return
