@@ -333,14 +333,36 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         page.mouse.up()
         frames = page.evaluate("window.geomatchViewer.frames")
         assert frames > drawn["frames"]
-        point = page.evaluate("window.geomatchViewer.cameraPoint(0)")
-        assert point is not None
-        page.mouse.click(box["x"] + point["x"], box["y"] + point["y"])
-        wait_until(
-            page,
+        # a camera the user can click: inside the canvas and not under another element (CI once
+        # waited 60 s for an image after clicking camera 0's point: off the canvas after the turn,
+        # or the view changed between reading the point and the click); a user whose click
+        # missed clicks again, and so does the test, three times at most
+        shown = (
             "(() => { const i = document.getElementById('camera-image'); "
-            "return !i.hidden && i.complete && i.naturalWidth > 0; })()",
+            "return !i.hidden && i.complete && i.naturalWidth > 0; })()"
         )
+        for attempt in range(3):
+            point = page.evaluate(
+                """() => {
+                  const v = window.geomatchViewer, c = document.getElementById('viewer');
+                  const r = c.getBoundingClientRect();
+                  for (let i = 0; i < v.cameras; i++) {
+                    const p = v.cameraPoint(i);
+                    if (!p || p.x < 2 || p.y < 2 || p.x > r.width - 2 || p.y > r.height - 2) continue;
+                    const x = r.left + p.x, y = r.top + p.y;
+                    if (document.elementFromPoint(x, y) === c) return {x, y};
+                  }
+                  return null;
+                }"""
+            )
+            assert point is not None, "no camera of the model is visible and clickable in the viewer"
+            page.mouse.click(point["x"], point["y"])
+            try:
+                wait_until(page, shown, timeout=20_000)
+                break
+            except TimeoutError as e:
+                if attempt == 2:
+                    raise TimeoutError(f"{e}; caption: {page.text_content('#camera-caption')!r}") from None
         assert page.text_content("#camera-caption") in summary["registered_names"]
         page.locator("#model-title").scroll_into_view_if_needed()
         page.screenshot(path=tmp_path / "model.png")
