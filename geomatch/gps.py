@@ -17,7 +17,7 @@ import numpy as np
 import pycolmap
 
 from .geodesy import EnuFrame
-from .metadata import ImageMeta, read_metadata, up_in_camera
+from .metadata import ImageMeta, camera_from_gimbal, read_metadata, up_in_camera
 
 
 @dataclass(frozen=True)
@@ -104,21 +104,6 @@ def look_point(position: np.ndarray, meta: ImageMeta) -> np.ndarray:
 
 FALLBACK_HFOV_DEG = 73.0  # a 24 mm-equivalent lens (DJI Mavic / Phantom) when EXIF has no focal length
 FOOTPRINT_GRID = (4, 3)  # corner-to-corner samples across and down the image for the footprint's outline
-
-
-def camera_from_gimbal(meta: ImageMeta) -> np.ndarray | None:
-    """cam_from_world rotation (world ENU; camera x right, y down, z forward) of DJI gimbal
-    pitch, yaw and roll (synth.gimbal_angles is the inverse); None without pitch and yaw.
-    A missing roll is 0: DJI gimbals hold the horizon level."""
-    if meta.gimbal_pitch_deg is None or meta.gimbal_yaw_deg is None:
-        return None
-    angles = (meta.gimbal_pitch_deg, meta.gimbal_yaw_deg, meta.gimbal_roll_deg or 0.0)
-    p, y, r = (np.radians(v) for v in angles)
-    h = np.array([np.sin(y), np.cos(y), 0.0])  # heading
-    z = np.array([np.cos(p) * h[0], np.cos(p) * h[1], np.sin(p)])
-    ydown = np.array([np.sin(p) * h[0], np.sin(p) * h[1], -np.cos(p)])
-    x = np.cross(ydown, z)
-    return np.stack([np.cos(r) * x + np.sin(r) * ydown, -np.sin(r) * x + np.cos(r) * ydown, z])
 
 
 def footprint(position: np.ndarray, meta: ImageMeta) -> np.ndarray | None:

@@ -73,17 +73,38 @@ class ImageMeta:
 NADIR_PITCH_DEG = -85.0  # at or below, roll barely moves "up" in the image (cos 85 deg = 0.09)
 
 
+def gimbal_rotation(pitch_deg: float, yaw_deg: float, roll_deg: float) -> np.ndarray:
+    """cam_from_world rotation (world ENU; camera x right, y down, z forward) of DJI gimbal
+    angles: pitch of the optical axis above the horizon (-90 nadir), yaw clockwise from north of
+    the image's top-forward direction, roll positive with the image's right side down
+    (synth.gimbal_angles is the inverse)."""
+    p, y, r = np.radians(pitch_deg), np.radians(yaw_deg), np.radians(roll_deg)
+    h = np.array([np.sin(y), np.cos(y), 0.0])  # heading
+    z = np.array([np.cos(p) * h[0], np.cos(p) * h[1], np.sin(p)])
+    ydown = np.array([np.sin(p) * h[0], np.sin(p) * h[1], -np.cos(p)])
+    x = np.cross(ydown, z)
+    return np.stack([np.cos(r) * x + np.sin(r) * ydown, -np.sin(r) * x + np.cos(r) * ydown, z])
+
+
+def camera_from_gimbal(meta: ImageMeta) -> np.ndarray | None:
+    """The gimbal's cam_from_world rotation (gimbal_rotation); None without pitch and yaw. A
+    missing roll is 0: DJI gimbals hold the horizon level."""
+    if meta.gimbal_pitch_deg is None or meta.gimbal_yaw_deg is None:
+        return None
+    return gimbal_rotation(meta.gimbal_pitch_deg, meta.gimbal_yaw_deg, meta.gimbal_roll_deg or 0.0)
+
+
 def up_in_camera(meta: ImageMeta) -> np.ndarray | None:
     """The world's up direction in the camera's frame (x right, y down, z forward) from the
     gimbal's pitch and roll (DJI XMP), or None when the file does not say. A DJI gimbal levels
     itself against gravity with the drone's IMU: pitch and roll are good to a fraction of a
     degree, while yaw follows the compass (degrees off near steel and power lines) and is not
-    used. Without a roll only a near-nadir pitch decides (roll then hardly matters)."""
+    used (up in the camera does not depend on it). Without a roll only a near-nadir pitch
+    decides (roll then hardly matters)."""
     p = meta.gimbal_pitch_deg
     if p is None or (meta.gimbal_roll_deg is None and p > NADIR_PITCH_DEG):
         return None
-    p, r = np.radians(p), np.radians(meta.gimbal_roll_deg or 0.0)
-    return np.array([-np.cos(p) * np.sin(r), -np.cos(p) * np.cos(r), np.sin(p)])
+    return gimbal_rotation(p, 0.0, meta.gimbal_roll_deg or 0.0)[:, 2]
 
 
 def _xmp_value(xmp: str, key: str) -> float | None:

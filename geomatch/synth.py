@@ -350,7 +350,7 @@ def gimbal_angles(R: np.ndarray) -> tuple[float, float, float]:
     camera x right, y down, z forward). Pitch: the optical axis above the horizon (-90 nadir).
     Yaw: clockwise from north, of the image's top-forward direction (the optical axis for a
     level view, the image top for a nadir one: where the drone heads). Roll: positive when the
-    image's right side is down. metadata.up_in_camera inverts pitch and roll."""
+    image's right side is down. metadata.gimbal_rotation is the inverse."""
     pitch = float(np.degrees(np.arcsin(np.clip(R[2, 2], -1, 1))))
     heading = R[2, :2] - R[1, :2]  # forward minus down, horizontal: the heading at any pitch
     yaw = float(np.degrees(np.arctan2(heading[0], heading[1])))
