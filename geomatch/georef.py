@@ -13,7 +13,7 @@ adjustment would when its priors are weighted above the image evidence).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -158,7 +158,7 @@ def align(
     if result is None:
         return None
     if gravity is not None:
-        result = Alignment(result.sim, result.inliers, result.residuals, gravity[1])
+        result = replace(result, up_images=gravity[1])
     rec.transform(result.sim.to_pycolmap())
     return result
 
