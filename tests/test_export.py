@@ -20,6 +20,7 @@ from geomatch.colmapdb import COLMAP_OFFSET  # the database side of the conventi
 from geomatch.export import FORMATS
 from geomatch.synth import write_scene
 
+from .loaded_modules import loaded_after
 from .small_scene import PAIRS
 
 SEED = 1
@@ -297,13 +298,8 @@ def test_openmvs_folder_is_undistorted(exported, rec) -> None:
 
 def test_exports_import_no_torch() -> None:
     """The service's API process builds the exports it serves, and it never loads torch."""
-    import subprocess
-    import sys
-
-    code = (
-        "import sys, geomatch.export, geomatch.export.nerfstudio, geomatch.export.colmap_text, "
-        "geomatch.export.ply, geomatch.export.hloc, geomatch.export.openmvs; "
-        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'cv2')))"
+    exports = (
+        "geomatch.export, geomatch.export.nerfstudio, geomatch.export.colmap_text, "
+        "geomatch.export.ply, geomatch.export.hloc, geomatch.export.openmvs"
     )
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert r.stdout.strip() == "[]"
+    assert loaded_after(exports, ("torch", "cv2")) == []

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import re
 import struct
-import subprocess
-import sys
 import uuid
 import zlib
 from collections.abc import Iterator
@@ -26,6 +24,8 @@ from geomatch_core.errors import BadFile, InvalidRequest
 from geomatch_core.models import Job, JobPair, Project, Tenant
 from geomatch_core.store import MetadataStore
 from service import validation
+
+from ..loaded_modules import loaded_after
 
 
 @pytest.mark.parametrize(
@@ -171,15 +171,14 @@ def test_project_name_pattern_is_the_use_cases_rule() -> None:
 
 
 def test_service_modules_do_not_import_torch() -> None:
-    code = (
-        "import sys, service.api, geomatch_app.bootstrap, geomatch_app.cli, service.cli, "
-        "workers.celery_queue, workers.local, workers.tasks, workers.jobs, workers.steps; "
-        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'geomatch', 'cv2')))"
+    modules = (
+        "service.api, geomatch_app.bootstrap, geomatch_app.cli, service.cli, "
+        "workers.celery_queue, workers.local, workers.tasks, workers.jobs, workers.steps"
     )
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     # the option vocabulary, the command's parser and the SQLite snapshot (standard library only)
     # are all the API reads of the library
-    assert r.stdout.strip() == "['geomatch', 'geomatch.cli', 'geomatch.options', 'geomatch.sqlitecopy']"
+    loaded = loaded_after(modules, ("torch", "geomatch", "cv2"))
+    assert loaded == ["geomatch", "geomatch.cli", "geomatch.options", "geomatch.sqlitecopy"]
 
 
 # -- feature store -------------------------------------------------------------------------------
