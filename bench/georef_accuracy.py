@@ -29,7 +29,7 @@ import pycolmap
 from geomatch.geodesy import EnuFrame
 from geomatch.georef import align, errors_against
 from geomatch.metadata import ImageMeta, up_in_camera
-from geomatch.synth import GPS_ORIGIN, Scene, gimbal_angles, gps_fixes
+from geomatch.synth import BARO_NOISE_M, GPS_ORIGIN, Scene, baro_heights, gimbal_angles, gps_fixes
 
 
 def gimbal_up(cams: list) -> dict[str, np.ndarray]:
@@ -50,13 +50,18 @@ def simulated(args: argparse.Namespace) -> None:
     cams = Scene(args.seed).cameras(args.aerial, args.ground, args.width, args.height)
     truth = {c.name: c.centre for c in cams}
     ups = gimbal_up(cams)
-    variants = {"7-parameter (no gravity)": None, "upright (gimbal gravity)": ups}
+    variants = {
+        "7-parameter (no gravity)": (None, False),
+        "upright (gimbal gravity)": (ups, False),
+        "upright + baro heights": (ups, True),
+    }
     rows: dict[str, list] = {k: [] for k in variants}
     for trial in range(args.trials):
         fixes = gps_fixes(cams, args.gps_noise, args.seed * 1000 + trial)
-        for label, up in variants.items():
+        heights = baro_heights(cams, args.baro_noise, args.seed * 1000 + trial)
+        for label, (up, use_heights) in variants.items():
             rec = pycolmap.Reconstruction(str(args.model))
-            a = align(rec, fixes, up_cam=up)
+            a = align(rec, fixes, up_cam=up, heights=heights if use_heights else None)
             assert a is not None
             e = errors_against(rec, truth)
             names = sorted(e["per_image_m"])
@@ -67,7 +72,8 @@ def simulated(args: argparse.Namespace) -> None:
     first = np.array(next(iter(rows.values())))
     print(
         f"{args.model}: {int(first[0, 6])} registered of {len(cams)},",
-        f"GPS sigma {args.gps_noise} m ({1.5 * args.gps_noise:g} m up), {args.trials} draws",
+        f"GPS sigma {args.gps_noise} m ({1.5 * args.gps_noise:g} m up), heights {args.baro_noise} m,",
+        f"{args.trials} draws",
     )
     print(f"{'':26} {'':22} {'mean':>7} {'median':>7} {'worst':>7}")
     for label, rr in rows.items():
@@ -94,6 +100,7 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--gps-noise", type=float, default=2.0)
+    ap.add_argument("--baro-noise", type=float, default=BARO_NOISE_M)
     ap.add_argument("--trials", type=int, default=20)
     args = ap.parse_args()
     if args.model is not None:

@@ -178,7 +178,16 @@ def cmd_synth(args: argparse.Namespace) -> int:
             f"ground truth in {args.out}/gt, depth in {args.out}/depth"
         )
         return 0
-    cams = write_scene(args.out, args.aerial, args.ground, args.seed, args.width, args.height, args.gps_noise)
+    cams = write_scene(
+        args.out,
+        args.aerial,
+        args.ground,
+        args.seed,
+        args.width,
+        args.height,
+        args.gps_noise,
+        baro_noise=args.baro_noise,
+    )
     print(
         f"{len(cams)} images ({args.aerial} aerial, {args.ground} ground) in {time.perf_counter() - t0:.1f}s "
         f"-> {args.out}/images, ground truth in {args.out}/gt, aerial names in {args.out}/aerial.txt"
@@ -222,6 +231,14 @@ def register(sub: Any) -> None:
         metavar="METRES",
         help="write EXIF GPS fixes (scene metres as ENU around lat 47.3769, lon 8.5417, alt 408), "
         "noise N(0, METRES) east/north and 1.5x that up; gt/gps.json has the truth",
+    )
+    s.add_argument(
+        "--baro-noise",
+        type=float,
+        default=0.3,
+        metavar="METRES",
+        help="with --gps-noise: noise N(0, METRES) on the aerial images' DJI relative altitude "
+        "(a barometer; default 0.3)",
     )
     s.set_defaults(func=cmd_synth)
 

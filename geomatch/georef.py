@@ -22,7 +22,14 @@ import pycolmap
 
 from .geodesy import EnuFrame
 from .gps import GpsFixes
-from .similarity import Similarity, umeyama, umeyama_upright
+from .similarity import Similarity, umeyama, umeyama_upright, upright_with_heights
+
+
+@dataclass(frozen=True)
+class HeightUse:
+    images: int  # heights kept (the others disagreed with the fit by more than the gate)
+    height_sigma_m: float  # their noise, estimated from the fit (variance components)
+    gps_sigma_m: float  # the fixes' horizontal noise, estimated alongside
 
 
 @dataclass(frozen=True)
@@ -31,6 +38,7 @@ class Alignment:
     inliers: np.ndarray  # (N,) bool
     residuals: np.ndarray  # (N,) metres, every correspondence
     up_images: int = 0  # images whose gimbal fixed the model's vertical (0: a free 7-parameter fit)
+    heights: HeightUse | None = None  # the barometric heights the fit used, if any
 
     def as_dict(self) -> dict[str, Any]:
         r = self.residuals[self.inliers]
@@ -42,11 +50,21 @@ class Alignment:
             "max_inlier_m": float(r.max()) if len(r) else None,
             "scale": self.sim.scale,
             "gravity_images": self.up_images,
+            "height_images": self.heights.images if self.heights else 0,
+            "height_sigma_m": self.heights.height_sigma_m if self.heights else None,
+            "gps_sigma_m": self.heights.gps_sigma_m if self.heights else None,
         }
 
 
 GNSS_VERTICAL_FACTOR = 1.5  # consumer GNSS: vertical error about 1.5x the horizontal one
 UP_MAX_SPREAD_DEG = 3.0  # gimbal "up"s further than this from the consensus are not trusted
+# Barometric heights (DJI RelativeAltitude) next to the fixes: the noise levels the weighting starts
+# from (consumer GNSS, a barometer over one flight), re-estimated from the fit's own residuals
+PRIOR_GPS_SIGMA_M = 2.0
+PRIOR_HEIGHT_SIGMA_M = 0.3
+MIN_HEIGHT_SIGMA_M = 0.05  # below what a barometer resolves: keeps a few lucky heights from taking over
+MIN_HEIGHTS = 4  # fewer leave too little redundancy to estimate their noise
+HEIGHT_GATE_M = 1.5  # a height is dropped beyond max(this, 3 MADs) from the rest (another take-off)
 
 
 def robust_similarity(
@@ -105,6 +123,50 @@ def robust_similarity(
     return Alignment(sim, inl, r)
 
 
+def fit_with_heights(
+    src: np.ndarray,
+    dst: np.ndarray,
+    up: np.ndarray,
+    start: Similarity,
+    height_src: np.ndarray,
+    heights: np.ndarray,
+) -> tuple[Similarity, HeightUse] | None:
+    """The upright similarity refitted with the drone's barometric heights above take-off
+    (similarity.upright_with_heights): their differences over a flight fix the scale to a
+    fraction of what GNSS metres can (bench/georef_accuracy.py). Neither noise level is known
+    beforehand, so both are estimated from the residuals (Foerstner's variance components,
+    iterated), and a height further than the gate from the others (a second flight with its own
+    take-off, a stale reading) is dropped. ``start``: the GNSS-only fit, which picks the first
+    heights to keep. None when fewer than MIN_HEIGHTS agree."""
+    heights = np.asarray(heights, np.float64)
+    n, vw = len(src), 1.0 / GNSS_VERTICAL_FACTOR**2
+
+    def predicted(sim: Similarity) -> np.ndarray:
+        return sim.apply(height_src)[:, 2]
+
+    # which heights belong is judged once, against the GNSS-only fit and from every height's
+    # scatter (median absolute deviation): a gate re-drawn around a fit that follows the kept
+    # heights shrinks onto whichever few happen to agree
+    r0 = heights - predicted(start)
+    dev = np.abs(r0 - np.median(r0))
+    keep = dev <= max(HEIGHT_GATE_M, 3 * 1.4826 * float(np.median(dev)))
+    if keep.sum() < MIN_HEIGHTS:
+        return None
+    sg, sh = PRIOR_GPS_SIGMA_M, PRIOR_HEIGHT_SIGMA_M
+    for _ in range(30):
+        fit = upright_with_heights(src, dst, up, vw, height_src[keep], heights[keep], (sg / sh) ** 2)
+        rg = fit.sim.apply(src) - dst
+        rh = heights[keep] - (predicted(fit.sim)[keep] - fit.datum)
+        red_g, red_h = fit.redundancy[: 3 * n].sum(), fit.redundancy[3 * n :].sum()
+        new_sg = np.sqrt(((rg[:, :2] ** 2).sum() + vw * (rg[:, 2] ** 2).sum()) / max(red_g, 1e-9))
+        new_sh = max(np.sqrt((rh**2).sum() / max(red_h, 1e-9)), MIN_HEIGHT_SIGMA_M)
+        settled = abs(new_sg / sg - 1) < 1e-4 and abs(new_sh / sh - 1) < 1e-4
+        sg, sh = float(new_sg), float(new_sh)
+        if settled:
+            break
+    return fit.sim, HeightUse(int(keep.sum()), sh, sg)
+
+
 def camera_centres(rec: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
     return {
         im.name: np.asarray(im.projection_center(), np.float64) for im in rec.images.values() if im.has_pose
@@ -140,13 +202,17 @@ def align(
     enu: Mapping[str, np.ndarray],
     threshold: float = 10.0,
     up_cam: Mapping[str, np.ndarray] | None = None,
+    heights: Mapping[str, float] | None = None,
 ) -> Alignment | None:
     """Estimate the similarity from the registered images that have a fix and apply it to
     ``rec`` in place (every image and point, those without GPS too); None leaves ``rec`` as it
     was (fewer than 3 registered images with a fix). With ``up_cam`` (image name -> up in the
     camera, gps.GpsFixes.up) and two or more registered images agreeing on it, the model's
     vertical comes from gravity and GPS fits the other 5 parameters: on a perfect 8 + 12 model
-    with 2 m / 3 m GNSS noise the mean centre error drops from 1.31 to 1.05 m (docs/pipeline.md)."""
+    with 2 m / 3 m GNSS noise the mean centre error drops from 1.31 to 1.05 m (docs/pipeline.md).
+    With gravity and ``heights`` (image name -> barometric height above take-off,
+    gps.GpsFixes.heights) of MIN_HEIGHTS or more registered images, those refine the fit
+    (fit_with_heights), the GNSS inliers staying as RANSAC chose them."""
     centres = camera_centres(rec)
     names = sorted(n for n in centres if n in enu)
     if len(names) < 3:
@@ -159,6 +225,21 @@ def align(
         return None
     if gravity is not None:
         result = replace(result, up_images=gravity[1])
+        named = sorted(n for n in centres if heights and n in heights)
+        if heights and len(named) >= MIN_HEIGHTS:
+            inl = result.inliers
+            refined = fit_with_heights(
+                src[inl],
+                dst[inl],
+                gravity[0],
+                result.sim,
+                np.stack([centres[n] for n in named]),
+                np.array([heights[n] for n in named]),
+            )
+            if refined is not None:
+                sim, use = refined
+                r = np.linalg.norm(sim.apply(src) - dst, axis=1)
+                result = replace(result, sim=sim, residuals=r, heights=use)
     rec.transform(result.sim.to_pycolmap())
     return result
 

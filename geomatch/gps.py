@@ -28,6 +28,9 @@ class GpsFixes:
     # image name -> the world's up in that camera's frame, from the gimbal (metadata.up_in_camera);
     # images without a fix count too: gravity constrains the model's rotation wherever it comes from
     up: dict[str, np.ndarray] = field(default_factory=dict)
+    # image name -> height above take-off in metres (DJI RelativeAltitude, a barometer): decimetres
+    # between the images of one flight, where GNSS altitude is metres; georef.py fits scale to it
+    heights: dict[str, float] = field(default_factory=dict)
 
 
 def fixes(names: Sequence[str], metas: Mapping[str, ImageMeta]) -> GpsFixes | None:
@@ -49,7 +52,8 @@ def fixes(names: Sequence[str], metas: Mapping[str, ImageMeta]) -> GpsFixes | No
         alt = m.altitude_m if m.altitude_m is not None else fallback
         enu[n] = frame.from_geodetic(m.latitude, m.longitude, alt)  # type: ignore[arg-type]
     up = {n: u for n in names if (u := up_in_camera(metas[n])) is not None}
-    return GpsFixes(frame, enu, bool(alts), up)
+    heights = {n: h for n in names if (h := metas[n].relative_altitude_m) is not None}
+    return GpsFixes(frame, enu, bool(alts), up, heights)
 
 
 def write_pose_priors(database: Path, ids: Mapping[str, int], gps: GpsFixes, sigma_m: float = 5.0) -> int:

@@ -57,20 +57,71 @@ def umeyama_upright(src: np.ndarray, dst: np.ndarray, up: np.ndarray, vertical_w
     against horizontal ones. Closed form: the best turn does not depend on the scale (2D
     Procrustes), and the weighted cost is then a quadratic in the scale."""
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    Ru = _rotation_between(np.asarray(up, np.float64), np.array([0.0, 0.0, 1.0]))
-    a = src @ Ru.T
-    mu_a, mu_d = a.mean(0), dst.mean(0)
-    A, B = a - mu_a, dst - mu_d
-    theta = np.arctan2((A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]).sum(), (A[:, :2] * B[:, :2]).sum())
-    c, s = np.cos(theta), np.sin(theta)
-    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    Ru, Rz = _upright_rotations(src, dst, up)
+    A = src @ Ru.T
+    A -= A.mean(0)
+    B = dst - dst.mean(0)
     rotated = A @ Rz.T
     denom = (A[:, :2] ** 2).sum() + vertical_weight * (A[:, 2] ** 2).sum()
     if not denom > 0:
         return Similarity(float("nan"), np.eye(3), np.zeros(3))
     scale = float(((rotated[:, :2] * B[:, :2]).sum() + vertical_weight * (A[:, 2] * B[:, 2]).sum()) / denom)
     R = Rz @ Ru
-    return Similarity(scale, R, mu_d - scale * R @ src.mean(0))
+    return Similarity(scale, R, dst.mean(0) - scale * R @ src.mean(0))
+
+
+@dataclass(frozen=True)
+class HeightFit:
+    """An upright similarity fitted to positions and to heights above an unknown datum."""
+
+    sim: Similarity
+    datum: float  # h = (sim.apply(x))_z - datum: the heights' zero in dst's vertical
+    redundancy: np.ndarray  # (3 N + M,) each observation's share of the redundancy (1 - leverage)
+
+
+def upright_with_heights(
+    src: np.ndarray,
+    dst: np.ndarray,
+    up: np.ndarray,
+    vertical_weight: float,
+    height_src: np.ndarray,
+    heights: np.ndarray,
+    height_weight: float,
+) -> HeightFit:
+    """As umeyama_upright, plus heights ``heights`` (M,) of the points ``height_src`` (M, 3) above
+    a datum of unknown level, weighing ``height_weight`` against a horizontal residual: a drone's
+    barometric heights above take-off differ by metres over a flight known to decimetres, a
+    scale that GNSS's metres cannot give. The turn still comes from the horizontal Procrustes
+    (the only term that depends on it); scale, translation and datum are then one weighted
+    linear least squares. The redundancies let the caller estimate both noise levels."""
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    Ru, Rz = _upright_rotations(src, dst, up)
+    R = Rz @ Ru
+    p = src @ R.T
+    ph = np.asarray(height_src, np.float64) @ R.T
+    n, m = len(src), len(ph)
+    M = np.zeros((3 * n + m, 5))
+    M[0 : 3 * n : 3, 0], M[0 : 3 * n : 3, 1] = p[:, 0], 1.0
+    M[1 : 3 * n : 3, 0], M[1 : 3 * n : 3, 2] = p[:, 1], 1.0
+    M[2 : 3 * n : 3, 0], M[2 : 3 * n : 3, 3] = p[:, 2], 1.0
+    M[3 * n :, 0], M[3 * n :, 3], M[3 * n :, 4] = ph[:, 2], 1.0, -1.0
+    y = np.concatenate([dst.reshape(-1), np.asarray(heights, np.float64)])
+    w = np.concatenate([np.tile([1.0, 1.0, vertical_weight], n), np.full(m, height_weight)])
+    Mw = M * np.sqrt(w)[:, None]
+    x, *_ = np.linalg.lstsq(Mw, y * np.sqrt(w), rcond=None)
+    leverage = np.einsum("ij,ji->i", Mw, np.linalg.pinv(Mw.T @ Mw) @ Mw.T)
+    return HeightFit(Similarity(float(x[0]), R, x[1:4].copy()), float(x[4]), 1.0 - leverage)
+
+
+def _upright_rotations(src: np.ndarray, dst: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The tilt taking ``up`` to +z, and the turn about +z that best lines the tilted, centred
+    ``src`` up with the centred ``dst`` east and north (2D Procrustes)."""
+    Ru = _rotation_between(np.asarray(up, np.float64), np.array([0.0, 0.0, 1.0]))
+    A = src @ Ru.T
+    A, B = A - A.mean(0), dst - dst.mean(0)
+    theta = np.arctan2((A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]).sum(), (A[:, :2] * B[:, :2]).sum())
+    c, s = np.cos(theta), np.sin(theta)
+    return Ru, np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:

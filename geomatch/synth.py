@@ -12,8 +12,10 @@ images.txt, empty points3D.txt; poses are cam_from_world as COLMAP stores them) 
 ``aerial.txt`` (the aerial image names, one per line). With ``gps_noise`` (metres) every image
 also carries an EXIF GPS fix: the scene's metres are East-North-Up around :data:`GPS_ORIGIN`
 (so ``gt/`` is already in that ENU frame), each camera centre is perturbed by N(0, sigma) east and
-north and N(0, 1.5 sigma) up (consumer GNSS is worse vertically) and converted to WGS84;
-``gt/gps.json`` keeps the origin, sigma and every image's true and noisy ENU position.
+north and N(0, 1.5 sigma) up (consumer GNSS is worse vertically) and converted to WGS84, and
+the aerial images' DJI relative altitude (a barometer's height above take-off, exact without GPS)
+gets its own N(0, ``baro_noise``); ``gt/gps.json`` keeps the origin, both sigmas, every image's
+true and noisy ENU position and the noisy heights.
 """
 
 from __future__ import annotations
@@ -53,6 +55,8 @@ TEXTURES = (
 SKY = np.array([200.0, 215.0, 235.0])
 GPS_ORIGIN = EnuFrame(47.3769, 8.5417, 408.0)  # Zurich; the scene's (0, 0, 0), ellipsoidal height
 GPS_VERTICAL_FACTOR = 1.5  # vertical GNSS noise over horizontal
+# a DJI barometer's relative altitude over one short flight: decimetres (per image, independent)
+BARO_NOISE_M = 0.3
 
 
 def scribble(img: np.ndarray, rng: np.random.Generator, n: int, max_radius: int | None = None) -> None:
@@ -358,13 +362,21 @@ def gimbal_angles(R: np.ndarray) -> tuple[float, float, float]:
     return pitch, yaw, roll
 
 
-def save_png(path: Path, image: np.ndarray, cam: Camera, gps_enu: np.ndarray | None = None) -> None:
+def save_png(
+    path: Path,
+    image: np.ndarray,
+    cam: Camera,
+    gps_enu: np.ndarray | None = None,
+    height: float | None = None,
+) -> None:
     """PNG with the EXIF a camera would write (exact focal length, one device per capture type,
     the GPS fix at ``gps_enu`` metres in :data:`GPS_ORIGIN`'s frame when given) and, for aerial
-    images, the DJI XMP a drone would (relative altitude, gimbal pitch, yaw and roll)."""
+    images, the DJI XMP a drone would (relative altitude, ``height`` or the true one, gimbal
+    pitch, yaw and roll)."""
     info = PngInfo()
     if cam.aerial:
-        info.add_itxt("XML:com.adobe.xmp", dji_xmp(float(cam.centre[2]), *gimbal_angles(cam.R)))
+        h = float(cam.centre[2]) if height is None else height
+        info.add_itxt("XML:com.adobe.xmp", dji_xmp(h, *gimbal_angles(cam.R)))
     model = "synth-drone" if cam.aerial else "synth-handheld"
     exif = exif_for("geomatch", model, float(cam.K[0, 0]) / 100.0, 100.0)
     if gps_enu is not None:
@@ -381,6 +393,13 @@ def gps_fixes(cams: list[Camera], sigma: float, seed: int) -> dict[str, np.ndarr
     return {c.name: c.centre + rng.normal(0.0, 1.0, 3) * scale for c in cams}
 
 
+def baro_heights(cams: list[Camera], sigma: float, seed: int) -> dict[str, float]:
+    """Noisy relative altitudes of the aerial cameras (take-off at the ground, z = 0), from a
+    generator of their own: adding them leaves the GPS draws as they were."""
+    rng = np.random.default_rng([seed, 0xBA0])
+    return {c.name: float(c.centre[2] + rng.normal(0.0, sigma)) for c in cams if c.aerial}
+
+
 def write_scene(
     out: str | Path,
     n_aerial: int = 8,
@@ -390,20 +409,22 @@ def write_scene(
     height: int = 480,
     gps_noise: float | None = None,
     gps_names: set[str] | None = None,
+    baro_noise: float = BARO_NOISE_M,
 ) -> list[Camera]:
     """Render a scene into ``out`` (images/, gt/, aerial.txt) and return its cameras.
-    ``gps_noise``: write GPS fixes with that sigma (metres); ``gps_names``: only into these
-    images (a mixed project), all when None."""
+    ``gps_noise``: write GPS fixes with that sigma (metres), and relative altitudes with
+    ``baro_noise``; ``gps_names``: fixes only into these images (a mixed project), all when None."""
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     scene = Scene(seed)
     cams = scene.cameras(n_aerial, n_ground, width, height)
     fixes = gps_fixes(cams, gps_noise, seed) if gps_noise is not None else {}
+    heights = baro_heights(cams, baro_noise, seed) if gps_noise is not None else {}
     if gps_names is not None:
         fixes = {n: v for n, v in fixes.items() if n in gps_names}
     for c in cams:
         img, _ = scene.render(c)
-        save_png(out / "images" / c.name, img, c, fixes.get(c.name))
+        save_png(out / "images" / c.name, img, c, fixes.get(c.name), heights.get(c.name))
     write_gt(cams, out / "gt")
     if gps_noise is not None:
         (out / "gt" / "gps.json").write_text(
@@ -415,6 +436,8 @@ def write_scene(
                     "vertical_factor": GPS_VERTICAL_FACTOR,
                     "true_enu": {c.name: c.centre.tolist() for c in cams},
                     "gps_enu": {n: v.tolist() for n, v in fixes.items()},
+                    "baro_sigma_m": baro_noise,
+                    "relative_altitude": heights,
                 },
                 indent=1,
             )

@@ -16,11 +16,11 @@ from geomatch import gps, pairs
 from geomatch.cli import main
 from geomatch.colmapdb import ColmapDatabase
 from geomatch.geodesy import EnuFrame
-from geomatch.georef import align, errors_against, model_up, robust_similarity, umeyama
+from geomatch.georef import align, errors_against, fit_with_heights, model_up, robust_similarity, umeyama
 from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata, up_in_camera
 from geomatch.options import check, parse_plan
-from geomatch.similarity import umeyama_upright
-from geomatch.synth import GPS_ORIGIN, Scene, gimbal_angles, gps_fixes, write_gt, write_scene
+from geomatch.similarity import umeyama_upright, upright_with_heights
+from geomatch.synth import GPS_ORIGIN, Scene, baro_heights, gimbal_angles, gps_fixes, write_gt, write_scene
 
 
 @pytest.mark.parametrize("suffix", [".png", ".jpg"])
@@ -76,6 +76,15 @@ def test_synth_writes_fixes_and_leaves_renders_alone(tmp_path: Path) -> None:
         np.testing.assert_allclose(back, truth["gps_enu"][c.name], atol=2e-3)
         offsets.append(back - c.centre)
     assert 0.1 < np.abs(offsets).max() < 15.0  # noise was added, of the size asked
+    # the drone's barometric heights are noisy too, and read back as gps.json says (XMP: 2 decimals)
+    aerial = {c.name: c for c in noisy if c.aerial}
+    assert truth["baro_sigma_m"] == 0.3 and set(fixes.heights) == set(truth["relative_altitude"]) == set(aerial)
+    for n, h in fixes.heights.items():
+        assert h == pytest.approx(truth["relative_altitude"][n], abs=5e-3)
+        assert 1e-3 < abs(h - aerial[n].centre[2]) < 3.0
+    assert read_metadata(tmp_path / "plain" / "images" / first).relative_altitude_m == pytest.approx(
+        plain[[c.name for c in plain].index(first)].centre[2], abs=5e-3
+    )  # without GPS the XMP keeps the true height
     for c0, c1 in zip(plain, noisy, strict=True):
         a = np.asarray(Image.open(tmp_path / "plain" / "images" / c0.name))
         b = np.asarray(Image.open(tmp_path / "gps" / "images" / c1.name))
@@ -181,6 +190,84 @@ def test_gravity_from_the_gimbals_makes_georeferencing_better(tmp_path: Path) ->
             assert a is not None and a.up_images == (8 if up else 0)
             out.append(errors_against(r, truth)["mean_m"])
     assert np.mean(upright) < 0.9 * np.mean(free), (np.mean(upright), np.mean(free))
+
+
+def test_upright_fit_with_heights_recovers_an_exact_similarity() -> None:
+    rng = np.random.default_rng(4)
+    src = rng.uniform(-20, 20, (12, 3))
+    R = Rotation.random(random_state=5).as_matrix()
+    dst = 2.5 * src @ R.T + np.array([3.0, -7.0, 11.0])
+    up = R.T @ np.array([0.0, 0.0, 1.0])
+    take_off = 4.0  # the heights' zero, in dst's vertical
+    fit = upright_with_heights(src, dst, up, 0.4, src[:5], dst[:5, 2] - take_off, 30.0)
+    np.testing.assert_allclose(fit.sim.apply(src), dst, atol=1e-9)
+    assert fit.datum == pytest.approx(take_off)
+    # 5 parameters (the turn is fitted apart): the redundancies of 3 * 12 + 5 rows sum to 36
+    assert fit.redundancy.sum() == pytest.approx(41 - 5)
+
+
+def _perfect_model(tmp_path: Path, seed: int) -> tuple[list, pycolmap.Sim3d, dict, dict]:
+    cams = Scene(seed).cameras(8, 12, 640, 480)
+    write_gt(cams, tmp_path)
+    gauge = pycolmap.Sim3d(
+        0.3, pycolmap.Rotation3d(Rotation.random(random_state=2).as_matrix()), [[5.0], [1.0], [-2.0]]
+    )
+    ups = {c.name: up_in_camera(_gimbal_meta(c.R)) for c in cams if c.aerial}
+    return cams, gauge, ups, {c.name: c.centre for c in cams}
+
+
+def _georeference(path: Path, gauge: pycolmap.Sim3d, fixes: dict, ups: dict, heights: dict | None):
+    rec = pycolmap.Reconstruction(str(path))
+    rec.transform(gauge)
+    return rec, align(rec, fixes, up_cam=ups, heights=heights)
+
+
+def test_barometric_heights_fix_the_scale_gps_cannot(tmp_path: Path) -> None:
+    """A perfect 8 + 12 model (seed 2: neither benchmark split), 30 draws of 2 m / 3 m fixes and
+    0.3 m heights: the heights' differences over the flight take the scale error from GNSS's
+    ~1.7 % to under 1 %, and the noise levels come back from the residuals."""
+    cams, gauge, ups, truth = _perfect_model(tmp_path, 2)
+    plain, baro, est = [], [], []
+    for trial in range(30):
+        fixes = gps_fixes(cams, 2.0, trial)
+        heights = baro_heights(cams, 0.3, trial)
+        for h, out in ((None, plain), (heights, baro)):
+            rec, a = _georeference(tmp_path, gauge, fixes, ups, h)
+            assert a is not None and a.as_dict()["height_images"] == (8 if h else 0)
+            out.append(errors_against(rec, truth)["scale_error"])
+            if h:
+                est.append((a.heights.height_sigma_m, a.heights.gps_sigma_m))
+    assert np.mean(baro) < 0.6 * np.mean(plain) and np.mean(baro) < 0.01, (np.mean(baro), np.mean(plain))
+    sh, sg = np.median(est, axis=0)
+    assert 0.15 < sh < 0.5 and 1.4 < sg < 2.8, (sh, sg)
+
+
+def test_heights_from_another_take_off_are_dropped_and_noisy_ones_weigh_little(tmp_path: Path) -> None:
+    cams, gauge, ups, truth = _perfect_model(tmp_path, 2)
+    aerial = sorted(c.name for c in cams if c.aerial)
+    fixes = gps_fixes(cams, 2.0, 5)
+    heights = baro_heights(cams, 0.2, 5)
+    second_flight = {n: h + 6.0 if n in aerial[:3] else h for n, h in heights.items()}
+    rec, a = _georeference(tmp_path, gauge, fixes, ups, second_flight)
+    assert a is not None and a.heights is not None and a.heights.images == 5
+    alone = {n: heights[n] for n in aerial[3:]}  # the same fit as if the other flight were not there
+    assert a.sim.scale == pytest.approx(_georeference(tmp_path, gauge, fixes, ups, alone)[1].sim.scale, rel=1e-9)
+    # heights off by metres (a barometer drifting through a long flight) are weighed by their
+    # own scatter: the fit ends close to the GNSS-only one instead of following them
+    # (one draw in 20 puts 5 of 8 heights within 0.4 m: that one reads as 5 good and 3 outliers)
+    plain, drift, sigmas = [], [], []
+    for trial in range(20):
+        fixes = gps_fixes(cams, 2.0, trial)
+        bad = baro_heights(cams, 4.0, trial)
+        plain.append(errors_against(_georeference(tmp_path, gauge, fixes, ups, None)[0], truth)["scale_error"])
+        rec, a = _georeference(tmp_path, gauge, fixes, ups, bad)
+        assert a is not None and a.heights is not None
+        sigmas.append(a.heights.height_sigma_m)
+        drift.append(errors_against(rec, truth)["scale_error"])
+    assert np.median(sigmas) > 2.0 and np.mean(drift) < 1.1 * np.mean(plain), (sigmas, drift, plain)
+    # too few heights: the GNSS-only fit
+    few = {n: heights[n] for n in aerial[:3]}
+    assert _georeference(tmp_path, gauge, fixes, ups, few)[1].heights is None
 
 
 def _gimbal_meta(R: np.ndarray) -> ImageMeta:
