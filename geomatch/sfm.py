@@ -109,7 +109,10 @@ def reconstruct(
         bar.n = best_count  # the bar ends at the largest model's count (the callbacks count tries)
         bar.refresh()
     ranked = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
-    alignments = [georef.align(rec, gps.enu, up_cam=gps.up, heights=gps.heights) if gps is not None else None for rec in ranked]
+    alignments = [
+        georef.align(rec, gps.enu, up_cam=gps.up, heights=gps.heights) if gps is not None else None
+        for rec in ranked
+    ]
     sparse = out / "sparse"
     shutil.rmtree(sparse, ignore_errors=True)
     for i, rec in enumerate(ranked):

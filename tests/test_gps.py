@@ -16,7 +16,7 @@ from geomatch import gps, pairs
 from geomatch.cli import main
 from geomatch.colmapdb import ColmapDatabase
 from geomatch.geodesy import EnuFrame
-from geomatch.georef import align, errors_against, fit_with_heights, model_up, robust_similarity, umeyama
+from geomatch.georef import align, errors_against, model_up, robust_similarity, umeyama
 from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata, up_in_camera
 from geomatch.options import check, parse_plan
 from geomatch.similarity import umeyama_upright, upright_with_heights
@@ -78,7 +78,9 @@ def test_synth_writes_fixes_and_leaves_renders_alone(tmp_path: Path) -> None:
     assert 0.1 < np.abs(offsets).max() < 15.0  # noise was added, of the size asked
     # the drone's barometric heights are noisy too, and read back as gps.json says (XMP: 2 decimals)
     aerial = {c.name: c for c in noisy if c.aerial}
-    assert truth["baro_sigma_m"] == 0.3 and set(fixes.heights) == set(truth["relative_altitude"]) == set(aerial)
+    assert truth["baro_sigma_m"] == 0.3 and set(fixes.heights) == set(truth["relative_altitude"]) == set(
+        aerial
+    )
     for n, h in fixes.heights.items():
         assert h == pytest.approx(truth["relative_altitude"][n], abs=5e-3)
         assert 1e-3 < abs(h - aerial[n].centre[2]) < 3.0
@@ -251,7 +253,9 @@ def test_heights_from_another_take_off_are_dropped_and_noisy_ones_weigh_little(t
     rec, a = _georeference(tmp_path, gauge, fixes, ups, second_flight)
     assert a is not None and a.heights is not None and a.heights.images == 5
     alone = {n: heights[n] for n in aerial[3:]}  # the same fit as if the other flight were not there
-    assert a.sim.scale == pytest.approx(_georeference(tmp_path, gauge, fixes, ups, alone)[1].sim.scale, rel=1e-9)
+    assert a.sim.scale == pytest.approx(
+        _georeference(tmp_path, gauge, fixes, ups, alone)[1].sim.scale, rel=1e-9
+    )
     # heights off by metres (a barometer drifting through a long flight) are weighed by their
     # own scatter: the fit ends close to the GNSS-only one instead of following them
     # (one draw in 20 puts 5 of 8 heights within 0.4 m: that one reads as 5 good and 3 outliers)
@@ -259,7 +263,9 @@ def test_heights_from_another_take_off_are_dropped_and_noisy_ones_weigh_little(t
     for trial in range(20):
         fixes = gps_fixes(cams, 2.0, trial)
         bad = baro_heights(cams, 4.0, trial)
-        plain.append(errors_against(_georeference(tmp_path, gauge, fixes, ups, None)[0], truth)["scale_error"])
+        plain.append(
+            errors_against(_georeference(tmp_path, gauge, fixes, ups, None)[0], truth)["scale_error"]
+        )
         rec, a = _georeference(tmp_path, gauge, fixes, ups, bad)
         assert a is not None and a.heights is not None
         sigmas.append(a.heights.height_sigma_m)
