@@ -98,8 +98,8 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         matcher,
         images,
         opts.progress,
-        gps_enu=gpsfix.plan_points(fixes, metas) if fixes is not None else None,
-        gps_footprints=gpsfix.footprints(fixes, metas) if fixes is not None else None,
+        fixes=fixes,
+        metas=metas,
     )
 
     timings: dict[str, float] = {"matching": 0.0, "writing": 0.0}

@@ -35,8 +35,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from . import gps, sfm
 from . import pairs as pairing
-from . import sfm
 from .colmapdb import ColmapDatabase, PairWrite
 from .features.base import DenseFeatures, ImageFeatures, SparseFeatures
 from .geometry import estimate_fundamental, fundamental_from_matches
@@ -276,14 +276,20 @@ def plan(
     matcher: Matcher | None = None,
     images: Images | None = None,
     progress: bool = False,
-    gps_enu: Mapping[str, np.ndarray] | None = None,
-    gps_footprints: Mapping[str, np.ndarray] | None = None,
+    fixes: GpsFixes | None = None,
+    metas: Mapping[str, ImageMeta] | None = None,
 ) -> list[Pair]:
     """The pairs to match (``pairs_list``, else ``spec``, a union of its parts), tiled where
     ``tiling`` says, in a cache-friendly order: all pairs of one aerial image (its five crops)
     together. ``retrieval:K`` needs ``matcher`` (global descriptors come from its sparse
-    features); ``gps:K`` needs ``gps_enu`` (images without a fix: see pairs.gps_neighbours) and
-    ranks by shared ground where ``gps_footprints`` (gps.footprints) has both images."""
+    features); ``gps:K`` pairs by the ``fixes`` (images without one: see pairs.gps_neighbours),
+    by look point, and by shared ground where ``metas`` give both images a footprint
+    (gps.plan_points, gps.footprints)."""
+    gps_enu: Mapping[str, np.ndarray] = {}
+    footprints: Mapping[str, np.ndarray] | None = None
+    if fixes is not None:
+        gps_enu = gps.plan_points(fixes, metas) if metas is not None else fixes.enu
+        footprints = gps.footprints(fixes, metas) if metas is not None else None
     names = list(names)
     if pairs_list is not None:
         raw = pairing.explicit(pairs_list, names)
@@ -297,9 +303,8 @@ def plan(
             elif kind == "sequential":
                 raw += pairing.sequential(names, k)
             elif kind == "gps":
-                raw += pairing.gps_neighbours(
-                    names, gps_enu or {}, k, "retrieval" not in kinds, footprints=gps_footprints
-                )
+                unlocated_all = "retrieval" not in kinds  # else retrieval pairs the images without a fix
+                raw += pairing.gps_neighbours(names, gps_enu, k, unlocated_all, footprints=footprints)
             else:
                 assert matcher is not None
                 descriptors = global_descriptors(matcher, images or Images(image_dir), names, progress)

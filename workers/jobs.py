@@ -70,10 +70,8 @@ def _plan(ctx: Context, job: Job) -> None:
     matcher = runtime.matcher(ctx, opts) if "retrieval" in spec and pairs_list is None else None
     tiling = opts.get("tiling", DEFAULTS["tiling"])
     fixes = gps.fixes(names, metas)
-    points = gps.plan_points(fixes, metas) if fixes is not None else None
-    feet = gps.footprints(fixes, metas) if fixes is not None else None
     planned = steps.plan(
-        image_dir, names, aerial, spec, pairs_list, tiling, matcher, gps_enu=points, gps_footprints=feet
+        image_dir, names, aerial, spec, pairs_list, tiling, matcher, fixes=fixes, metas=metas
     )
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
