@@ -10,9 +10,11 @@ gets. The GPS fixes' own error is the baseline the reconstruction should beat.
 
 ``--model SPARSE --aerial A --ground G --seed S`` instead judges an existing reconstruction of
 the scene ``geomatch synth --aerial A --ground G --seed S`` (renders are the same with or without
-GPS): fixes with ``--gps-noise`` are drawn ``--trials`` times (synth.gps_fixes, its generator
-offset by the trial) and the model is georeferenced by the pipeline's own code (georef.align) each
-time; this measures the georeferencing on reconstructions too costly to redo on a shared CPU.
+GPS): fixes with ``--gps-noise`` and the drones' heights with ``--baro-noise`` are drawn
+``--trials`` times (synth.gps_fixes and synth.baro_heights, their generators offset by the trial)
+and the model is georeferenced by the pipeline's own code (georef.align) each time, three ways:
+the free 7-parameter fit, the upright one (gimbal gravity) and upright with the heights; this
+measures the georeferencing on reconstructions too costly to redo on a shared CPU.
 
     python bench/georef_accuracy.py --model RUN/sparse/0 --aerial 6 --ground 10 --seed 0 --trials 20
 """

@@ -15,6 +15,10 @@ from .harness import Deployment
 from .image_harness import IMAGE_ENV, ImageDeployment
 
 SCENE_SEED = 1  # the scene of tests/test_pipeline_e2e.py: 2 aerial + 4 ground, 640x480
+# every image carries a GPS fix (and the drones their noisy heights), as a phone's and a drone's
+# photos do: the service's match and reconstruct jobs then take the GPS path end to end. The renders
+# are the same bit for bit as without (synth: the noise has its own generator)
+SCENE_GPS_NOISE = 0.5
 
 
 @pytest.fixture(scope="session")
@@ -32,7 +36,7 @@ def redis_url() -> str:
 @pytest.fixture(scope="session")
 def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("service-scene")
-    write_scene(d, 2, 4, seed=SCENE_SEED)
+    write_scene(d, 2, 4, seed=SCENE_SEED, gps_noise=SCENE_GPS_NOISE)
     return d
 
 
