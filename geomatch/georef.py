@@ -7,7 +7,10 @@ centres land within ``threshold`` metres of their fix, then Umeyama least square
 inliers. Only the shape of the reconstruction and the similarity's 7 parameters come from the
 data, so with n fixes of sigma s the centres' error is about s * sqrt(7 / (3 n)) (the
 reconstruction averages the GPS noise out instead of taking it on, as pose-prior bundle
-adjustment would when its priors are weighted above the image evidence).
+adjustment would when its priors are weighted above the image evidence). A drone's metadata
+narrows it further: its gimbal's gravity fixes two of the 7 parameters (the tilt), and its
+barometric heights above take-off pin the scale, which the fixes' metres over a small site
+cannot (fit_with_heights).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from .similarity import Similarity, umeyama, umeyama_upright, upright_with_heigh
 
 @dataclass(frozen=True)
 class HeightUse:
-    images: int  # heights kept (the others disagreed with the fit by more than the gate)
+    images: int  # heights kept (the others lay beyond the gate from the rest: another take-off)
     height_sigma_m: float  # their noise, estimated from the fit (variance components)
     gps_sigma_m: float  # the fixes' horizontal noise, estimated alongside
 
