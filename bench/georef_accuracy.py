@@ -30,28 +30,13 @@ import pycolmap
 
 from geomatch.geodesy import EnuFrame
 from geomatch.georef import align, errors_against
-from geomatch.metadata import ImageMeta, up_in_camera
-from geomatch.synth import BARO_NOISE_M, GPS_ORIGIN, Scene, baro_heights, gimbal_angles, gps_fixes
-
-
-def gimbal_up(cams: list) -> dict[str, np.ndarray]:
-    """What the aerial images' DJI XMP says about up (pitch and roll to the 0.1 deg the XMP
-    keeps), through the pipeline's own reader: what ``geomatch run`` would use."""
-    out = {}
-    for c in cams:
-        if c.aerial:
-            pitch, yaw, roll = (round(a, 1) for a in gimbal_angles(c.R))
-            meta = ImageMeta(1, 1, gimbal_pitch_deg=pitch, gimbal_yaw_deg=yaw, gimbal_roll_deg=roll)
-            up = up_in_camera(meta)
-            if up is not None:
-                out[c.name] = up
-    return out
+from geomatch.synth import BARO_NOISE_M, GPS_ORIGIN, Scene, baro_heights, gps_fixes, xmp_ups
 
 
 def simulated(args: argparse.Namespace) -> None:
     cams = Scene(args.seed).cameras(args.aerial, args.ground, args.width, args.height)
     truth = {c.name: c.centre for c in cams}
-    ups = gimbal_up(cams)
+    ups = xmp_ups(cams)
     variants = {
         "7-parameter (no gravity)": (None, False),
         "upright (gimbal gravity)": (ups, False),

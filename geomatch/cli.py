@@ -186,7 +186,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         args.width,
         args.height,
         args.gps_noise,
-        baro_noise=args.baro_noise,
+        baro_noise=args.baro_noise,  # None: synth.BARO_NOISE_M
     )
     print(
         f"{len(cams)} images ({args.aerial} aerial, {args.ground} ground) in {time.perf_counter() - t0:.1f}s "
@@ -235,10 +235,10 @@ def register(sub: Any) -> None:
     s.add_argument(
         "--baro-noise",
         type=float,
-        default=0.3,
+        default=None,
         metavar="METRES",
         help="with --gps-noise: noise N(0, METRES) on the aerial images' DJI relative altitude "
-        "(a barometer; default 0.3)",
+        "(a barometer; default 0.3, synth.BARO_NOISE_M)",
     )
     s.set_defaults(func=cmd_synth)
 

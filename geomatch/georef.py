@@ -228,8 +228,8 @@ def align(
         return None
     if gravity is not None:
         result = replace(result, up_images=gravity[1])
-        named = sorted(n for n in centres if heights and n in heights)
-        if heights and len(named) >= MIN_HEIGHTS:
+        named = sorted(n for n in centres if n in (heights or {}))
+        if len(named) >= MIN_HEIGHTS:
             inl = result.inliers
             refined = fit_with_heights(
                 src[inl],

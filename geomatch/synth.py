@@ -31,7 +31,7 @@ from PIL.PngImagePlugin import PngInfo
 
 from .geodesy import EnuFrame
 from .homography import photo
-from .metadata import dji_xmp, exif_for, gps_exif
+from .metadata import ImageMeta, dji_xmp, exif_for, gps_exif, up_in_camera
 
 TEXTURES = (
     "astronaut",
@@ -362,6 +362,22 @@ def gimbal_angles(R: np.ndarray) -> tuple[float, float, float]:
     return pitch, yaw, roll
 
 
+def xmp_ups(cams: list[Camera]) -> dict[str, np.ndarray]:
+    """The world's up in each aerial camera as ``geomatch run`` reads it from the XMP this module
+    writes (gimbal angles to the XMP's 0.1 deg, through metadata.up_in_camera): the gravity
+    benchmarks and tests georeference with, without rendering a scene."""
+    out = {}
+    for c in cams:
+        if c.aerial:
+            pitch, yaw, roll = (round(a, 1) for a in gimbal_angles(c.R))
+            up = up_in_camera(
+                ImageMeta(1, 1, gimbal_pitch_deg=pitch, gimbal_yaw_deg=yaw, gimbal_roll_deg=roll)
+            )
+            if up is not None:
+                out[c.name] = up
+    return out
+
+
 def save_png(
     path: Path,
     image: np.ndarray,
@@ -409,11 +425,13 @@ def write_scene(
     height: int = 480,
     gps_noise: float | None = None,
     gps_names: set[str] | None = None,
-    baro_noise: float = BARO_NOISE_M,
+    baro_noise: float | None = None,
 ) -> list[Camera]:
     """Render a scene into ``out`` (images/, gt/, aerial.txt) and return its cameras.
     ``gps_noise``: write GPS fixes with that sigma (metres), and relative altitudes with
-    ``baro_noise``; ``gps_names``: fixes only into these images (a mixed project), all when None."""
+    ``baro_noise`` (None: BARO_NOISE_M); ``gps_names``: fixes only into these images (a mixed
+    project), all when None."""
+    baro_noise = BARO_NOISE_M if baro_noise is None else baro_noise
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     scene = Scene(seed)

@@ -20,7 +20,15 @@ from geomatch.georef import align, errors_against, model_up, robust_similarity, 
 from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata, up_in_camera
 from geomatch.options import check, parse_plan
 from geomatch.similarity import umeyama_upright, upright_with_heights
-from geomatch.synth import GPS_ORIGIN, Scene, baro_heights, gimbal_angles, gps_fixes, write_gt, write_scene
+from geomatch.synth import (
+    GPS_ORIGIN,
+    Scene,
+    baro_heights,
+    gps_fixes,
+    write_gt,
+    write_scene,
+    xmp_ups,
+)
 
 
 @pytest.mark.parametrize("suffix", [".png", ".jpg"])
@@ -176,7 +184,7 @@ def test_gravity_from_the_gimbals_makes_georeferencing_better(tmp_path: Path) ->
         0.3, pycolmap.Rotation3d(Rotation.random(random_state=1).as_matrix()), [[5.0], [1.0], [-2.0]]
     )
     truth = {c.name: c.centre for c in cams}
-    ups = {c.name: up_in_camera(_gimbal_meta(c.R)) for c in cams if c.aerial}
+    ups = xmp_ups(cams)
     rec = pycolmap.Reconstruction(str(tmp_path))
     rec.transform(gauge)
     found = model_up(rec, ups)
@@ -214,7 +222,7 @@ def _perfect_model(tmp_path: Path, seed: int) -> tuple[list, pycolmap.Sim3d, dic
     gauge = pycolmap.Sim3d(
         0.3, pycolmap.Rotation3d(Rotation.random(random_state=2).as_matrix()), [[5.0], [1.0], [-2.0]]
     )
-    ups = {c.name: up_in_camera(_gimbal_meta(c.R)) for c in cams if c.aerial}
+    ups = xmp_ups(cams)
     return cams, gauge, ups, {c.name: c.centre for c in cams}
 
 
@@ -274,11 +282,6 @@ def test_heights_from_another_take_off_are_dropped_and_noisy_ones_weigh_little(t
     # too few heights: the GNSS-only fit
     few = {n: heights[n] for n in aerial[:3]}
     assert _georeference(tmp_path, gauge, fixes, ups, few)[1].heights is None
-
-
-def _gimbal_meta(R: np.ndarray) -> ImageMeta:
-    pitch, yaw, roll = (round(a, 1) for a in gimbal_angles(R))
-    return ImageMeta(1, 1, gimbal_pitch_deg=pitch, gimbal_yaw_deg=yaw, gimbal_roll_deg=roll)
 
 
 def test_gps_plans() -> None:
