@@ -16,7 +16,7 @@ from geomatch import gps, pairs
 from geomatch.cli import main
 from geomatch.colmapdb import ColmapDatabase
 from geomatch.geodesy import EnuFrame
-from geomatch.georef import align, errors_against, model_up, robust_similarity, umeyama
+from geomatch.georef import Alignment, align, errors_against, model_up, robust_similarity, umeyama
 from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata, up_in_camera
 from geomatch.options import check, parse_plan
 from geomatch.similarity import umeyama_upright, upright_with_heights
@@ -174,17 +174,31 @@ def test_upright_fit_is_exact_without_noise_and_keeps_up_vertical() -> None:
     assert _angle_deg(sim.R @ up, np.array([0.0, 0.0, 1.0])) < 1e-6  # noise cannot tilt it
 
 
+def _perfect_model(tmp_path: Path, seed: int, gauge_seed: int = 2) -> tuple[list, pycolmap.Sim3d, dict, dict]:
+    """The ground truth of an 8 + 12 scene written as a model, the arbitrary gauge an SfM run
+    would leave it in, the gimbals' ups and the true centres."""
+    cams = Scene(seed).cameras(8, 12, 640, 480)
+    write_gt(cams, tmp_path)
+    gauge = pycolmap.Sim3d(
+        0.3, pycolmap.Rotation3d(Rotation.random(random_state=gauge_seed).as_matrix()), [[5.0], [1.0], [-2.0]]
+    )
+    ups = xmp_ups(cams)
+    return cams, gauge, ups, {c.name: c.centre for c in cams}
+
+
+def _georeference(
+    path: Path, gauge: pycolmap.Sim3d, fixes: dict, ups: dict | None, heights: dict | None
+) -> tuple[pycolmap.Reconstruction, Alignment | None]:
+    rec = pycolmap.Reconstruction(str(path))
+    rec.transform(gauge)
+    return rec, align(rec, fixes, up_cam=ups, heights=heights)
+
+
 def test_gravity_from_the_gimbals_makes_georeferencing_better(tmp_path: Path) -> None:
     """A perfect 8 + 12 model in an arbitrary gauge, aligned to 30 draws of 2 m / 3 m fixes: the
     model's up comes back from the gimbals to 0.1 deg, and the upright fit lands the cameras
     closer to the truth than the free 7-parameter fit (bench/georef_accuracy.py measures it)."""
-    cams = Scene(0).cameras(8, 12, 640, 480)
-    write_gt(cams, tmp_path)
-    gauge = pycolmap.Sim3d(
-        0.3, pycolmap.Rotation3d(Rotation.random(random_state=1).as_matrix()), [[5.0], [1.0], [-2.0]]
-    )
-    truth = {c.name: c.centre for c in cams}
-    ups = xmp_ups(cams)
+    cams, gauge, ups, truth = _perfect_model(tmp_path, 0, gauge_seed=1)
     rec = pycolmap.Reconstruction(str(tmp_path))
     rec.transform(gauge)
     found = model_up(rec, ups)
@@ -194,9 +208,7 @@ def test_gravity_from_the_gimbals_makes_georeferencing_better(tmp_path: Path) ->
     for trial in range(30):
         fixes = gps_fixes(cams, 2.0, trial)
         for up, out in ((None, free), (ups, upright)):
-            r = pycolmap.Reconstruction(str(tmp_path))
-            r.transform(gauge)
-            a = align(r, fixes, up_cam=up)
+            r, a = _georeference(tmp_path, gauge, fixes, up, None)
             assert a is not None and a.up_images == (8 if up else 0)
             out.append(errors_against(r, truth)["mean_m"])
     assert np.mean(upright) < 0.9 * np.mean(free), (np.mean(upright), np.mean(free))
@@ -214,22 +226,6 @@ def test_upright_fit_with_heights_recovers_an_exact_similarity() -> None:
     assert fit.datum == pytest.approx(take_off)
     # 5 parameters (the turn is fitted apart): the redundancies of 3 * 12 + 5 rows sum to 36
     assert fit.redundancy.sum() == pytest.approx(41 - 5)
-
-
-def _perfect_model(tmp_path: Path, seed: int) -> tuple[list, pycolmap.Sim3d, dict, dict]:
-    cams = Scene(seed).cameras(8, 12, 640, 480)
-    write_gt(cams, tmp_path)
-    gauge = pycolmap.Sim3d(
-        0.3, pycolmap.Rotation3d(Rotation.random(random_state=2).as_matrix()), [[5.0], [1.0], [-2.0]]
-    )
-    ups = xmp_ups(cams)
-    return cams, gauge, ups, {c.name: c.centre for c in cams}
-
-
-def _georeference(path: Path, gauge: pycolmap.Sim3d, fixes: dict, ups: dict, heights: dict | None):
-    rec = pycolmap.Reconstruction(str(path))
-    rec.transform(gauge)
-    return rec, align(rec, fixes, up_cam=ups, heights=heights)
 
 
 def test_barometric_heights_fix_the_scale_gps_cannot(tmp_path: Path) -> None:
