@@ -16,10 +16,11 @@ from typing import Any
 
 import pycolmap
 
+from . import pairtruth
 from .metrics import AUC_THRESHOLDS, correctness, evaluate
 
 # the keys of a model's result that summary.json carries (the rest stays in eval.json)
-SUMMARY_KEYS = ("registered", "correct", "images", "aligned", "extent", "position_threshold", "wrong")
+SUMMARY_KEYS = ("registered", "correct", "images", "aligned", "extent", "position_threshold", "wrong", "pairs")
 
 
 @dataclass
@@ -60,6 +61,13 @@ class EvalResult:
                     else f"{err['rotation_deg']:.1f} deg, {err['position']:.2f} off"
                 )
             )
+        pairs = m.get("pairs")
+        if pairs:
+            lines.append(
+                f"wrong verified pairs (ground truth's epipolar geometry): {pairs['wrong_pairs']} of "
+                f"{pairs['verified_pairs']}, {pairs['wrong_pairs_admitted']} of them reached the mapper; "
+                f"right pairs dropped: {pairs['right_pairs_dropped']}"
+            )
         for other in m.get("other_models", []):
             lines.append(
                 f"{other['model']}: correct {other['correct']}/{other['images']} "
@@ -96,8 +104,12 @@ def evaluate_run(out: Path, gt: Path) -> EvalResult:
         {"model": f"sparse/{d.name}", **correctness(load_model(d), gt_rec)} for d in models[1:]
     ]
     summary = out / "summary.json"
-    if summary.is_file():
-        s = json.loads(summary.read_text())
+    s = json.loads(summary.read_text()) if summary.is_file() else {}
+    if (out / "database.db").is_file():
+        graph = s.get("view_graph") or {}
+        dropped = [d["pair"] for d in graph.get("dropped", []) + graph.get("tree_dropped", [])]
+        metrics["pairs"] = pairtruth.summary(pairtruth.judge_pairs(out / "database.db", gt_rec, dropped))
+    if s:
         metrics["run"] = {k: v for k, v in s.items() if k in ("method", "timings")}
         s["ground_truth"] = {
             "gt": str(gt),

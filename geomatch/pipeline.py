@@ -45,6 +45,9 @@ class RunOptions:
     min_pose_inliers: int = DEFAULTS["min_pose_inliers"]
     # drop verified pairs whose relative rotation breaks the view graph's loops (geomatch.viewgraph)
     loop_check: bool = True
+    # drop verified pairs whose relative rotation disagrees with the tree of the strongest pairs:
+    # repeated and symmetric structure (geomatch.viewgraph)
+    tree_check: bool = True
     # images with EXIF GPS: pose priors in the database, the model moved into ENU metres
     georeference: bool = True
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
@@ -131,6 +134,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         verbose=opts.verbose,
         progress=opts.progress,
         loop_check=opts.loop_check,
+        tree_check=opts.tree_check,
         gps=fixes,
     )
     summary["pose_priors"] = priors

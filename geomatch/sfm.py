@@ -57,6 +57,7 @@ def reconstruct(
     min_pose_inliers: int = MIN_POSE_INLIERS,
     loop_check: bool = True,
     gps: GpsFixes | None = None,
+    tree_check: bool = True,
 ) -> dict[str, Any]:
     """Map, export the largest model and return (and write) the summary.
 
@@ -66,7 +67,7 @@ def reconstruct(
     (``georeferenced``) and how well its cameras fit their fixes (``alignment``).
 
     The mapper reads a private copy of the database in which the pairs that the view graph's
-    loops reject (viewgraph.py) are marked degenerate; ``database`` itself keeps every verified
+    loops or its spanning tree of the strongest pairs reject (viewgraph.py) are marked degenerate; ``database`` itself keeps every verified
     pair, and the summary lists the dropped ones (``view_graph``). ``verbose`` lets COLMAP's own
     log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
     line a user watching a terminal needs.
@@ -79,7 +80,8 @@ def reconstruct(
     work.mkdir(parents=True)
     mapped = work / "database.db"
     snapshot_sqlite(database, mapped)
-    report = filter_database(str(mapped)) if loop_check else None
+    checked = loop_check or tree_check
+    report = filter_database(str(mapped), loops=loop_check, tree=tree_check) if checked else None
     db = pycolmap.Database.open(str(mapped))
     try:
         n_images = int(db.num_images())

@@ -535,10 +535,12 @@ def reconstruct(
     progress: bool = False,
     loop_check: bool = True,
     gps: GpsFixes | None = None,
+    tree_check: bool = True,
 ) -> dict[str, Any]:
     """Map the matched database; the models land in ``out/sparse`` (the largest first) with
-    ``out/points.ply``; returns the summary. ``loop_check``: drop the pairs the view graph's
-    loops reject before mapping (geomatch.viewgraph). ``gps``: georeference to these fixes."""
+    ``out/points.ply``; returns the summary. ``loop_check`` / ``tree_check``: drop the pairs the
+    view graph's loops / its tree of strongest pairs reject before mapping (geomatch.viewgraph).
+    ``gps``: georeference to these fixes."""
     return sfm.reconstruct(
         database,
         image_dir,
@@ -550,6 +552,7 @@ def reconstruct(
         min_pose_inliers=min_pose_inliers,
         loop_check=loop_check,
         gps=gps,
+        tree_check=tree_check,
     )
 
 

@@ -1,0 +1,90 @@
+"""The peer: COLMAP's own SIFT pipeline through pycolmap, on the same images and machine.
+
+A user who does not pick geomatch runs this (``extract_features`` with 8192 SIFT features at up to
+1600 px, ``match_exhaustive``, ``incremental_mapping``, COLMAP's default options). Its output has
+geomatch's layout (``OUT/sparse/0`` the largest model, ``OUT/summary.json`` with ``timings``), so
+``geomatch eval OUT --gt GT`` judges it exactly as it judges a ``geomatch run``, and every table in
+docs/benchmarks.md can put it beside geomatch's rows from the same run.
+
+    .venv/bin/python bench/peer_colmap.py IMAGES OUT [--gt GT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pycolmap
+
+from geomatch.colmaplog import colmap_log
+from geomatch.metrics import sfm_stats
+
+MAX_FEATURES = 8192
+MAX_IMAGE_SIZE = 1600
+
+
+def run_peer(images: Path, out: Path, threads: int = -1) -> dict[str, Any]:
+    """SIFT extraction, exhaustive matching and incremental mapping; returns the summary."""
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    db = out / "database.db"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = MAX_IMAGE_SIZE
+    extraction.num_threads = threads
+    extraction.sift.max_num_features = MAX_FEATURES
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    with colmap_log(False):
+        pycolmap.extract_features(db, images, extraction_options=extraction)
+        t1 = time.perf_counter()
+        pycolmap.match_exhaustive(db)
+        t2 = time.perf_counter()
+        work = out / ".mapping"
+        work.mkdir()
+        models = pycolmap.incremental_mapping(db, images, work)
+    t3 = time.perf_counter()
+    timings.update(extraction=t1 - t0, matching=t2 - t1, mapping=t3 - t2, total=t3 - t0)
+    ranked = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
+    for i, rec in enumerate(ranked):
+        d = out / "sparse" / str(i)
+        d.mkdir(parents=True)
+        rec.write_binary(str(d))
+    shutil.rmtree(work, ignore_errors=True)
+    n_images = sum(1 for p in images.iterdir() if p.is_file())
+    summary: dict[str, Any] = {"method": "colmap-sift", "models": len(ranked), "timings": timings}
+    if ranked:
+        summary.update(sfm_stats(ranked[0], n_images))
+    else:
+        summary.update(registered=0, images=n_images, points3D=0)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("images", type=Path)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--gt", type=Path, help="ground-truth COLMAP model: print geomatch eval's table")
+    ap.add_argument("--threads", type=int, default=-1, help="SIFT threads (-1: all cores)")
+    args = ap.parse_args(argv)
+    s = run_peer(args.images, args.out, args.threads)
+    t = s["timings"]
+    print(
+        f"COLMAP SIFT: {s['registered']}/{s['images']} registered, {s['points3D']} points; "
+        f"{t['total']:.1f} s (extraction {t['extraction']:.1f}, matching {t['matching']:.1f}, "
+        f"mapping {t['mapping']:.1f})"
+    )
+    if args.gt:
+        from geomatch.evaluate import evaluate_run
+
+        print(evaluate_run(args.out, args.gt).table())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,228 @@
+"""The whole pipeline on real photographs with surveyed cameras, beside COLMAP's SIFT pipeline.
+
+    .venv/bin/python bench/real_sfm.py                                   # both splits, defaults + peer
+    .venv/bin/python bench/real_sfm.py --split tuning --variants "geo;sparse"
+    .venv/bin/python bench/real_sfm.py --scenes castle-P19 --variants "sparse lightglue_depth_confidence=-1"
+
+Scenes: the Strecha scenes of ``../shared/data/real/strecha/`` (tuning split: fountain-P11,
+Herz-Jesus-P8, castle-P19; test split: entry-P10) and sacre_coeur (10 photos without surveyed
+cameras: its reference is COLMAP SIFT at full size with DSP-SIFT and affine shapes, so on that scene
+the peer is judged against a close relative of itself and its errors there are a floor, not a
+measurement). Each run is a fresh process (``geomatch run`` through ``geomatch.pipeline.run``, or
+``bench/peer_colmap.py``) so that its wall time and peak RSS are its own; runs of one scene follow
+each other on the same machine, so ratios against the peer's row of that scene are side by side.
+
+A variant is ``METHOD [key=value ...]``: keys of ``RunOptions`` (``pairs=retrieval:8``,
+``resize=1024``, ``loop_check=false`` ...) go to the run, any other key to the matcher config
+(``max_keypoints=1024``, ``lightglue_depth_confidence=-1`` ...). ``default`` is ``geomatch run``
+with no option at all.
+
+Columns: correct / registered cameras (geomatch eval's rule), pose AUC@3/5/10 deg over all pairs,
+median and max camera position error (metres) and median rotation error (deg) after alignment,
+wrong verified pairs that reached the mapper (of all wrong verified pairs; judged by the ground
+truth's epipolar geometry, geomatch/pairtruth.py), wall seconds, the ratio to the peer's wall time
+and peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT.parent / "shared" / "data" / "real"
+OUT = ROOT / "bench" / "out" / "real_sfm"
+SPLITS = {
+    "tuning": ["fountain-P11", "Herz-Jesus-P8", "castle-P19"],
+    "test": ["entry-P10", "sacre_coeur"],
+}
+PEER = "colmap-sift"
+
+
+def scene_paths(scene: str) -> tuple[Path, Path]:
+    """(images, ground truth model) of a scene; sacre_coeur's truth is built on first use."""
+    if scene == "sacre_coeur":
+        images = DATA / "sacre_coeur"
+        return images, sift_reference(images)
+    base = DATA / "strecha" / scene
+    return base / "images", base / "gt"
+
+
+def sift_reference(images: Path) -> Path:
+    """COLMAP at full size with the stronger SIFT variant (DSP, affine shapes, guided matching):
+    the reference of a scene that has no surveyed cameras."""
+    import pycolmap
+
+    from geomatch.colmaplog import colmap_log
+
+    ref = OUT / f"{images.name}_reference"
+    model = ref / "model"
+    if (model / "images.bin").exists():
+        return model
+    ref.mkdir(parents=True, exist_ok=True)
+    db = ref / "database.db"
+    db.unlink(missing_ok=True)
+    ex = pycolmap.FeatureExtractionOptions()
+    ex.sift.max_num_features = 16384
+    ex.sift.estimate_affine_shape = True
+    ex.sift.domain_size_pooling = True
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.guided_matching = True
+    with colmap_log(False):
+        pycolmap.extract_features(db, images, extraction_options=ex)
+        pycolmap.match_exhaustive(db, matching_options=mo)
+        recs = pycolmap.incremental_mapping(db, images, ref / "sparse")
+    best = max(recs.values(), key=lambda r: r.num_reg_images())
+    model.mkdir(exist_ok=True)
+    best.write_binary(str(model))
+    return model
+
+
+def parse_variant(spec: str) -> tuple[str, dict[str, Any], dict[str, Any]]:
+    """(method or 'default', RunOptions fields, matcher fields)."""
+    from dataclasses import fields
+
+    from geomatch.pipeline import RunOptions
+
+    method, *kvs = spec.split()
+    run_keys = {f.name for f in fields(RunOptions)}
+    run: dict[str, Any] = {}
+    matcher: dict[str, Any] = {}
+    for kv in kvs:
+        k, v = kv.split("=", 1)
+        (run if k in run_keys else matcher)[k] = _value(v)
+    return method, run, matcher
+
+
+def _value(v: str) -> Any:
+    for cast in (int, float):
+        try:
+            return cast(v)
+        except ValueError:
+            pass
+    return {"true": True, "false": False, "none": None}.get(v.lower(), v)
+
+
+def run_one(images: Path, out: Path, spec: str, match_cache: str | None) -> None:
+    """The child process of one geomatch run."""
+    import shutil
+
+    from geomatch.pipeline import RunOptions, run
+
+    method, run_kw, matcher_kw = parse_variant(spec)
+    shutil.rmtree(out, ignore_errors=True)
+    opts = RunOptions(progress=False, match_cache=match_cache, matcher=matcher_kw, **run_kw)
+    if method != "default":
+        opts.method = method
+    run(images, out, opts)
+
+
+def timed(cmd: list[str]) -> tuple[float, float, int]:
+    """(wall seconds, peak RSS MiB, exit status) of a child process."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    if proc.returncode:
+        print(err[-3000:], file=sys.stderr)
+    return wall, usage.ru_maxrss / 1024, proc.returncode
+
+
+def judge(out: Path, gt: Path) -> dict[str, Any]:
+    """geomatch eval's metrics plus the wrong verified pairs (geomatch.pairtruth)."""
+    from geomatch.evaluate import evaluate_run
+
+    return evaluate_run(out, gt).metrics
+
+
+def row(scene: str, label: str, m: dict[str, Any], wall: float, rss: float, peer_wall: float | None) -> dict:
+    pairs = m.get("pairs") or {}
+    return {
+        "scene": scene,
+        "run": label,
+        "correct": f"{m['correct']}/{m['registered']}/{m['images']}",
+        "auc": f"{m['auc@3']:.1f} / {m['auc@5']:.1f} / {m['auc@10']:.1f}",
+        "median_m": m.get("median_position_error", float("nan")),
+        "max_m": m.get("max_position_error", float("nan")),
+        "rot_deg": m.get("median_rotation_error_deg", float("nan")),
+        "wrong": f"{pairs['wrong_pairs_admitted']}/{pairs['wrong_pairs']}" if pairs else "-",
+        "wall": wall,
+        "ratio": wall / peer_wall if peer_wall else float("nan"),
+        "rss": rss,
+        "models": len(m.get("other_models", [])) + 1,
+    }
+
+
+def print_rows(rows: list[dict[str, Any]]) -> None:
+    print(
+        "| scene | run | correct / registered / images | AUC@3/5/10 deg | median / max position error m "
+        "| median rotation error deg | wrong pairs admitted / verified wrong | wall s | x peer | peak RSS MiB |"
+    )
+    print("|---|---|---|---|---|---:|---|---:|---:|---:|")
+    for r in rows:
+        print(
+            f"| {r['scene']} | {r['run']} | {r['correct']} | {r['auc']} | {r['median_m']:.3f} / {r['max_m']:.3f} "
+            f"| {r['rot_deg']:.2f} | {r['wrong']} | {r['wall']:.0f} | {r['ratio']:.2f} | {r['rss']:.0f} |"
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--split", choices=("tuning", "test", "both"), default="both")
+    ap.add_argument("--scenes", default=None, help="comma-separated scene names (overrides --split)")
+    ap.add_argument("--variants", default="default", help="';'-separated METHOD [key=value ...]")
+    ap.add_argument("--no-peer", action="store_true", help="skip COLMAP SIFT (no ratio column)")
+    ap.add_argument("--match-cache", default=None, help="raw pair matches shared by runs (variants)")
+    ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--one", nargs=3, metavar=("IMAGES", "OUT", "VARIANT"), help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.one:
+        run_one(Path(args.one[0]), Path(args.one[1]), args.one[2], args.match_cache)
+        return 0
+    if args.scenes:
+        scenes = args.scenes.split(",")
+    else:
+        scenes = SPLITS["tuning"] + SPLITS["test"] if args.split == "both" else SPLITS[args.split]
+    variants = [v.strip() for v in args.variants.split(";") if v.strip()]
+    rows: list[dict[str, Any]] = []
+    for scene in scenes:
+        images, gt = scene_paths(scene)
+        peer_wall = None
+        if not args.no_peer:
+            out = args.out / scene / PEER
+            wall, rss, rc = timed([sys.executable, "bench/peer_colmap.py", str(images), str(out)])
+            if rc == 0:
+                peer_wall = wall
+                rows.append(row(scene, "COLMAP SIFT (peer)", judge(out, gt), wall, rss, peer_wall))
+                print_rows(rows[-1:])
+        for spec in variants:
+            out = args.out / scene / spec.replace(" ", "_").replace("/", "-")
+            cmd = [sys.executable, "bench/real_sfm.py", "--one", str(images), str(out), spec]
+            if args.match_cache:
+                cmd += ["--match-cache", args.match_cache]
+            wall, rss, rc = timed(cmd)
+            if rc:
+                print(f"{scene} {spec}: failed (exit {rc})", file=sys.stderr)
+                continue
+            rows.append(row(scene, spec, judge(out, gt), wall, rss, peer_wall))
+            print_rows(rows[-1:])
+        sys.stdout.flush()
+    print()
+    print_rows(rows)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
