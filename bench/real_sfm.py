@@ -163,14 +163,16 @@ def row(scene: str, label: str, m: dict[str, Any], wall: float, rss: float, peer
 
 def print_rows(rows: list[dict[str, Any]]) -> None:
     print(
-        "| scene | run | correct / registered / images | AUC@3/5/10 deg | median / max position error m "
-        "| median rotation error deg | wrong pairs admitted / verified wrong | wall s | x peer | peak RSS MiB |"
+        "| scene | run | correct / registered / images | AUC@3/5/10 deg "
+        "| median / max position error m | median rotation error deg "
+        "| wrong pairs admitted / verified wrong | wall s | x peer | peak RSS MiB |"
     )
     print("|---|---|---|---|---|---:|---|---:|---:|---:|")
     for r in rows:
         print(
-            f"| {r['scene']} | {r['run']} | {r['correct']} | {r['auc']} | {r['median_m']:.3f} / {r['max_m']:.3f} "
-            f"| {r['rot_deg']:.2f} | {r['wrong']} | {r['wall']:.0f} | {r['ratio']:.2f} | {r['rss']:.0f} |"
+            f"| {r['scene']} | {r['run']} | {r['correct']} | {r['auc']} "
+            f"| {r['median_m']:.3f} / {r['max_m']:.3f} | {r['rot_deg']:.2f} | {r['wrong']} "
+            f"| {r['wall']:.0f} | {r['ratio']:.2f} | {r['rss']:.0f} |"
         )
 
 

@@ -20,7 +20,16 @@ from . import pairtruth
 from .metrics import AUC_THRESHOLDS, correctness, evaluate
 
 # the keys of a model's result that summary.json carries (the rest stays in eval.json)
-SUMMARY_KEYS = ("registered", "correct", "images", "aligned", "extent", "position_threshold", "wrong", "pairs")
+SUMMARY_KEYS = (
+    "registered",
+    "correct",
+    "images",
+    "aligned",
+    "extent",
+    "position_threshold",
+    "wrong",
+    "pairs",
+)
 
 
 @dataclass

@@ -221,6 +221,20 @@ class Matcher:
         # anchors of recent pairs: re-matching a pair with other optimizer options (ablations,
         # a retried task) does not run LightGlue again
         self._anchors: OrderedDict[tuple[str, str, int | None, str | None], SparseMatch] = OrderedDict()
+        self._variants: dict[str, Matcher] = {}  # ``auto``'s per-pair methods (for_pair)
+
+    def for_pair(self, tiled: bool) -> Matcher:
+        """The matcher a planned pair gets: itself, except under ``auto``, where an aerial x
+        ground (tiled) pair gets ``geo`` and any other pair the anchors alone (``sparse``). On
+        the real tuning scenes the dense rounds tie the anchors at several times their cost,
+        while on aerial x ground pairs they are what registers the ground views
+        (docs/benchmarks.md). Derived once, sharing this matcher's networks and caches."""
+        if self.config.method != "auto":
+            return self
+        method = "geo" if tiled else "sparse"
+        if method not in self._variants:
+            self._variants[method] = self.derive(method=method)
+        return self._variants[method]
 
     def derive(self, **overrides: Any) -> Matcher:
         """A matcher with other options that shares this one's networks and feature cache.

@@ -11,7 +11,11 @@ Methods are rows of flags (:data:`METHOD_TABLE`), the paper's ablations:
 ``dense``         dense mutual-NN + refinement, no optimisation;
 ``concat``        anchors naively concatenated to ``dense``;
 ``geo-noanchor``  optimisation initialised from the top half of the dense matches;
-``geo``           the full method: anchors initialise F, dense matches are re-weighted.
+``geo``           the full method: anchors initialise F, dense matches are re-weighted;
+``auto``          the effort each pair's evidence calls for: the anchors alone, and ``geo`` for
+                  the aerial x ground pairs, where the geometry-aware branch measures better
+                  (docs/benchmarks.md). Its row carries the anchors' flags; ``steps.match`` hands
+                  a tiled pair to ``geo``.
 """
 
 from __future__ import annotations
@@ -52,6 +56,7 @@ METHOD_TABLE: tuple[Method, ...] = (
     Method("concat", True, True, False, False, "anchors concatenated to the dense matches"),
     Method("geo-noanchor", False, True, True, False, "optimisation initialised from the dense matches"),
     Method("geo", True, True, True, True, "the full method: anchors initialise F, dense re-weighted"),
+    Method("auto", True, False, False, False, "anchors; geo for aerial x ground (tiled) pairs"),
 )
 METHODS: tuple[str, ...] = tuple(m.name for m in METHOD_TABLE)
 METHOD_FLAGS: dict[str, Method] = {m.name: m for m in METHOD_TABLE}

@@ -117,7 +117,12 @@ def summary(verdicts: list[PairVerdict]) -> dict[str, object]:
         "wrong_pairs_admitted": sum(v.used for v in wrong),
         "right_pairs_dropped": sum(not v.used and not v.wrong for v in verdicts),
         "wrong": [
-            {"pair": [v.name0, v.name1], "inliers": v.inliers, "agreeing": round(v.agreeing, 3), "used": v.used}
+            {
+                "pair": [v.name0, v.name1],
+                "inliers": v.inliers,
+                "agreeing": round(v.agreeing, 3),
+                "used": v.used,
+            }
             for v in sorted(wrong, key=lambda v: -v.inliers)
         ],
     }

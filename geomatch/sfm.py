@@ -67,8 +67,9 @@ def reconstruct(
     (``georeferenced``) and how well its cameras fit their fixes (``alignment``).
 
     The mapper reads a private copy of the database in which the pairs that the view graph's
-    loops or its spanning tree of the strongest pairs reject (viewgraph.py) are marked degenerate; ``database`` itself keeps every verified
-    pair, and the summary lists the dropped ones (``view_graph``). ``verbose`` lets COLMAP's own
+    loops or its spanning tree of the strongest pairs reject (viewgraph.py) are marked
+    degenerate; ``database`` itself keeps every verified pair, and the summary lists the dropped
+    ones (``view_graph``). ``verbose`` lets COLMAP's own
     log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
     line a user watching a terminal needs.
     """

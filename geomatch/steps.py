@@ -170,6 +170,14 @@ class StoredFeaturesMatcher(Matcher):
         self.store = store
         self.disk_hits = 0
 
+    def derive(self, **overrides: Any) -> Matcher:
+        """As :meth:`Matcher.derive`, still reading and writing the same store."""
+        other = super().derive(**overrides)
+        stored = StoredFeaturesMatcher.__new__(StoredFeaturesMatcher)
+        stored.__dict__.update(other.__dict__)
+        stored.store, stored.disk_hits = self.store, 0
+        return stored
+
     def features(self, image: np.ndarray, key: str | None = None) -> dict[str, ImageFeatures]:
         key = key or image_key(image)
         paths, missing = {}, set()
@@ -389,7 +397,9 @@ def match(
     matcher: Matcher, pair: Pair, image0: np.ndarray, image1: np.ndarray, cache: str | Path | None = None
 ) -> PairMatches:
     """One planned pair, tiled when the plan says so. ``cache``: a folder of raw pair matches
-    shared by runs (benchmarks, variants), keyed by the pixels, the plan and the matcher's config."""
+    shared by runs (benchmarks, variants), keyed by the pixels, the plan and the matcher's config.
+    Under ``auto`` the pair's own method decides (:meth:`Matcher.for_pair`)."""
+    matcher = matcher.for_pair(pair.tiled)
     sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
     path = None
     if cache:

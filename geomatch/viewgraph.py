@@ -73,7 +73,8 @@ class ViewGraphReport:
             "loops": self.loops,
             "dropped": [{"pair": [a, b], "broken_loops": bad, "loops": n} for a, b, bad, n in self.dropped],
             "tree_dropped": [
-                {"pair": [a, b], "degrees": round(deg, 2), "hops": hops} for a, b, deg, hops in self.tree_dropped
+                {"pair": [a, b], "degrees": round(deg, 2), "hops": hops}
+                for a, b, deg, hops in self.tree_dropped
             ],
         }
 
