@@ -61,6 +61,17 @@ def resolve_device(name: str = "auto") -> torch.device:
     return device
 
 
+# ``auto``'s plain (not aerial x ground) pairs: 1024 keypoints and LightGlue's adaptive depth and
+# width. On the real tuning scenes this kept every camera correct with camera errors at or below
+# 2048 full-strength keypoints' while LightGlue ran several times faster on the CPU, where it is
+# most of a project's time (docs/benchmarks.md, "Real photographs")
+AUTO_PLAIN_PAIRS: dict[str, Any] = {
+    "max_keypoints": 1024,
+    "lightglue_depth_confidence": 0.95,
+    "lightglue_width_confidence": 0.99,
+}
+
+
 @dataclass(frozen=True)
 class MatcherConfig:
     method: str = DEFAULTS["method"]
@@ -225,15 +236,17 @@ class Matcher:
 
     def for_pair(self, tiled: bool) -> Matcher:
         """The matcher a planned pair gets: itself, except under ``auto``, where an aerial x
-        ground (tiled) pair gets ``geo`` and any other pair the anchors alone (``sparse``). On
-        the real tuning scenes the dense rounds tie the anchors at several times their cost,
-        while on aerial x ground pairs they are what registers the ground views
-        (docs/benchmarks.md). Derived once, sharing this matcher's networks and caches."""
+        ground (tiled) pair gets ``geo`` as configured and any other pair the anchors alone
+        (``sparse``) with :data:`AUTO_PLAIN_PAIRS`. On the real tuning scenes the dense rounds tie
+        the anchors at several times their cost, while on aerial x ground pairs they are what
+        registers the ground views (docs/benchmarks.md). Derived once, sharing this matcher's
+        networks and caches where the settings allow."""
         if self.config.method != "auto":
             return self
         method = "geo" if tiled else "sparse"
         if method not in self._variants:
-            self._variants[method] = self.derive(method=method)
+            light = AUTO_PLAIN_PAIRS if method == "sparse" else {}
+            self._variants[method] = self.derive(method=method, **light)
         return self._variants[method]
 
     def derive(self, **overrides: Any) -> Matcher:

@@ -176,7 +176,13 @@ class Option:
 
 _OPTIONS: tuple[Option, ...] = (
     # matching
-    Option("method", str, "geo", "matching method (the paper's ablations)", choices=METHODS),
+    Option(
+        "method",
+        str,
+        "auto",
+        "matching method (the paper's ablations, or auto: geo where it pays)",
+        choices=METHODS,
+    ),
     Option(
         "resize",
         int,

@@ -30,7 +30,7 @@ def test_import_is_torch_free() -> None:
 
 
 def test_methods_are_rows_of_flags() -> None:
-    assert options.METHODS == ("sparse", "dense", "concat", "geo-noanchor", "geo")
+    assert options.METHODS == ("sparse", "dense", "concat", "geo-noanchor", "geo", "auto")
     for m in options.METHOD_TABLE:
         assert m.anchors or m.dense, m.name
         assert not m.anchor_init or (m.anchors and m.optimise), m.name

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from geomatch.viewgraph import inconsistent_pairs, loop_error, rotation_angle
+from geomatch.viewgraph import inconsistent_pairs, loop_error, rotation_angle, tree_inconsistent_pairs
 
 
 def _graph(
@@ -87,3 +87,66 @@ def test_one_broken_loop_blames_its_weakest_pair() -> None:
     dropped, loops = inconsistent_pairs(edges, support=support)
     assert loops == 4
     assert [e for e, _, _ in dropped] == [(1, 2)]
+
+
+def _mirrored_courtyard(
+    n: int = 12,
+) -> tuple[dict[tuple[int, int], list[np.ndarray]], dict[tuple[int, int], int]]:
+    """Cameras on a circle looking outwards at the walls of a courtyard whose opposite walls look
+    alike: every neighbour pair is right and strong, and every pair of views of opposite walls is
+    matched as if they faced the same wall (relative rotation: identity instead of 180 deg yaw),
+    weakly but consistently, so the triangles these wrong pairs form with each other close."""
+    world = [Rotation.from_euler("y", 360.0 * i / n, degrees=True).as_matrix() for i in range(n)]
+    edges: dict[tuple[int, int], list[np.ndarray]] = {}
+    support: dict[tuple[int, int], int] = {}
+    for i in range(n):
+        for j in range(i + 1, n):
+            gap = min(j - i, n - (j - i))
+            if gap <= 2:  # overlapping neighbours
+                edges[(i, j)] = [world[j] @ world[i].T]
+                support[(i, j)] = 1500 - 400 * gap
+            elif abs(gap - n // 2) <= 1:  # look-alike opposite walls: turned by 180 deg
+                edges[(i, j)] = [
+                    Rotation.from_euler("y", 180.0, degrees=True).as_matrix() @ world[j] @ world[i].T
+                ]
+                support[(i, j)] = 200
+    return edges, support
+
+
+def test_look_alike_opposite_walls_pass_the_loops_but_not_the_tree() -> None:
+    """The trap of repeated structure: the wrong pairs agree with each other, so the triangle
+    check keeps most of them; the tree of the strongest pairs (the neighbours) drops all of them
+    and keeps every right pair."""
+    edges, support = _mirrored_courtyard()
+    wrong = {e for e, s in support.items() if s == 200}
+    kept_by_loops = wrong - {e for e, _, _ in inconsistent_pairs(edges, support=support)[0]}
+    assert kept_by_loops, "the scene no longer fools the loop check: it tests nothing"
+    dropped = tree_inconsistent_pairs(edges, support)
+    assert {e for e, _, _ in dropped} == wrong
+    assert all(deg > 170 for _, deg, _ in dropped)
+
+
+def test_the_tree_tolerates_drift_and_ignores_a_forest_edge() -> None:
+    """Small errors on every pair add up along tree paths; the bound grows with the path, so a
+    right pair far along the tree stays. Two components (no pair between them) judge nothing
+    across."""
+    edges, support = _mirrored_courtyard()
+    edges = {e: r for e, r in edges.items() if support[e] != 200}
+    rng = np.random.default_rng(0)
+    noisy = {
+        e: [Rotation.from_rotvec(np.radians(0.8) * rng.normal(size=3)).as_matrix() @ r[0]]
+        for e, r in edges.items()
+    }
+    assert tree_inconsistent_pairs(noisy, support) == []
+    assert tree_inconsistent_pairs({(0, 1): [np.eye(3)], (5, 6): [np.eye(3)]}, {}) == []
+    assert tree_inconsistent_pairs({}, {}) == []
+
+
+def test_a_tree_pair_takes_the_candidate_its_triangles_vote_for() -> None:
+    """A flat scene's pair admits several rotations (homography decompositions); the tree must
+    chain the one that closes its loops, else every image behind it turns and its right pairs go."""
+    edges, support = _mirrored_courtyard()
+    edges = {e: r for e, r in edges.items() if support[e] != 200}
+    wrong_first = Rotation.from_euler("x", 60, degrees=True).as_matrix() @ edges[(0, 1)][0]
+    edges[(0, 1)] = [wrong_first, edges[(0, 1)][0]]
+    assert tree_inconsistent_pairs(edges, support) == []

@@ -297,7 +297,7 @@ def test_match_pair_runs_on_the_worker(
     r = a.match_pair(
         ImageSource.of(img / "ground_00.png"), ImageSource.of(img / "ground_01.png"), resize=PAIR_RESIZE
     )
-    assert r.method == "geo" and not r.tiled and r.sizes == ((640, 480), (640, 480))
+    assert r.method == "auto" and not r.tiled and r.sizes == ((640, 480), (640, 480))
     assert len(r) > 100 and r.keypoints0.shape == r.keypoints1.shape == (len(r), 2)
     err = epipolar_px(gt_fundamental(scene, "ground_00.png", "ground_01.png"), r.keypoints0, r.keypoints1)
     assert np.median(err) < 2 and np.mean(err < 5) > 0.8, np.percentile(err, [50, 90])
