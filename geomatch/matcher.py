@@ -649,7 +649,8 @@ _DEFAULT_MATCHERS: dict[MatcherConfig, Matcher] = {}
 def match_pair(
     image0: str | Path | np.ndarray, image1: str | Path | np.ndarray, **options: Any
 ) -> MatchResult:
-    """Match two images (paths or RGB uint8 arrays) with the paper's method by default.
+    """Match two images (paths or RGB uint8 arrays) with the default ``auto`` (two images alone are
+    a plain pair: the anchors, as ``geomatch run`` matches such a pair) or a named method.
 
     Keyword options are :class:`MatcherConfig` fields; ``geo`` and ``refine`` fields may also be
     given directly (``tau=50``, ``iterations=5``, ``radius=5`` ...). Matchers are reused across
@@ -661,7 +662,7 @@ def match_pair(
         matcher = _DEFAULT_MATCHERS[config] = Matcher(config)
     a = image0 if isinstance(image0, np.ndarray) else read_image(image0)
     b = image1 if isinstance(image1, np.ndarray) else read_image(image1)
-    return matcher.match(a, b)
+    return matcher.for_pair(tiled=False).match(a, b)
 
 
 def config_from_options(**options: Any) -> MatcherConfig:

@@ -35,7 +35,7 @@ Relative rotations come from the verified inliers: an essential matrix on normal
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import cv2
@@ -246,28 +246,35 @@ def tree_inconsistent_pairs(
     for a, b in sorted(edges):
         if any(y == b for y, _ in tree.get(a, [])):
             continue
+        h = hops(a, b)
         chained = absolute[b] @ absolute[a].T
         err = min(rotation_angle(c.T @ chained) for c in edges[(a, b)])
-        h = hops(a, b)
         if err > base_deg + per_hop_deg * h:
             out.append(((a, b), err, h))
     return out
 
 
-def _voted_candidate(a: int, b: int, rot: object, nbrs: Mapping[int, set[int]]) -> np.ndarray:
+def _voted_candidate(
+    a: int, b: int, rot: Callable[[int, int], list[np.ndarray]], nbrs: Mapping[int, set[int]]
+) -> np.ndarray:
     """The candidate rotation of tree pair (a, b) that closes the most triangles with the pairs
-    around it (the essential matrix's, listed first, when none tells): a flat site's pair admits
-    several, and a wrong one in the tree would turn every image behind it."""
-    cands = rot(a, b)  # type: ignore[operator]
+    around it, the least total closing error among those. A flat or distant scene's pair admits
+    several rotations (essential matrix, COLMAP's pose, homography decompositions), and so do its
+    neighbours, so wrong candidates can close as many triangles as the right one (on a ring of
+    look-alike facades the essential matrix and a homography, both 38 deg off, tied with COLMAP's
+    right pose); they close them less tightly. A wrong pick would turn every image behind it."""
+    cands = rot(a, b)
     if len(cands) == 1:
         return cands[0]
     votes = [0] * len(cands)
+    error = [0.0] * len(cands)
     for k in nbrs[a] & nbrs[b]:
-        ak, bk = rot(a, k), rot(b, k)  # type: ignore[operator]
+        ak, bk = rot(a, k), rot(b, k)
         for i, c in enumerate(cands):
-            if loop_error([c], bk, ak) <= LOOP_DEG:
-                votes[i] += 1
-    return cands[max(range(len(cands)), key=lambda i: (votes[i], -i))]
+            e = loop_error([c], bk, ak)
+            votes[i] += e <= LOOP_DEG
+            error[i] += min(e, 4 * LOOP_DEG)
+    return cands[min(range(len(cands)), key=lambda i: (-votes[i], error[i], i))]
 
 
 def _weakest_in_broken(

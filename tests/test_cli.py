@@ -33,7 +33,7 @@ def test_good_pair_writes_npz_and_picture(pair_files, tmp_path) -> None:
         "match", str(a), str(b), "--resize", "400", "--device", "cpu", "--out", str(out), "--viz", str(viz)
     )
     assert res.returncode == 0, res.stderr
-    assert "matches (geo)" in res.stdout
+    assert "matches (sparse)" in res.stdout  # the default auto matches a plain pair by its anchors
     z = np.load(out)
     n = z["keypoints0"].shape[0]
     assert n > 50 and z["keypoints1"].shape == (n, 2) and z["scores"].shape == (n,) and z["F"].shape == (3, 3)
