@@ -88,6 +88,8 @@ def parse_variant(spec: str) -> tuple[str, dict[str, Any], dict[str, Any]]:
     """(method or 'default', RunOptions fields, matcher fields)."""
     from dataclasses import fields
 
+    from common import _value
+
     from geomatch.pipeline import RunOptions
 
     method, *kvs = spec.split()
@@ -98,15 +100,6 @@ def parse_variant(spec: str) -> tuple[str, dict[str, Any], dict[str, Any]]:
         k, v = kv.split("=", 1)
         (run if k in run_keys else matcher)[k] = _value(v)
     return method, run, matcher
-
-
-def _value(v: str) -> Any:
-    for cast in (int, float):
-        try:
-            return cast(v)
-        except ValueError:
-            pass
-    return {"true": True, "false": False, "none": None}.get(v.lower(), v)
 
 
 def run_one(images: Path, out: Path, spec: str, match_cache: str | None) -> None:
