@@ -19,7 +19,7 @@ def parse_variants(variants: str | None, methods: str) -> list[tuple[str, str, d
     out = []
     for spec in variants.split(";"):
         method, *kvs = spec.split()
-        options = {k: _value(v) for k, v in (kv.split("=", 1) for kv in kvs)}
+        options = {k: parse_value(v) for k, v in (kv.split("=", 1) for kv in kvs)}
         cfg = config_from_options(method=method, **options)
         named = set(options) | {"geo", "refine"}  # optimizer/refinement fields travel inside these two
         overrides = {k: getattr(cfg, k) for k in cfg.__dataclass_fields__ if k in named and k != "method"}
@@ -27,7 +27,7 @@ def parse_variants(variants: str | None, methods: str) -> list[tuple[str, str, d
     return out
 
 
-def _value(v: str) -> Any:
+def parse_value(v: str) -> Any:
     for cast in (int, float):
         try:
             return cast(v)

@@ -88,7 +88,7 @@ def parse_variant(spec: str) -> tuple[str, dict[str, Any], dict[str, Any]]:
     """(method or 'default', RunOptions fields, matcher fields)."""
     from dataclasses import fields
 
-    from common import _value
+    from common import parse_value
 
     from geomatch.pipeline import RunOptions
 
@@ -98,7 +98,7 @@ def parse_variant(spec: str) -> tuple[str, dict[str, Any], dict[str, Any]]:
     matcher: dict[str, Any] = {}
     for kv in kvs:
         k, v = kv.split("=", 1)
-        (run if k in run_keys else matcher)[k] = _value(v)
+        (run if k in run_keys else matcher)[k] = parse_value(v)
     return method, run, matcher
 
 

@@ -61,7 +61,7 @@ def resolve_device(name: str = "auto") -> torch.device:
     return device
 
 
-# ``auto``'s plain (not aerial x ground) pairs: 1024 keypoints and LightGlue's adaptive depth and
+# ``auto``'s pairs in a project without aerial images: 1024 keypoints and LightGlue's adaptive depth and
 # width. On the real tuning scenes this kept every camera correct with camera errors at or below
 # 2048 full-strength keypoints' while LightGlue ran several times faster on the CPU, where it is
 # most of a project's time (docs/benchmarks.md, "Real photographs")
@@ -234,16 +234,17 @@ class Matcher:
         self._anchors: OrderedDict[tuple[str, str, int | None, str | None], SparseMatch] = OrderedDict()
         self._variants: dict[str, Matcher] = {}  # ``auto``'s per-pair methods (for_pair)
 
-    def for_pair(self, tiled: bool) -> Matcher:
-        """The matcher a planned pair gets: itself, except under ``auto``, where an aerial x
-        ground (tiled) pair gets ``geo`` as configured and any other pair the anchors alone
-        (``sparse``) with :data:`AUTO_PLAIN_PAIRS`. On the real tuning scenes the dense rounds tie
-        the anchors at several times their cost, while on aerial x ground pairs they are what
-        registers the ground views (docs/benchmarks.md). Derived once, sharing this matcher's
-        networks and caches where the settings allow."""
+    def for_pair(self, tiled: bool, aerial_project: bool = False) -> Matcher:
+        """The matcher a planned pair gets: itself, except under ``auto``, where the pairs of a
+        project with aerial images get ``geo`` as configured (on the synthetic air-to-ground
+        scenes it is what registers the ground views, and their ground x ground pairs are wide
+        baselines at low resolution that the lighter anchors lose) and the pairs of a ground-only
+        project the anchors alone (``sparse``) with :data:`AUTO_PLAIN_PAIRS`: on the real tuning
+        photos the dense rounds tie the anchors at about twice their cost (docs/benchmarks.md).
+        Derived once, sharing this matcher's networks and caches where the settings allow."""
         if self.config.method != "auto":
             return self
-        method = "geo" if tiled else "sparse"
+        method = "geo" if tiled or aerial_project else "sparse"
         if method not in self._variants:
             light = AUTO_PLAIN_PAIRS if method == "sparse" else {}
             self._variants[method] = self.derive(method=method, **light)

@@ -115,7 +115,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         bar = tqdm(todo, desc=f"matching ({opts.method})", unit="pair", disable=not opts.progress)
         for p in bar:
             t0 = time.perf_counter()
-            m = steps.match(matcher, p, images[p.name0], images[p.name1], opts.match_cache)
+            m = steps.match(matcher, p, images[p.name0], images[p.name1], opts.match_cache, bool(aerial))
             t1 = time.perf_counter()
             w = steps.write(db, ids[p.name0], ids[p.name1], m, opts.snap_radius, opts.resize)
             timings["matching"] += t1 - t0

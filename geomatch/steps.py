@@ -394,12 +394,18 @@ class PairMatches:
 
 
 def match(
-    matcher: Matcher, pair: Pair, image0: np.ndarray, image1: np.ndarray, cache: str | Path | None = None
+    matcher: Matcher,
+    pair: Pair,
+    image0: np.ndarray,
+    image1: np.ndarray,
+    cache: str | Path | None = None,
+    aerial_project: bool = False,
 ) -> PairMatches:
     """One planned pair, tiled when the plan says so. ``cache``: a folder of raw pair matches
     shared by runs (benchmarks, variants), keyed by the pixels, the plan and the matcher's config.
-    Under ``auto`` the pair's own method decides (:meth:`Matcher.for_pair`)."""
-    matcher = matcher.for_pair(pair.tiled)
+    Under ``auto`` the pair and whether its project has aerial images decide the method
+    (:meth:`Matcher.for_pair`)."""
+    matcher = matcher.for_pair(pair.tiled, aerial_project)
     sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
     path = None
     if cache:

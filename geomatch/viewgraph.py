@@ -193,7 +193,8 @@ def tree_inconsistent_pairs(
 ) -> list[tuple[tuple[int, int], float, int]]:
     """The pairs of ``rotations`` {(i, j): candidate R_ij, i < j} that disagree with the maximum
     spanning tree by ``support`` (module docstring), each with its angle to the tree's rotation
-    and the tree path length. Tree pairs are never returned, so every image keeps a pair."""
+    and the tree path length. Tree pairs are never returned, and an image keeps ``MIN_PAIRS``
+    pairs (the most inconsistent go first)."""
     edges = dict(rotations)
 
     def rot(a: int, b: int) -> list[np.ndarray]:
@@ -243,7 +244,7 @@ def tree_inconsistent_pairs(
             a, n = up[a], n + 1
         return n
 
-    out: list[tuple[tuple[int, int], float, int]] = []
+    judged: list[tuple[tuple[int, int], float, int]] = []
     for a, b in sorted(edges):
         if any(y == b for y, _ in tree.get(a, [])):
             continue
@@ -251,8 +252,17 @@ def tree_inconsistent_pairs(
         chained = absolute[b] @ absolute[a].T
         err = min(rotation_angle(c.T @ chained) for c in edges[(a, b)])
         if err > base_deg + per_hop_deg * h:
-            out.append(((a, b), err, h))
-    return out
+            judged.append(((a, b), err, h))
+    # the worst first, and an image keeps MIN_PAIRS pairs, as in the loop check: with one pair
+    # left an image registers only if that pair's points are seen by a third view
+    out: list[tuple[tuple[int, int], float, int]] = []
+    for (a, b), err, h in sorted(judged, key=lambda j: -j[1]):
+        if len(nbrs[a]) <= MIN_PAIRS or len(nbrs[b]) <= MIN_PAIRS:
+            continue
+        nbrs[a].discard(b)
+        nbrs[b].discard(a)
+        out.append(((a, b), err, h))
+    return sorted(out)
 
 
 def _voted_candidate(

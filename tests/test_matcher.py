@@ -131,9 +131,9 @@ def test_the_method_flags_are_the_old_name_tests() -> None:
 
     for method in METHODS:
         cfg = MatcherConfig(method=method)
-        assert cfg.uses_anchors == (method in ("sparse", "concat", "geo")), method
-        assert cfg.needs_dense == (method != "sparse"), method
+        assert cfg.uses_anchors == (method in ("sparse", "concat", "geo", "auto")), method
+        assert cfg.needs_dense == (method not in ("sparse", "auto")), method
         assert cfg.flags.optimise == (method in ("geo", "geo-noanchor")), method
-        assert (not cfg.flags.optimise) == (method in ("sparse", "dense", "concat")), method
+        assert (not cfg.flags.optimise) == (method in ("sparse", "dense", "concat", "auto")), method
         assert cfg.flags.anchor_init == (method == "geo"), method
         assert (cfg.flags.optimise and cfg.uses_anchors) == (method == "geo"), method

@@ -160,6 +160,12 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
                 )
             ).first()
         )
+        # under ``auto`` a project with aerial images matches every pair with ``geo``
+        aerial_project = bool(
+            s.execute(
+                select(Image.name).where(Image.project_id == job.project_id, Image.aerial.is_(True)).limit(1)
+            ).first()
+        )
     if p is None:
         return "skipped"
     pid, opts = job.project_id, job.options
@@ -174,7 +180,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             a = runtime.image(ctx, ctx.storage.image_path(pid, p.name0))
             b = runtime.image(ctx, ctx.storage.image_path(pid, p.name1))
             pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, rotate=airborne)
-            m = steps.match(runtime.matcher(ctx, opts), pair, a, b)
+            m = steps.match(runtime.matcher(ctx, opts), pair, a, b, aerial_project=aerial_project)
             t1 = time.perf_counter()
             resize = opts.get("resize") or None
             radius = float(opts.get("snap_radius", DEFAULTS["snap_radius"]))
