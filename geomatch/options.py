@@ -12,10 +12,10 @@ Methods are rows of flags (:data:`METHOD_TABLE`), the paper's ablations:
 ``concat``        anchors naively concatenated to ``dense``;
 ``geo-noanchor``  optimisation initialised from the top half of the dense matches;
 ``geo``           the full method: anchors initialise F, dense matches are re-weighted;
-``auto``          the effort each pair's evidence calls for: the anchors alone, and ``geo`` for
-                  the aerial x ground pairs, where the geometry-aware branch measures better
-                  (docs/benchmarks.md). Its row carries the anchors' flags; ``steps.match`` hands
-                  a tiled pair to ``geo``.
+``auto``          what measured best for the project's kind: ``geo`` for every pair of a project
+                  with aerial images (the synthetic air-to-ground scenes), lighter anchors for a
+                  ground-only project (real ground photos, docs/benchmarks.md). Its row carries
+                  the anchors' flags; ``Matcher.for_pair`` picks the method per pair.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ METHOD_TABLE: tuple[Method, ...] = (
     Method("concat", True, True, False, False, "anchors concatenated to the dense matches"),
     Method("geo-noanchor", False, True, True, False, "optimisation initialised from the dense matches"),
     Method("geo", True, True, True, True, "the full method: anchors initialise F, dense re-weighted"),
-    Method("auto", True, False, False, False, "anchors; geo for aerial x ground (tiled) pairs"),
+    Method("auto", True, False, False, False, "geo with aerial images, else light anchors"),
 )
 METHODS: tuple[str, ...] = tuple(m.name for m in METHOD_TABLE)
 METHOD_FLAGS: dict[str, Method] = {m.name: m for m in METHOD_TABLE}
