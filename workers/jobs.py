@@ -150,22 +150,13 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
     with ctx.store.session() as s:
         p = s.get(JobPair, (job_id, idx))
         # the plan step marked the aerial images: a pair with an aerial side is matched at its
-        # best quarter turn (geomatch.rotation)
-        airborne = p is not None and bool(
-            s.execute(
-                select(Image.name).where(
-                    Image.project_id == job.project_id,
-                    Image.name.in_((p.name0, p.name1)),
-                    Image.aerial.is_(True),
-                )
-            ).first()
+        # best quarter turn (geomatch.rotation), and under ``auto`` a project with any aerial
+        # image matches every pair with ``geo``
+        aerial_names = set(
+            s.scalars(select(Image.name).where(Image.project_id == job.project_id, Image.aerial.is_(True)))
         )
-        # under ``auto`` a project with aerial images matches every pair with ``geo``
-        aerial_project = bool(
-            s.execute(
-                select(Image.name).where(Image.project_id == job.project_id, Image.aerial.is_(True)).limit(1)
-            ).first()
-        )
+        airborne = p is not None and bool({p.name0, p.name1} & aerial_names)
+        aerial_project = bool(aerial_names)
     if p is None:
         return "skipped"
     pid, opts = job.project_id, job.options
