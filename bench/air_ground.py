@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from common import print_table
+from common import parse_value, print_table
 
 from geomatch.evaluate import evaluate_run
 from geomatch.pipeline import RunOptions, run
@@ -148,17 +148,6 @@ def means(rows: list[dict[str, Any]], split: str) -> list[dict[str, Any]]:
 RUN_FIELDS = {f.name for f in fields(RunOptions)}
 
 
-def _value(v: str) -> bool | int | float | str:
-    if v.lower() in ("true", "false"):
-        return v.lower() == "true"
-    for kind in (int, float):
-        try:
-            return kind(v)
-        except ValueError:
-            pass
-    return v
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", default="0,1", help="tuning seeds")
@@ -179,10 +168,10 @@ def main() -> None:
         method, kv = spec.split(":", 1)
         k, v = kv.split("=", 1)
         if k in RUN_FIELDS:
-            value = _value(v) if k not in ("tiling", "mapper") else v
+            value = parse_value(v) if k not in ("tiling", "mapper") else v
             variants.append((f"{method} {k}={v}", method, {k: value}))
         else:  # a MatcherConfig option (probe_keypoints, max_keypoints, ...)
-            variants.append((f"{method} {k}={v}", method, {"matcher": {k: _value(v)}}))
+            variants.append((f"{method} {k}={v}", method, {"matcher": {k: parse_value(v)}}))
     splits = [("tuning", s) for s in args.seeds.split(",") if s] + [
         ("test", s) for s in args.test_seeds.split(",") if s
     ]

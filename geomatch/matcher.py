@@ -106,6 +106,14 @@ class MatcherConfig:
     # not overlap they agree with a wrong F and pass any later verification; the anchors, which the
     # optimiser does not shape, are the independent evidence. 15 is COLMAP's min_num_inliers.
     min_anchor_support: int = 15
+    # geo: a pair whose anchors alone fit an F with at least this many inliers is answered by the
+    # anchors, as ``sparse`` would answer it (no dense rounds, no least-squares matching); 0: the
+    # full method on every pair. The rounds add matches where the anchors are few; where they are
+    # many, on the real tuning photos (castle-P19's neighbours have 750-1550), the rounds and the
+    # least-squares step tied or cost the anchors 0.1-0.2 AUC@10 at twice their time. Tiled aerial
+    # x ground pairs always get the full method (Matcher.for_pair): that is where it was measured
+    # to register views the anchors lose.
+    anchors_suffice: int = 300
     # least-squares matching of the final points in B (geomatch.subpixel): "auto" does it for the
     # methods that optimise (the paper's refinement stage, anchors included), "lsm" for any
     # method, "off" never
@@ -242,13 +250,20 @@ class Matcher:
         project the anchors alone (``sparse``) with :data:`AUTO_PLAIN_PAIRS`: on the real tuning
         photos the dense rounds tie the anchors at about twice their cost (docs/benchmarks.md).
         Derived once, sharing this matcher's networks and caches where the settings allow."""
-        if self.config.method != "auto":
+        cfg = self.config
+        if cfg.method == "auto":
+            method = "geo" if tiled or aerial_project else "sparse"
+        elif tiled and cfg.flags.optimise and cfg.anchors_suffice > 0:
+            method = cfg.method
+        else:
             return self
-        method = "geo" if tiled or aerial_project else "sparse"
-        if method not in self._variants:
-            light = AUTO_PLAIN_PAIRS if method == "sparse" else {}
-            self._variants[method] = self.derive(method=method, **light)
-        return self._variants[method]
+        variant = f"{method}-tiled" if tiled and method != "sparse" else method
+        if variant not in self._variants:
+            overrides: dict[str, Any] = dict(AUTO_PLAIN_PAIRS) if method == "sparse" else {}
+            if variant.endswith("-tiled"):
+                overrides["anchors_suffice"] = 0
+            self._variants[variant] = self.derive(method=method, **overrides)
+        return self._variants[variant]
 
     def derive(self, **overrides: Any) -> Matcher:
         """A matcher with other options that shares this one's networks and feature cache.
@@ -468,6 +483,12 @@ class Matcher:
             if cfg.uses_anchors:
                 anchors = (sa.keypoints[lg.idx_a].float(), sb.keypoints[lg.idx_b].float(), lg.scores)
                 stats["anchors"] = int(lg.idx_a.numel())
+        if anchors is not None and cfg.flags.optimise and cfg.anchors_suffice > 0:
+            with timer("anchors"):
+                strong = _anchor_inliers(anchors, cfg) >= cfg.anchors_suffice
+            if strong:
+                stats["anchors_suffice"] = True
+                return self._anchors_only(anchors, prep0, prep1, stats, timer)
 
         if cfg.needs_dense and cfg.dense == "lightglue":
             assert lg is not None
@@ -520,6 +541,34 @@ class Matcher:
             keypoints0=prep0.to_original(pa).astype(np.float32),
             keypoints1=prep1.to_original(pb).astype(np.float32),
             scores=ps.detach().cpu().numpy().astype(np.float32),
+            F=F,
+            method=cfg.method,
+            image_sizes=(prep0.original_size, prep1.original_size),
+            timings=timer.times,
+            stats=stats,
+        )
+
+    def _anchors_only(
+        self,
+        anchors: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        prep0: Prepared,
+        prep1: Prepared,
+        stats: dict[str, Any],
+        timer: _Timer,
+    ) -> MatchResult:
+        """The answer ``sparse`` gives the same pair: the anchors and their F."""
+        cfg = self.config
+        pa, pb, ps = anchors
+        with timer("merge"):
+            F_net, _ = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
+        F = np.zeros((3, 3))
+        if F_net is not None:
+            F = scale_fundamental(F_net.double().cpu().numpy(), prep0.from_original(), prep1.from_original())
+        timer.times["total"] = sum(timer.times.values())
+        return MatchResult(
+            keypoints0=prep0.to_original(pa).astype(np.float32),
+            keypoints1=prep1.to_original(pb).astype(np.float32),
+            scores=ps.detach().float().cpu().numpy().astype(np.float32),
             F=F,
             method=cfg.method,
             image_sizes=(prep0.original_size, prep1.original_size),
@@ -607,6 +656,14 @@ class Matcher:
                 )
         stats["coarse_matches"] = int(ci.numel())
         return ga[ci], gb[cj], conf.float()
+
+
+def _anchor_inliers(anchors: tuple[torch.Tensor, torch.Tensor, torch.Tensor], cfg: MatcherConfig) -> int:
+    """Anchors on the F fitted to the anchors alone (the optimiser's own starting point)."""
+    if anchors[0].shape[0] < cfg.anchors_suffice:
+        return 0
+    _, mask = estimate_fundamental(anchors[0], anchors[1], cfg.geo.f_estimator, cfg.geo.f_threshold)
+    return 0 if mask is None else int(mask.sum())
 
 
 def _strongest(f: SparseFeatures | None, n: int) -> SparseFeatures:

@@ -32,13 +32,35 @@ def test_geo_finds_more_correct_matches_than_either_backbone(
 ) -> None:
     correct = {}
     for method in ("sparse", "dense", "geo"):
-        r = matcher.derive(method=method).match(astronaut_pair.image0, astronaut_pair.image1)
+        # the full method on every pair: this warped pair's anchors are strong enough that the
+        # default would answer it with the anchors alone (the next test)
+        r = matcher.derive(method=method, anchors_suffice=0).match(astronaut_pair.image0, astronaut_pair.image1)
         err = reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)
         correct[method] = int((err < 3).sum())
         if method == "geo":
             assert r.stats["init"] == "anchors"
             assert (err < 3).mean() > 0.97
     assert correct["geo"] > max(correct["sparse"], correct["dense"]), correct
+
+
+def test_geo_answers_a_pair_with_strong_anchors_as_sparse_does(
+    matcher: Matcher, astronaut_pair: WarpedPair
+) -> None:
+    """Where the anchors alone are many, the rounds only tied them on real photos at twice the
+    time, so geo returns exactly the anchors' answer; with fewer anchors than the threshold it runs
+    the optimiser, and tiled (aerial x ground) pairs always do."""
+    a, b = astronaut_pair.image0, astronaut_pair.image1
+    sparse = matcher.derive(method="sparse").match(a, b)
+    geo = matcher.derive(method="geo")
+    strong = geo.match(a, b)
+    assert strong.stats.get("anchors_suffice") is True and "init" not in strong.stats
+    np.testing.assert_array_equal(strong.keypoints0, sparse.keypoints0)
+    np.testing.assert_array_equal(strong.keypoints1, sparse.keypoints1)
+    weak = geo.derive(anchors_suffice=len(sparse) + 1).match(a, b)
+    assert "anchors_suffice" not in weak.stats and weak.stats["init"] == "anchors"
+    tiled = geo.for_pair(tiled=True)
+    assert tiled.config.anchors_suffice == 0 and geo.for_pair(tiled=False) is geo
+    assert "init" in tiled.match(a, b).stats
 
 
 def test_features_are_computed_once_per_image(astronaut_pair: WarpedPair, matcher: Matcher) -> None:
@@ -110,7 +132,7 @@ def test_lightglue_assignment_branch_and_pruning_settings(
     """dense=lightglue reads LightGlue's soft assignment (one LightGlue call serves anchors and the
     dense branch, no dense-map pass); a matcher with pruning does not reuse unpruned anchors, and
     the lightglue branch refuses pruning with a clear error instead of a silent partial P_c."""
-    m = matcher.derive(method="geo", dense="lightglue")
+    m = matcher.derive(method="geo", dense="lightglue", anchors_suffice=0)
     assert m.needed_extractors() == [("aliked", False)]
     r = m.match(astronaut_pair.image0, astronaut_pair.image1)
     err = reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)
