@@ -1,4 +1,6 @@
-"""Per-stage time and peak memory of one pair, at 640 and 1024 px, for every method.
+"""Per-stage time and peak memory of one pair, at 640 and 1024 px, for every method, beside
+COLMAP's own SIFT extraction and matching of the same pair (the peer, at the photos' own size up
+to 1600 px, timed in the same run: the "x peer" column).
 
     python bench/pair_speed.py [--images A B] [--sizes 640,1024] [--repeat 3] [--device cpu]
 
@@ -22,10 +24,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from common import parse_value
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_PAIR = HERE.parent.parent / "shared" / "data" / "real" / "lightglue_pair"
 STAGES = ("anchors", "dense_coarse", "optimizer", "refine", "merge")
+PEER = "colmap-sift"
 
 
 def worker(args: argparse.Namespace) -> None:
@@ -39,7 +43,12 @@ def worker(args: argparse.Namespace) -> None:
     else:
         p = warped_pair("retina", seed=1, strength=0.2)
         a, b = p.image0, p.image1
-    m = Matcher(MatcherConfig(method=args.method, resize=args.size, device=args.device))
+    if args.method == PEER:
+        peer_worker(a, b, args)
+        return
+    method, *options = args.method.split()
+    overrides = {k: parse_value(v) for k, v in (o.split("=", 1) for o in options)}
+    m = Matcher(MatcherConfig(method=method, resize=args.size, device=args.device, **overrides))
     m.match(a, b)  # load the networks (not timed: a worker loads them once)
     m.clear_caches()
     t0 = time.perf_counter()
@@ -67,11 +76,30 @@ def worker(args: argparse.Namespace) -> None:
     print("RESULT " + json.dumps(out))
 
 
+def peer_worker(a: np.ndarray, b: np.ndarray, args: argparse.Namespace) -> None:
+    """COLMAP SIFT on the pair at the photos' own size (up to 1600 px): every pair of a COLMAP
+    project is "cold" (extraction once per image, then matching), so its warm pair is its matching."""
+    from peer_colmap import sift_pair
+
+    sift_pair(a, b)  # the first call pays pycolmap's own start-up, as the networks' loading above
+    runs = [sift_pair(a, b) for _ in range(max(args.repeat, 1))]
+    cold = float(np.median([r[2] for r in runs]))
+    out = {"size": args.size, "method": PEER, "features_per_image": 0.0, "cold_pair": cold, "warm_pair": cold}
+    out.update({s: 0.0 for s in STAGES})
+    out.update(matches=len(runs[0][0]), candidates=0, cuda_peak_mb=0.0)
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print("RESULT " + json.dumps(out))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--images", nargs=2, default=None)
     ap.add_argument("--sizes", default="640,1024")
-    ap.add_argument("--methods", default="sparse,dense,concat,geo-noanchor,geo")
+    ap.add_argument(
+        "--methods",
+        default=f"{PEER},auto,sparse,dense,concat,geo-noanchor,geo,geo anchors_suffice=0",
+        help="comma-separated 'METHOD [option=value ...]' rows; the peer's row gives the x peer column",
+    )
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", type=Path, default=None)
@@ -103,15 +131,19 @@ def main() -> None:
     )
     print(
         "| px | method | features/img s | anchors s | dense coarse s | optimizer s | refine s "
-        "| warm pair s | cold pair s | optimizer share (cold) | matches | peak RSS MB |"
+        "| warm pair s | cold pair s | cold pair x peer | optimizer share (cold) | matches | peak RSS MB |"
     )
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    peer = {r["size"]: r["cold_pair"] for r in rows if r["method"] == PEER}
     for r in rows:
         share = r["optimizer"] / r["cold_pair"] if r["cold_pair"] else 0.0
+        ratio = f"{r['cold_pair'] / peer[r['size']]:.2f}" if r["size"] in peer else "-"
+        name = "COLMAP SIFT (peer, own size)" if r["method"] == PEER else r["method"]
         print(
-            f"| {r['size']} | {r['method']} | {r['features_per_image']:.2f} | {r['anchors']:.2f} "
+            f"| {r['size']} | {name} | {r['features_per_image']:.2f} | {r['anchors']:.2f} "
             f"| {r['dense_coarse']:.2f} | {r['optimizer']:.2f} | {r['refine']:.2f} | {r['warm_pair']:.2f} "
-            f"| {r['cold_pair']:.2f} | {100 * share:.0f}% | {r['matches']} | {r['peak_rss_mb']:.0f} |"
+            f"| {r['cold_pair']:.2f} | {ratio} | {100 * share:.0f}% | {r['matches']} "
+            f"| {r['peak_rss_mb']:.0f} |"
         )
     print("\n| px | geo / dense, warm pair | geo / dense, cold pair | geo / sparse, cold pair |")
     print("|---|---:|---:|---:|")

@@ -15,12 +15,15 @@ import argparse
 import json
 import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pycolmap
 
+from geomatch.colmapdb import COLMAP_OFFSET
 from geomatch.colmaplog import colmap_log
 from geomatch.metrics import sfm_stats
 
@@ -63,6 +66,44 @@ def run_peer(images: Path, out: Path, threads: int = -1) -> dict[str, Any]:
         summary.update(registered=0, images=n_images, points3D=0)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def sift_pair(
+    image0: np.ndarray, image1: np.ndarray, threads: int = -1
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The peer on one pair, as a user's COLMAP project would match it: SIFT on both images,
+    ``match_exhaustive`` with its geometric verification; returns the verified matches (pixel
+    coordinates, top-left pixel's centre at 0.5 as in COLMAP) and the seconds it took (writing the
+    two images to a scratch folder excluded)."""
+    import cv2
+
+    with tempfile.TemporaryDirectory() as tmp:
+        images = Path(tmp) / "images"
+        images.mkdir()
+        for name, im in (("0.png", image0), ("1.png", image1)):
+            cv2.imwrite(str(images / name), np.ascontiguousarray(im[:, :, ::-1]))
+        db_path = Path(tmp) / "database.db"
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.max_image_size = MAX_IMAGE_SIZE
+        extraction.num_threads = threads
+        extraction.sift.max_num_features = MAX_FEATURES
+        t0 = time.perf_counter()
+        with colmap_log(False):
+            pycolmap.extract_features(db_path, images, extraction_options=extraction)
+            pycolmap.match_exhaustive(db_path)
+        seconds = time.perf_counter() - t0
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            ids = {im.name: im.image_id for im in db.read_all_images()}
+            a, b = ids["0.png"], ids["1.png"]
+            if not db.exists_two_view_geometry(a, b):
+                return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), seconds
+            m = db.read_two_view_geometry(a, b).inlier_matches
+            k0, k1 = db.read_keypoints(a)[:, :2], db.read_keypoints(b)[:, :2]
+        finally:
+            db.close()
+    p0, p1 = k0[m[:, 0]] - COLMAP_OFFSET, k1[m[:, 1]] - COLMAP_OFFSET
+    return p0.astype(np.float32), p1.astype(np.float32), seconds
 
 
 def main(argv: list[str] | None = None) -> int:
