@@ -1,8 +1,8 @@
 """The paper's air-to-ground table on synthetic scenes with ground truth.
 
 For each seed: render a scene (``geomatch synth``), run the pipeline with each method and
-evaluate. A camera counts when it is CORRECT (metrics.py: <= 3 deg and <= 5 % of the scene extent
-after a robust alignment), not merely registered; both are reported, with the tuning seeds
+evaluate. A camera counts when it is CORRECT (geomatch/eval/metrics.py: <= 3 deg and <= 5 % of the
+scene extent after a robust alignment), not merely registered; both are reported, with the tuning seeds
 (``--seeds``) and the test seeds (``--test-seeds``) in separate rows and separate means. Raw pair
 matches are cached per scene and method under bench/out, so the extra rows (no keypoint
 consolidation, no tiling, global mapper) re-use them or add only what differs.
@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 from common import parse_value, print_table
 
-from geomatch.evaluate import evaluate_run
+from geomatch.eval.evaluate import evaluate_run
 from geomatch.pipeline import RunOptions, run
-from geomatch.synth import Camera, Scene, write_scene
+from geomatch.synth.aerial import Camera, Scene, write_scene
 
 OUT = Path(__file__).parent / "out" / "air_ground"
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from geomatch.matcher import config_from_options
+from geomatch.matching.matcher import config_from_options
 
 
 def parse_variants(variants: str | None, methods: str) -> list[tuple[str, str, dict[str, Any]]]:

@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from geomatch.geodesy import EnuFrame
-from geomatch.georef import align, errors_against
-from geomatch.synth import BARO_NOISE_M, GPS_ORIGIN, Scene, baro_heights, gps_fixes, xmp_ups
+from geomatch.geo.geodesy import EnuFrame
+from geomatch.geo.georef import align, errors_against
+from geomatch.synth.aerial import BARO_NOISE_M, GPS_ORIGIN, Scene, baro_heights, gps_fixes, xmp_ups
 
 
 def simulated(args: argparse.Namespace) -> None:

@@ -26,10 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 from common import print_table
 
-from geomatch.gps import footprint, look_point
+from geomatch.geo.gps import footprint, look_point
 from geomatch.metadata import ImageMeta
-from geomatch.pairs import gps_neighbours
-from geomatch.synth import look_at
+from geomatch.sfm.pairs import gps_neighbours
+from geomatch.synth.aerial import look_at
 
 WIDTH, HEIGHT = 4000, 3000
 FOCAL = 24.0 / 36.0 * WIDTH  # 24 mm equivalent on the 36 mm long side

@@ -47,7 +47,7 @@ SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"}
 
 def _load_pairs(images: str | None, n_pairs: int) -> list[tuple[object, object]]:
     from geomatch import read_image
-    from geomatch.homography import warped_pair
+    from geomatch.synth.photos import warped_pair
 
     if images:
         paths = sorted(p for p in Path(images).iterdir() if p.suffix.lower() in SUFFIXES)
@@ -66,7 +66,7 @@ def worker(args: argparse.Namespace) -> None:
     import torch
 
     from geomatch import Matcher, MatcherConfig
-    from geomatch.matcher import resolve_device
+    from geomatch.matching.matcher import resolve_device
 
     device = resolve_device(args.device)
     pairs = _load_pairs(args.images, args.pairs)

@@ -36,7 +36,7 @@ def worker(args: argparse.Namespace) -> None:
     import torch
 
     from geomatch import Matcher, MatcherConfig, read_image
-    from geomatch.homography import warped_pair
+    from geomatch.synth.photos import warped_pair
 
     if args.images:
         a, b = read_image(args.images[0]), read_image(args.images[1])

@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 import pycolmap
 
-from geomatch.colmapdb import COLMAP_OFFSET
-from geomatch.colmaplog import colmap_log
-from geomatch.metrics import sfm_stats
+from geomatch.sfm.colmapdb import COLMAP_OFFSET
+from geomatch.sfm.colmaplog import colmap_log
+from geomatch.sfm.mapping import sfm_stats
 
 MAX_FEATURES = 8192
 MAX_IMAGE_SIZE = 1600
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         f"mapping {t['mapping']:.1f})"
     )
     if args.gt:
-        from geomatch.evaluate import evaluate_run
+        from geomatch.eval.evaluate import evaluate_run
 
         print(evaluate_run(args.out, args.gt).table())
     return 0

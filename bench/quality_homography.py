@@ -21,7 +21,9 @@ from common import parse_variants, print_table
 from peer_colmap import sift_pair
 
 from geomatch import METHODS, Matcher, MatcherConfig
-from geomatch.homography import auc, corner_error, reprojection_errors, warped_pairs
+from geomatch.eval.homography import corner_error, reprojection_errors
+from geomatch.eval.metrics import auc
+from geomatch.synth.photos import warped_pairs
 
 PEER = "COLMAP SIFT (peer)"
 

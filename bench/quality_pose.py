@@ -11,9 +11,9 @@ each method, the relative pose is estimated from the matches with the reference 
 (essential matrix, MAGSAC, 1 px threshold), and the pose error max(angle(R), angle(t)) is
 summarised as AUC@5/10/20 degrees, as in the IMC / LoFTR protocol.
 
-``--set indoor`` renders wide-baseline pairs of synthetic rooms (geomatch.synth_indoor: rotation
+``--set indoor`` renders wide-baseline pairs of synthetic rooms (geomatch.synth.indoor: rotation
 20-70 degrees, covisibility >= 10 %), a tuning split (``--seeds``) and a test split
-(``--test-seeds``), and scores them by the SuperGlue / LoFTR protocol (geomatch.pose: RANSAC
+(``--test-seeds``), and scores them by the SuperGlue / LoFTR protocol (geomatch.eval.pose: RANSAC
 essential matrix at 0.5 px). Match precision is pooled over a split: the fraction of all matches
 within 3 px of where image 0's depth, carried by the true pose, puts them in image 1, with
 occluded or out-of-view points counting as wrong. A no-overlap set per split (views of the same
@@ -36,9 +36,10 @@ import numpy as np
 import pycolmap
 from common import parse_variants, print_table
 
-from geomatch import METHODS, Matcher, MatcherConfig, read_image, synth_indoor
-from geomatch.pose import auc_over_runs, relative_pose_error, shuffled_errors
-from geomatch.synth_indoor import IndoorPair, gt_matches, indoor_pairs, no_overlap_pairs
+from geomatch import METHODS, Matcher, MatcherConfig, read_image
+from geomatch.eval.pose import auc_over_runs, relative_pose_error, shuffled_errors
+from geomatch.synth import indoor
+from geomatch.synth.indoor import IndoorPair, gt_matches, indoor_pairs, no_overlap_pairs
 
 OUT = Path(__file__).resolve().parent / "out"
 
@@ -104,7 +105,7 @@ FIELDS = ("image0", "image1", "K0", "K1", "R", "t", "depth0", "depth1", "covisib
 def cached_pairs(kind: str, seed: int, n: int) -> list[IndoorPair]:
     """Rendered pairs from bench/out/indoor/ (rendered and saved on first use); the file name carries
     a hash of the generator's source, so editing the generator never serves stale renders."""
-    source = hashlib.sha256(Path(synth_indoor.__file__).read_bytes()).hexdigest()[:10]
+    source = hashlib.sha256(Path(indoor.__file__).read_bytes()).hexdigest()[:10]
     path = OUT / "indoor" / f"{kind}_seed{seed}_n{n}_{source}.npz"
     if path.exists():
         z = np.load(path)

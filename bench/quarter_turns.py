@@ -6,7 +6,7 @@ Renders the scene of ``geomatch demo``, matches every aerial x aerial pair and e
 nadir image(s) with the ground views with ``sparse``, the second image turned by 0/90/180/270
 degrees counter-clockwise, maps its keypoints back and counts the matches within 3 px of the
 rendered truth (bench/synth_precision.correct). Shows why pairs with an aerial side are matched at
-their best quarter turn (geomatch/rotation.py), and whether the cheap probe that picks the turn
+their best quarter turn (geomatch/matching/rotation.py), and whether the cheap probe that picks the turn
 (``Matcher.probe_count``) picks the turn with the most right matches as often as the full-strength
 anchors do, at what cost per call. Each cell: full-strength matches (right ones) / probe matches.
 """
@@ -22,8 +22,8 @@ from common import print_table
 from synth_precision import correct
 
 from geomatch import Matcher, MatcherConfig
-from geomatch.rotation import TURNS, points_back, quarter_turn
-from geomatch.synth import Scene
+from geomatch.matching.rotation import TURNS, points_back, quarter_turn
+from geomatch.synth.aerial import Scene
 
 
 def main() -> None:

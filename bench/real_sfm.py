@@ -20,7 +20,7 @@ with no option at all.
 Columns: correct / registered cameras (geomatch eval's rule), pose AUC@3/5/10 deg over all pairs,
 median and max camera position error (metres) and median rotation error (deg) after alignment,
 wrong verified pairs that reached the mapper (of all wrong verified pairs; judged by the ground
-truth's epipolar geometry, geomatch/pairtruth.py), wall seconds, the ratio to the peer's wall time
+truth's epipolar geometry, geomatch/eval/pairtruth.py), wall seconds, the ratio to the peer's wall time
 and peak RSS.
 """
 
@@ -59,7 +59,7 @@ def sift_reference(images: Path) -> Path:
     the reference of a scene that has no surveyed cameras."""
     import pycolmap
 
-    from geomatch.colmaplog import colmap_log
+    from geomatch.sfm.colmaplog import colmap_log
 
     ref = OUT / f"{images.name}_reference"
     model = ref / "model"
@@ -130,8 +130,8 @@ def timed(cmd: list[str]) -> tuple[float, float, int]:
 
 
 def judge(out: Path, gt: Path) -> dict[str, Any]:
-    """geomatch eval's metrics plus the wrong verified pairs (geomatch.pairtruth)."""
-    from geomatch.evaluate import evaluate_run
+    """geomatch eval's metrics plus the wrong verified pairs (geomatch.eval.pairtruth)."""
+    from geomatch.eval.evaluate import evaluate_run
 
     return evaluate_run(out, gt).metrics
 

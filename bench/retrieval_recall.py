@@ -15,10 +15,10 @@ import argparse
 import numpy as np
 from common import print_table
 
-from geomatch.matcher import Matcher, MatcherConfig
-from geomatch.pairs import nearest_neighbours
-from geomatch.retrieval import vlad
-from geomatch.synth import Scene, covisibility
+from geomatch.matching.matcher import Matcher, MatcherConfig
+from geomatch.sfm.pairs import nearest_neighbours
+from geomatch.sfm.retrieval import vlad
+from geomatch.synth.aerial import Scene, covisibility
 
 
 def main() -> None:

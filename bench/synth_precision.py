@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 from common import print_table
 
-from geomatch import pairs as pairing
 from geomatch import steps
-from geomatch.matcher import Matcher, config_from_options
-from geomatch.synth import Camera, Scene, covisibility, write_scene
+from geomatch.matching.matcher import Matcher, config_from_options
+from geomatch.sfm import pairs as pairing
+from geomatch.synth.aerial import Camera, Scene, covisibility, write_scene
 
 OUT = Path(__file__).parent / "out" / "synth_precision"
 

@@ -25,9 +25,9 @@ from common import print_table
 from synth_precision import correct
 
 from geomatch import steps
-from geomatch.matcher import Matcher, config_from_options
+from geomatch.matching.matcher import Matcher, config_from_options
 from geomatch.metadata import read_metadata
-from geomatch.synth import Scene, write_scene
+from geomatch.synth.aerial import Scene, write_scene
 
 ROWS = [
     ("tiled, tile_crops=probe", "auto", "probe"),

@@ -76,7 +76,8 @@ def check_weights() -> str:
 
 def check_matching() -> str:
     from geomatch import match_pair
-    from geomatch.homography import reprojection_errors, warped_pair
+    from geomatch.eval.homography import reprojection_errors
+    from geomatch.synth.photos import warped_pair
 
     pair = warped_pair("astronaut", seed=0, max_side=320)
     t0 = time.perf_counter()

@@ -1,6 +1,6 @@
 """geomatch: geometry-aware feature matching for Structure-from-Motion.
 
-The public names load lazily: the service's API process imports ``geomatch.pairs`` and friends
+The public names load lazily: the service's API process imports ``geomatch.options`` and friends
 without paying for torch, which only the matching code needs.
 """
 
@@ -12,13 +12,13 @@ from typing import Any
 _EXPORTS = {
     "ImageReadError": "imageio",
     "read_image": "imageio",
-    "METHODS": "matcher",
-    "Matcher": "matcher",
-    "MatcherConfig": "matcher",
-    "MatchResult": "matcher",
-    "match_pair": "matcher",
-    "GeoOptions": "optimizer",
-    "RefineOptions": "refine",
+    "METHODS": "matching.matcher",
+    "Matcher": "matching.matcher",
+    "MatcherConfig": "matching.matcher",
+    "MatchResult": "matching.matcher",
+    "match_pair": "matching.matcher",
+    "GeoOptions": "matching.optimizer",
+    "RefineOptions": "features.refine",
     "WeightsNotFoundError": "weights",
 }
 __all__ = sorted(_EXPORTS)

@@ -45,7 +45,7 @@ def _matching_options(args: argparse.Namespace) -> dict[str, object]:
 
 def cmd_match(args: argparse.Namespace) -> int:
     from .imageio import ImageReadError, read_image
-    from .matcher import match_pair
+    from .matching.matcher import match_pair
 
     try:
         image0, image1 = read_image(args.image0), read_image(args.image1)
@@ -72,8 +72,8 @@ def cmd_match(args: argparse.Namespace) -> int:
 
 
 def _run_options(args: argparse.Namespace) -> RunOptions:
-    from .pairs import read_pairs_file
     from .pipeline import RunOptions
+    from .sfm.pairs import read_pairs_file
 
     opts = _matching_options(args)
     matcher = {k: v for k, v in opts.items() if k not in ("method", "resize", "device")}
@@ -126,7 +126,7 @@ def format_summary(s: dict[str, object]) -> str:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate_run
+    from .eval.evaluate import evaluate_run
 
     try:
         result = evaluate_run(args.out, args.gt)
@@ -166,11 +166,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from .synth import write_scene
+    from .synth.aerial import write_scene
 
     t0 = time.perf_counter()
     if args.kind == "indoor":
-        from .synth_indoor import write_room
+        from .synth.indoor import write_room
 
         views = write_room(args.out, args.ground, args.seed, args.width, args.height)
         print(

@@ -7,10 +7,10 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .evaluate import evaluate_run
+from .eval.evaluate import evaluate_run
 from .options import DEFAULTS
 from .pipeline import RunOptions, run
-from .synth import write_scene
+from .synth.aerial import write_scene
 
 
 def _pair_costs(t: dict[str, float]) -> str:

@@ -3,7 +3,7 @@
 The focal length becomes COLMAP's prior (``has_prior_focal_length``); make/model/size group
 images into one shared camera per device; relative altitude or gimbal pitch says whether an
 image is aerial, which decides tiling; the GPS fix (EXIF GPSInfo, DJI XMP AbsoluteAltitude)
-becomes a position prior and puts the model in a real-world frame (gps.py, georef.py).
+becomes a position prior and puts the model in a real-world frame (geo/gps.py, geo/georef.py).
 """
 
 from __future__ import annotations

@@ -96,7 +96,7 @@ class CacheBudget:
     """How one GEOMATCH_CACHE_MB is shared by a job's in-memory caches, in MiB: decoded images
     (1/6: a pair needs two, a tiled pair reuses its aerial image), then per matcher the per-image
     features (4/5 of the rest, dense maps included) and recent pairs' LightGlue outputs (1/5).
-    The default 1536 gives 256 / 1024 / 256, :class:`~geomatch.matcher.MatcherConfig`'s own."""
+    The default 1536 gives 256 / 1024 / 256, :class:`~geomatch.matching.matcher.MatcherConfig`'s own."""
 
     images_mb: float
     features_mb: float

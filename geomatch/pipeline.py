@@ -17,12 +17,12 @@ from typing import Any
 
 from tqdm import tqdm
 
-from . import gps as gpsfix
 from . import steps
-from .colmapdb import ColmapDatabase
-from .matcher import Matcher, config_from_options
+from .geo import gps as gpsfix
+from .matching.matcher import Matcher, config_from_options
 from .metadata import read_metadata
 from .options import DEFAULTS, cache_budget, parse_plan
+from .sfm.colmapdb import ColmapDatabase
 from .steps import PipelineError as PipelineError  # a run's bad input; defined with the stages
 from .steps import list_images as list_images
 
@@ -43,10 +43,10 @@ class RunOptions:
     min_model_size: int = 3
     # PnP inliers the incremental mapper needs to register an image
     min_pose_inliers: int = DEFAULTS["min_pose_inliers"]
-    # drop verified pairs whose relative rotation breaks the view graph's loops (geomatch.viewgraph)
+    # drop verified pairs whose relative rotation breaks the view graph's loops (geomatch.sfm.viewgraph)
     loop_check: bool = True
     # drop verified pairs whose relative rotation disagrees with the tree of the strongest pairs:
-    # repeated and symmetric structure (geomatch.viewgraph)
+    # repeated and symmetric structure (geomatch.sfm.viewgraph)
     tree_check: bool = True
     # images with EXIF GPS: pose priors in the database, the model moved into ENU metres
     georeference: bool = True

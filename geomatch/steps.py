@@ -35,21 +35,22 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from . import gps, sfm
-from . import pairs as pairing
-from .colmapdb import ColmapDatabase, PairWrite
 from .features.base import DenseFeatures, ImageFeatures, SparseFeatures
+from .geo import gps
+from .geo.gps import GpsFixes
 from .geometry import estimate_fundamental, fundamental_from_matches
-from .gps import GpsFixes
 from .imageio import image_key, read_image
 from .lru import ByteLRU
-from .matcher import Matcher, MatcherConfig, MatchResult
+from .matching.matcher import Matcher, MatcherConfig, MatchResult
+from .matching.rotation import best_turn, points_back, quarter_turn
+from .matching.tiling import SELECT_MIN_PROBE, Crop, TiledMatches, five_crops, match_tiled, select_crops
 from .metadata import ImageMeta
 from .options import DEFAULTS, IMAGE_SUFFIXES
-from .pairs import Pair
-from .retrieval import vlad
-from .rotation import best_turn, points_back, quarter_turn
-from .tiling import SELECT_MIN_PROBE, Crop, TiledMatches, five_crops, match_tiled, select_crops
+from .sfm import mapping
+from .sfm import pairs as pairing
+from .sfm.colmapdb import ColmapDatabase, PairWrite
+from .sfm.pairs import Pair
+from .sfm.retrieval import vlad
 
 
 class FeatureStore:
@@ -199,7 +200,7 @@ class StoredFeaturesMatcher(Matcher):
 
 def build_matcher(store: FeatureStore | None = None, **options: Any) -> Matcher:
     """A matcher from pipeline-style options (``method``, ``resize``, ``device``, optimizer fields)."""
-    from .matcher import config_from_options
+    from .matching.matcher import config_from_options
 
     config = config_from_options(**options)
     return StoredFeaturesMatcher(config, store) if store is not None else Matcher(config)
@@ -440,7 +441,7 @@ def _match_turned(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, MatchResult | TiledMatches | None, int]:
     """(keypoints0, keypoints1, scores, source, aerial crops matched) of the pair; with
     ``pair.rotate`` the aerial side (image1 of an untiled pair) is matched at its best quarter
-    turn (geomatch.rotation) and its keypoints mapped back, and the source is dropped (its F is in
+    turn (geomatch.matching.rotation) and its keypoints mapped back, and the source is dropped (its F is in
     the turned frame)."""
     if pair.tiled:
         aerial, other = (image0, image1) if pair.aerial_first else (image1, image0)
@@ -506,7 +507,7 @@ def crop_probe_points(matcher: Matcher, aerial: np.ndarray, other: np.ndarray) -
 
 def tile_crops(matcher: Matcher, aerial: np.ndarray, other: np.ndarray) -> list[Crop]:
     """The aerial image's crops a tiled pair matches: with ``tile_crops="probe"`` those holding
-    the crop probe's F-consistent matches (geomatch.tiling.select_crops), else all five."""
+    the crop probe's F-consistent matches (geomatch.matching.tiling.select_crops), else all five."""
     h, w = aerial.shape[:2]
     crops = five_crops(w, h)
     if matcher.config.tile_crops == "all":
@@ -555,9 +556,9 @@ def reconstruct(
 ) -> dict[str, Any]:
     """Map the matched database; the models land in ``out/sparse`` (the largest first) with
     ``out/points.ply``; returns the summary. ``loop_check`` / ``tree_check``: drop the pairs the
-    view graph's loops / its tree of strongest pairs reject before mapping (geomatch.viewgraph).
+    view graph's loops / its tree of strongest pairs reject before mapping (geomatch.sfm.viewgraph).
     ``gps``: georeference to these fixes."""
-    return sfm.reconstruct(
+    return mapping.reconstruct(
         database,
         image_dir,
         out,

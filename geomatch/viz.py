@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .matcher import MatchResult
+from .matching.matcher import MatchResult
 
 
 def draw_matches(

@@ -27,7 +27,7 @@ from sqlalchemy.orm import Session
 
 from geomatch.options import CAPTURES, PROJECT_OPTIONS, defaults
 from geomatch.options import PAIR_OPTIONS as PAIR_OPTIONS  # what match_two accepts of DEFAULTS
-from geomatch.sqlitecopy import snapshot_sqlite
+from geomatch.sfm.sqlitecopy import snapshot_sqlite
 from geomatch_core import jobstate
 from geomatch_core.config import Settings
 from geomatch_core.errors import (
@@ -145,7 +145,7 @@ class MatchRequest:
 
 @dataclass(frozen=True)
 class PairMatches:
-    """Matches of two images in their original pixels, as ``geomatch.matcher.MatchResult``."""
+    """Matches of two images in their original pixels, as ``geomatch.matching.matcher.MatchResult``."""
 
     keypoints0: np.ndarray  # (N, 2) float32
     keypoints1: np.ndarray  # (N, 2) float32

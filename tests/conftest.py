@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from geomatch import Matcher, MatcherConfig
-from geomatch.homography import WarpedPair, warped_pair
+from geomatch.synth.photos import WarpedPair, warped_pair
 
 torch.set_num_threads(2)
 

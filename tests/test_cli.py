@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from geomatch.homography import warped_pair
+from geomatch.synth.photos import warped_pair
 
 
 def run(*args: str) -> subprocess.CompletedProcess[str]:
@@ -37,7 +37,7 @@ def test_good_pair_writes_npz_and_picture(pair_files, tmp_path) -> None:
     z = np.load(out)
     n = z["keypoints0"].shape[0]
     assert n > 50 and z["keypoints1"].shape == (n, 2) and z["scores"].shape == (n,) and z["F"].shape == (3, 3)
-    from geomatch.homography import reprojection_errors
+    from geomatch.eval.homography import reprojection_errors
 
     assert np.median(reprojection_errors(H, z["keypoints0"], z["keypoints1"])) < 2.0
     picture = cv2.imread(str(viz))

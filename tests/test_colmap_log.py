@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geomatch.colmapdb import ColmapDatabase
 from geomatch.metadata import read_metadata
-from geomatch.synth import Scene, save_png
+from geomatch.sfm.colmapdb import ColmapDatabase
+from geomatch.synth.aerial import Scene, save_png
 
 GLOG_LINE = re.compile(r"^[IWEF]\d{8} \d\d:\d\d:\d\d\.\d+ +\d+ [\w.]+:\d+\]", re.M)
 

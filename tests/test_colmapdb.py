@@ -4,8 +4,8 @@ import numpy as np
 import pycolmap
 import pytest
 
-from geomatch.colmapdb import ColmapDatabase
 from geomatch.metadata import ImageMeta
+from geomatch.sfm.colmapdb import ColmapDatabase
 
 
 def _pair_points(rng: np.random.Generator, n: int = 200) -> tuple[np.ndarray, np.ndarray]:

@@ -16,9 +16,9 @@ import pycolmap
 import pytest
 
 from geomatch.cli import main
-from geomatch.colmapdb import COLMAP_OFFSET  # the database side of the convention
 from geomatch.export import FORMATS
-from geomatch.synth import write_scene
+from geomatch.sfm.colmapdb import COLMAP_OFFSET  # the database side of the convention
+from geomatch.synth.aerial import write_scene
 
 from .loaded_modules import loaded_after
 from .small_scene import PAIRS

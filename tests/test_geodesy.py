@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from geomatch.geodesy import WGS84_A, WGS84_B, EnuFrame, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+from geomatch.geo.geodesy import WGS84_A, WGS84_B, EnuFrame, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 
 
 def test_known_ecef_values() -> None:

@@ -12,15 +12,16 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from geomatch import gps, pairs
 from geomatch.cli import main
-from geomatch.colmapdb import ColmapDatabase
-from geomatch.geodesy import EnuFrame
-from geomatch.georef import Alignment, align, errors_against, model_up, robust_similarity, umeyama
+from geomatch.geo import gps
+from geomatch.geo.geodesy import EnuFrame
+from geomatch.geo.georef import Alignment, align, errors_against, model_up, robust_similarity, umeyama
+from geomatch.geo.similarity import umeyama_upright, upright_with_heights
 from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata, up_in_camera
 from geomatch.options import check, parse_plan
-from geomatch.similarity import umeyama_upright, upright_with_heights
-from geomatch.synth import (
+from geomatch.sfm import pairs
+from geomatch.sfm.colmapdb import ColmapDatabase
+from geomatch.synth.aerial import (
     GPS_ORIGIN,
     Scene,
     baro_heights,

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from geomatch import Matcher
-from geomatch.pose import relative_pose_error, shuffled_errors
-from geomatch.synth_indoor import IndoorPair, gt_matches, indoor_pairs
+from geomatch.eval.pose import relative_pose_error, shuffled_errors
+from geomatch.synth.indoor import IndoorPair, gt_matches, indoor_pairs
 
 SEED = 7
 

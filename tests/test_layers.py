@@ -2,10 +2,13 @@
 
 - imports point one way: geomatch (the library) <- geomatch_core <- {service, workers} <- geomatch_app (the
   composition root); service and workers never import each other;
+- inside the library, a folder imports only folders ranked below it (RANKS);
 - no import loops between modules (lazy imports inside functions count: they load the same code;
   imports under ``if TYPE_CHECKING:`` are annotations only and count for the layering alone);
 - no module touches another module's private names (``x._name``, ``from m import _name``), except
-  the tests of that module (``tests/test_<module>.py``) and the exceptions listed in ALLOWED.
+  the tests of that module (``tests/test_<module>.py``, by the module's name or by its path in
+  geomatch with ``_`` for the dots: tests/test_synth_indoor.py for geomatch.synth.indoor) and the
+  exceptions listed in ALLOWED.
 """
 
 from __future__ import annotations
@@ -19,6 +22,45 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 LAYERS = {"geomatch": 0, "geomatch_core": 1, "service": 2, "workers": 2, "geomatch_app": 3}
 PACKAGES = tuple(LAYERS)
+
+RANKS = {
+    # the utilities: options, images, metadata, caches, weight files, epipolar geometry
+    "geomatch.options": 0,
+    "geomatch.imageio": 0,
+    "geomatch.metadata": 0,
+    "geomatch.lru": 0,
+    "geomatch.weights": 0,
+    "geomatch.geometry": 0,
+    "geomatch.robust_f": 0,
+    # backbones (whose dense head refines on the epipolar prior); geodesy, GPS, georeferencing
+    "geomatch.features": 1,
+    "geomatch.geo": 1,
+    # one pair (puts the backbones together); many pairs into a model (georeferenced by geo)
+    "geomatch.matching": 2,
+    "geomatch.sfm": 2,
+    # judging a model against ground truth (with sfm's statistics); exporting a model
+    "geomatch.eval": 3,
+    "geomatch.export": 3,
+    # synthetic scenes with ground truth (the indoor pairs score themselves with eval.pose)
+    "geomatch.synth": 4,
+    # the stages and the commands over all of it, and the package's public names
+    "geomatch.steps": 5,
+    "geomatch.pipeline": 5,
+    "geomatch.demo": 5,
+    "geomatch.viz": 5,
+    "geomatch.cli": 5,
+    "geomatch": 5,
+}
+"""Ranks of the parts of the library: its folders (sub-packages) and its top-level modules.
+
+Why: a folder is a family of modules a reader takes in as one (hloc-style). Ranked, the families
+form a chain a reader can climb from the bottom, each one understood without the ones above it,
+and a change to a family can break only the families above it. A part imports only parts ranked
+below it; two folders of one rank (matching and sfm: one pair / many pairs into a model) never
+import each other. Top-level modules of one rank may import each other (metadata reads imageio's
+error, cli runs pipeline and demo): they are single modules, whose loops test_no_import_loops
+forbids. A new folder or top-level module fails test_every_part_has_a_rank until it is ranked here.
+"""
 
 
 def _modules() -> dict[str, Path]:
@@ -109,6 +151,42 @@ def test_imports_point_one_way() -> None:
     assert not bad, "imports against the layering " + str(LAYERS) + ":\n" + "\n".join(bad)
 
 
+def _part(module: str) -> str:
+    """The part of the library a module of geomatch belongs to: its folder, or itself at the top."""
+    parts = module.split(".")
+    if len(parts) > 2 or (len(parts) == 2 and MODULES[module].name == "__init__.py"):
+        return ".".join(parts[:2])
+    return module
+
+
+def _folder(part: str) -> bool:
+    return part.count(".") == 1 and (ROOT / Path(*part.split("."))).is_dir()
+
+
+def test_every_part_has_a_rank() -> None:
+    unranked = sorted({_part(m) for m in MODULES if _package(m) == "geomatch"} - set(RANKS))
+    assert not unranked, f"parts of geomatch without a rank in RANKS: {unranked}"
+
+
+def test_folders_import_only_folders_below() -> None:
+    bad = []
+    for source, targets in _graph().items():
+        if _package(source) != "geomatch":
+            continue
+        a = _part(source)
+        for target, line in targets.items():
+            b = _part(target)
+            if _package(target) != "geomatch" or a == b or RANKS[b] < RANKS[a]:
+                continue
+            if RANKS[b] == RANKS[a] and not _folder(a) and not _folder(b):
+                continue  # top-level modules of one rank
+            bad.append(
+                f"{MODULES[source].relative_to(ROOT)}:{line}: {source} (rank {RANKS[a]}) imports "
+                f"{target} (rank {RANKS[b]})"
+            )
+    assert not bad, "imports against the ranks of geomatch's parts:\n" + "\n".join(bad)
+
+
 def test_no_import_loops() -> None:
     graph = _graph(runtime=True)
     # Tarjan's strongly connected components
@@ -192,10 +270,18 @@ def _files() -> Iterator[Path]:
 
 
 def _under_test(path: Path, privates: dict[str, set[str]]) -> set[str]:
-    """What tests/test_<module>.py may touch: the privates of the library module it is named after."""
+    """What tests/test_<module>.py may touch: the privates of the library module it is named after,
+    by its own name or by its path under geomatch with ``_`` for the dots (tests/test_viewgraph.py:
+    geomatch.sfm.viewgraph; tests/test_synth_indoor.py: geomatch.synth.indoor)."""
     if not (path.is_relative_to(ROOT / "tests") and path.name.startswith("test_")):
         return set()
-    return privates.get(f"geomatch.{path.stem.removeprefix('test_')}", set())
+    name = path.stem.removeprefix("test_")
+    out: set[str] = set()
+    for module, names in privates.items():
+        parts = module.split(".")
+        if parts[0] == "geomatch" and len(parts) > 1 and name in (parts[-1], "_".join(parts[1:])):
+            out |= names
+    return out
 
 
 @pytest.mark.parametrize("path", list(_files()), ids=lambda p: str(p.relative_to(ROOT)))

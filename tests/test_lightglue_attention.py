@@ -9,7 +9,7 @@ import torch
 
 from geomatch import Matcher
 from geomatch.features.lightglue import FusedCrossBlock, LightGlueMatcher
-from geomatch.homography import WarpedPair
+from geomatch.synth.photos import WarpedPair
 
 
 @pytest.fixture(scope="module")

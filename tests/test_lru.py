@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from geomatch.lru import ByteLRU
-from geomatch.matcher import MatcherConfig
+from geomatch.matching.matcher import MatcherConfig
 from geomatch.options import OptionError, cache_budget
 from geomatch.steps import Images
 

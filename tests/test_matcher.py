@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from geomatch import METHODS, Matcher, match_pair
-from geomatch.homography import WarpedPair, reprojection_errors, warped_pair
+from geomatch.eval.homography import reprojection_errors
+from geomatch.synth.photos import WarpedPair, warped_pair
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -34,7 +35,9 @@ def test_geo_finds_more_correct_matches_than_either_backbone(
     for method in ("sparse", "dense", "geo"):
         # the full method on every pair: this warped pair's anchors are strong enough that the
         # default would answer it with the anchors alone (the next test)
-        r = matcher.derive(method=method, anchors_suffice=0).match(astronaut_pair.image0, astronaut_pair.image1)
+        r = matcher.derive(method=method, anchors_suffice=0).match(
+            astronaut_pair.image0, astronaut_pair.image1
+        )
         err = reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)
         correct[method] = int((err < 3).sum())
         if method == "geo":
@@ -116,7 +119,7 @@ def test_match_pair_api_takes_paths_and_options(tmp_path, astronaut_pair: Warped
 def test_geo_gives_nothing_for_images_that_do_not_overlap(matcher: Matcher) -> None:
     """Two unrelated photos: the optimiser alone would return matches that agree with a (wrong) F
     by construction, which COLMAP's verification would then accept; the anchor gate drops them."""
-    from geomatch.homography import photo
+    from geomatch.synth.photos import photo
 
     a, b = photo("coffee"), photo("rocket")
     geo = matcher.derive(method="geo")
@@ -149,7 +152,7 @@ def test_lightglue_assignment_branch_and_pruning_settings(
 
 def test_the_method_flags_are_the_old_name_tests() -> None:
     """Matcher.match reads the method's flags; for the five methods they say what the names did."""
-    from geomatch.matcher import MatcherConfig
+    from geomatch.matching.matcher import MatcherConfig
 
     for method in METHODS:
         cfg = MatcherConfig(method=method)

@@ -4,8 +4,8 @@ import numpy as np
 import pycolmap
 import pytest
 
-from geomatch.metrics import evaluate, relative_pose_errors, scene_extent
-from geomatch.synth import Scene, write_gt
+from geomatch.eval.metrics import evaluate, relative_pose_errors, scene_extent
+from geomatch.synth.aerial import Scene, write_gt
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,12 @@ import pytest
 import torch
 
 from geomatch.geometry import estimate_fundamental, sampson_distance
-from geomatch.optimizer import GeoOptions, dense_mutual_nn, geometric_confidence, geometry_aware_matching
+from geomatch.matching.optimizer import (
+    GeoOptions,
+    dense_mutual_nn,
+    geometric_confidence,
+    geometry_aware_matching,
+)
 
 from .test_geometry import two_view
 

@@ -134,10 +134,10 @@ def test_proto_is_the_options() -> None:
 
 # -- the library's dataclasses (their defaults must be the options') ------------------------------
 def test_library_defaults_are_the_options() -> None:
-    from geomatch.matcher import MatcherConfig
-    from geomatch.optimizer import GeoOptions
+    from geomatch.matching.matcher import MatcherConfig
+    from geomatch.matching.optimizer import GeoOptions
     from geomatch.pipeline import RunOptions
-    from geomatch.sfm import reconstruct
+    from geomatch.sfm.mapping import reconstruct
 
     config = MatcherConfig()
     for name in options.MATCH_OPTIONS:

@@ -3,11 +3,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from geomatch import pairs
 from geomatch.metadata import ImageMeta, read_metadata
-from geomatch.retrieval import vlad
+from geomatch.sfm import pairs
+from geomatch.sfm.retrieval import vlad
 from geomatch.steps import aerial_set, captures
-from geomatch.synth import write_scene
+from geomatch.synth.aerial import write_scene
 
 NAMES = ["a0.jpg", "a1.jpg", "g0.jpg", "g1.jpg", "g2.jpg"]
 

@@ -13,7 +13,7 @@ import pycolmap
 import pytest
 
 from geomatch.cli import main
-from geomatch.synth import write_scene
+from geomatch.synth.aerial import write_scene
 
 E2E_SEED = 1
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from geomatch.pose import auc_over_runs, pose_auc, relative_pose_error, shuffled_errors
-from geomatch.synth import Camera, look_at
+from geomatch.eval.pose import auc_over_runs, pose_auc, relative_pose_error, shuffled_errors
+from geomatch.synth.aerial import Camera, look_at
 
 
 def _pair(noise_px: float, outliers: float, seed: int = 0):

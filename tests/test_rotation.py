@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from geomatch import Matcher
-from geomatch.homography import WarpedPair, reprojection_errors
-from geomatch.pairs import Pair, finalize
-from geomatch.rotation import best_turn, points_back, quarter_turn
+from geomatch.eval.homography import reprojection_errors
+from geomatch.matching.rotation import best_turn, points_back, quarter_turn
+from geomatch.sfm.pairs import Pair, finalize
 from geomatch.steps import match
+from geomatch.synth.photos import WarpedPair
 
 
 @pytest.mark.parametrize("turns", [0, 1, 2, 3])

@@ -14,7 +14,7 @@ from geomatch.features.disk import DiskExtractor
 from geomatch.features.disk_strips import disk_maps
 from geomatch.features.pooling import pool_to_grid
 from geomatch.features.strips import row_strips, rows_through
-from geomatch.homography import photo
+from geomatch.synth.photos import photo
 
 CPU = torch.device("cpu")
 

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from geomatch.homography import apply_h, warped_pair
+from geomatch.eval.homography import apply_h
 from geomatch.imageio import prepare
-from geomatch.subpixel import SubpixelOptions, neighbour_affine, refine_points
+from geomatch.matching.subpixel import SubpixelOptions, neighbour_affine, refine_points
+from geomatch.synth.photos import warped_pair
 
 
 def _setup(seed: int = 3) -> tuple[object, torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:

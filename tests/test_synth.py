@@ -6,7 +6,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from geomatch.synth import Scene, covisibility, write_scene
+from geomatch.synth.aerial import Scene, covisibility, write_scene
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ import pycolmap
 import pytest
 
 from geomatch.cli import main
-from geomatch.pose import pose_auc, relative_pose_error
-from geomatch.synth_indoor import IndoorPair, covisibility, gt_matches, indoor_pairs, no_overlap_pairs
+from geomatch.eval.pose import pose_auc, relative_pose_error
+from geomatch.synth.indoor import IndoorPair, covisibility, gt_matches, indoor_pairs, no_overlap_pairs
 
 SMALL = {"width": 160, "height": 120, "supersample": 1}
 

@@ -3,9 +3,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from geomatch.homography import reprojection_errors
+from geomatch.eval.homography import reprojection_errors
+from geomatch.matching.tiling import SELECT_MIN_PROBE, five_crops, match_tiled, merge_matches, select_crops
 from geomatch.steps import tile_crops
-from geomatch.tiling import SELECT_MIN_PROBE, five_crops, match_tiled, merge_matches, select_crops
 
 
 def test_crops_cover_the_image_and_map_back_exactly() -> None:

@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from geomatch.tracks import snap, unique_matches
+from geomatch.sfm.tracks import snap, unique_matches
 
 
 def test_snap_reuses_nearby_keypoints_and_appends_the_rest() -> None:

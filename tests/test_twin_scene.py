@@ -1,6 +1,6 @@
 """End to end on a scene built to fold Structure-from-Motion: a building whose north and south faces
 share a band of look-alike texture (the repeated windows) and differ everywhere else
-(geomatch.synth_twin), seen by 14 eye-level cameras on a ring around it.
+(geomatch.synth.twin), seen by 14 eye-level cameras on a ring around it.
 
 The real failure behind it: on castle-P19 look-alike opposite facades gave verified pairs of views
 that share nothing, with a fraction of a right neighbour pair's inliers, and the mapper turned a
@@ -21,9 +21,9 @@ from typing import Any
 
 import pytest
 
-from geomatch.evaluate import evaluate_run
+from geomatch.eval.evaluate import evaluate_run
 from geomatch.pipeline import RunOptions, run
-from geomatch.synth_twin import write_twin_scene
+from geomatch.synth.twin import write_twin_scene
 
 WIDTH, HEIGHT = 480, 360
 CAMERAS = 14

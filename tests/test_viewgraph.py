@@ -1,11 +1,11 @@
-"""The view graph's loop check (geomatch.viewgraph): wrong pairs go, right ones stay."""
+"""The view graph's loop check (geomatch.sfm.viewgraph): wrong pairs go, right ones stay."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from geomatch.viewgraph import inconsistent_pairs, loop_error, rotation_angle, tree_inconsistent_pairs
+from geomatch.sfm.viewgraph import inconsistent_pairs, loop_error, rotation_angle, tree_inconsistent_pairs
 
 
 def _graph(

@@ -23,7 +23,7 @@ from typing import Any
 from sqlalchemy import select, update
 
 from geomatch.options import DEFAULTS
-from geomatch.sqlitecopy import snapshot_sqlite
+from geomatch.sfm.sqlitecopy import snapshot_sqlite
 from geomatch_core import jobstate
 from geomatch_core.models import Image, Job, JobPair
 from geomatch_core.queue import EXTRACT, MATCH_PAIR, RENDER_PAIR
@@ -45,9 +45,10 @@ def plan_match(ctx: Context, job_id: str) -> str:
 
 
 def _plan(ctx: Context, job: Job) -> None:
-    from geomatch import gps, steps
-    from geomatch.colmapdb import ColmapDatabase
+    from geomatch import steps
+    from geomatch.geo import gps
     from geomatch.metadata import read_metadata
+    from geomatch.sfm.colmapdb import ColmapDatabase
 
     t0 = time.perf_counter()
     opts, pid = job.options, job.project_id
@@ -141,8 +142,8 @@ def extract(ctx: Context, job_id: str, name: str, full: bool, crops: bool) -> st
 
 def match_pair(ctx: Context, job_id: str, idx: int) -> str:
     from geomatch import steps
-    from geomatch.colmapdb import ColmapDatabase
-    from geomatch.pairs import Pair
+    from geomatch.sfm.colmapdb import ColmapDatabase
+    from geomatch.sfm.pairs import Pair
 
     job = jobstate.get(ctx.store, job_id)
     if job is None or job.state != "running":
@@ -150,7 +151,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
     with ctx.store.session() as s:
         p = s.get(JobPair, (job_id, idx))
         # the plan step marked the aerial images: a pair with an aerial side is matched at its
-        # best quarter turn (geomatch.rotation), and under ``auto`` a project with any aerial
+        # best quarter turn (geomatch.matching.rotation), and under ``auto`` a project with any aerial
         # image matches every pair with ``geo``
         aerial_names = set(
             s.scalars(select(Image.name).where(Image.project_id == job.project_id, Image.aerial.is_(True)))
@@ -208,8 +209,9 @@ def _image_id(db: Any, name: str) -> int:
 
 # -- reconstruct jobs ---------------------------------------------------------------------------
 def reconstruct(ctx: Context, job_id: str) -> str:
-    from geomatch import gps, steps
-    from geomatch.colmapdb import ColmapDatabase
+    from geomatch import steps
+    from geomatch.geo import gps
+    from geomatch.sfm.colmapdb import ColmapDatabase
 
     job = jobstate.claim(ctx.store, job_id)
     if job is None:
@@ -259,8 +261,8 @@ def render_pair(ctx: Context, project_id: str, name0: str, name1: str) -> dict[s
     """Draw a matched pair from the COLMAP database: verified inliers red, other matches blue."""
     import numpy as np
 
-    from geomatch.colmapdb import ColmapDatabase
-    from geomatch.matcher import MatchResult
+    from geomatch.matching.matcher import MatchResult
+    from geomatch.sfm.colmapdb import ColmapDatabase
     from geomatch.viz import save_matches
 
     db_path = ctx.storage.database_path(project_id)

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import numpy as np
 
-    from geomatch.matcher import Matcher
+    from geomatch.matching.matcher import Matcher
     from geomatch.options import CacheBudget
 
     from .context import Context

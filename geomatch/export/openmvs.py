@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pycolmap
 
-from ..colmaplog import colmap_log
+from ..sfm.colmaplog import colmap_log
 from .source import Source
 
 

@@ -2,7 +2,7 @@
 
 Coordinates are pixels of the *network input* (the resized image), with pixel centres at
 integer coordinates (x right, y down): the pixel in column 0, row 0 covers [-0.5, 0.5)^2.
-Mapping back to the original image is done once, in :mod:`geomatch.matcher`.
+Mapping back to the original image is done once, in :mod:`geomatch.matching.matcher`.
 """
 
 from __future__ import annotations

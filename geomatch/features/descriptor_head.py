@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from ..refine import RefineOptions, correlate_window, points_in_cells
 from .base import CoarsePair, DenseFeatures, DenseHead, Refined
 from .pooling import cell_centres
+from .refine import RefineOptions, correlate_window, points_in_cells
 
 
 class DescriptorHead(DenseHead):

@@ -2,17 +2,37 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 
 from .base import DenseHead, Extractor, SparseMatcher
-
-if TYPE_CHECKING:
-    from ..matcher import MatcherConfig
+from .refine import RefineOptions
 
 
-def build_extractor(name: str, device: torch.device, config: MatcherConfig) -> Extractor:
+class BackboneConfig(Protocol):
+    """The fields of a matcher's configuration (``geomatch.matching.matcher.MatcherConfig``) that the
+    builders read: described here so that the backbones need nothing from the matching above them."""
+
+    @property
+    def max_keypoints(self) -> int: ...
+    @property
+    def loftr_weights(self) -> str | None: ...
+    @property
+    def sparse(self) -> str: ...
+    @property
+    def lightglue_threshold(self) -> float: ...
+    @property
+    def lightglue_depth_confidence(self) -> float: ...
+    @property
+    def lightglue_width_confidence(self) -> float: ...
+    @property
+    def dense(self) -> str: ...
+    @property
+    def refine(self) -> RefineOptions: ...
+
+
+def build_extractor(name: str, device: torch.device, config: BackboneConfig) -> Extractor:
     if name == "aliked":
         from .aliked import AlikedExtractor
 
@@ -28,7 +48,7 @@ def build_extractor(name: str, device: torch.device, config: MatcherConfig) -> E
     raise ValueError(f"unknown backbone {name!r}")
 
 
-def build_sparse_matcher(config: MatcherConfig, device: torch.device) -> SparseMatcher:
+def build_sparse_matcher(config: BackboneConfig, device: torch.device) -> SparseMatcher:
     from .lightglue import LightGlueMatcher
 
     return LightGlueMatcher(
@@ -40,7 +60,7 @@ def build_sparse_matcher(config: MatcherConfig, device: torch.device) -> SparseM
     )
 
 
-def build_dense_head(config: MatcherConfig, extractor: Extractor) -> DenseHead:
+def build_dense_head(config: BackboneConfig, extractor: Extractor) -> DenseHead:
     if config.dense == "loftr":
         from .loftr import LoftrExtractor, LoftrHead
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from geomatch.synth import write_scene
+from geomatch.synth.aerial import write_scene
 
 from .harness import Deployment
 from .image_harness import IMAGE_ENV, ImageDeployment

@@ -21,7 +21,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from geomatch.geodesy import EnuFrame
+from geomatch.geo.geodesy import EnuFrame
 
 from .harness import GEOMATCH, Deployment, database_pairs, sse_events, upload, wait_job
 

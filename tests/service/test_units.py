@@ -17,8 +17,8 @@ from PIL import Image as PILImage
 from sqlalchemy import select
 
 from geomatch import steps
-from geomatch.homography import WarpedPair
-from geomatch.pairs import PairSpecError, parse_plan
+from geomatch.sfm.pairs import PairSpecError, parse_plan
+from geomatch.synth.photos import WarpedPair
 from geomatch_core import jobstate
 from geomatch_core.errors import BadFile, InvalidRequest
 from geomatch_core.models import Job, JobPair, Project, Tenant
@@ -178,7 +178,13 @@ def test_service_modules_do_not_import_torch() -> None:
     # the option vocabulary, the command's parser and the SQLite snapshot (standard library only)
     # are all the API reads of the library
     loaded = loaded_after(modules, ("torch", "geomatch", "cv2"))
-    assert loaded == ["geomatch", "geomatch.cli", "geomatch.options", "geomatch.sqlitecopy"]
+    assert loaded == [
+        "geomatch",
+        "geomatch.cli",
+        "geomatch.options",
+        "geomatch.sfm",
+        "geomatch.sfm.sqlitecopy",
+    ]
 
 
 # -- feature store -------------------------------------------------------------------------------

@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .geometry import SampsonGrid, estimate_fundamental, sampson_distance
-from .options import DEFAULTS
+from ..geometry import SampsonGrid, estimate_fundamental, sampson_distance
+from ..options import DEFAULTS
 
 log = logging.getLogger(__name__)
 

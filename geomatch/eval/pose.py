@@ -15,7 +15,7 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from .homography import auc
+from .metrics import auc
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:

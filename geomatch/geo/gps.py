@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ..metadata import ImageMeta, camera_from_gimbal, read_metadata, up_in_camera
 from .geodesy import EnuFrame
-from .metadata import ImageMeta, camera_from_gimbal, read_metadata, up_in_camera
 
 
 @dataclass(frozen=True)

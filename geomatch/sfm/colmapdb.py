@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from .metadata import ImageMeta
+from ..metadata import ImageMeta
 from .tracks import snap, unique_matches
 
 CAMERA_MODEL = "SIMPLE_RADIAL"

@@ -2,7 +2,7 @@
 
 Hypotheses come from triples of camera centres (paired by image name): every triple when there
 are at most ``max_hypotheses`` of them, else that many random ones (fixed seed). Each similarity
-(Umeyama, similarity.py) is scored by how many cameras it makes *correct*, i.e.
+(Umeyama, geo/similarity.py) is scored by how many cameras it makes *correct*, i.e.
 within BOTH the rotation and the position threshold; the best one is refined by refitting on its
 correct cameras until that set stops changing (the local optimisation of LO-RANSAC).
 
@@ -21,7 +21,7 @@ from itertools import combinations
 
 import numpy as np
 
-from .similarity import umeyama
+from ..geo.similarity import umeyama
 
 
 @dataclass(frozen=True)

@@ -32,28 +32,27 @@ from typing import Any
 import numpy as np
 import pycolmap
 
+from ..sfm.mapping import sfm_stats
 from .alignment import align
-from .homography import auc
 
 AUC_THRESHOLDS = (3.0, 5.0, 10.0)
 MAX_ROTATION_ERROR_DEG = 3.0
 MAX_POSITION_ERROR_FRACTION = 0.05  # of the scene extent
 
 
-def sfm_stats(rec: pycolmap.Reconstruction, n_images: int) -> dict[str, Any]:
-    return {
-        "registered": int(rec.num_reg_images()),
-        "images": int(n_images),
-        "points3D": int(rec.num_points3D()),
-        "observations": int(rec.compute_num_observations()),
-        "mean_track_length": float(rec.compute_mean_track_length()) if rec.num_points3D() else 0.0,
-        "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image())
-        if rec.num_reg_images()
-        else 0.0,
-        "mean_reprojection_error": float(rec.compute_mean_reprojection_error())
-        if rec.num_points3D()
-        else 0.0,
-    }
+def auc(errors: list[float] | np.ndarray, thresholds: tuple[float, ...]) -> list[float]:
+    """Area under the recall-vs-error curve up to each threshold (as in SuperGlue / LoFTR)."""
+    errs = np.sort(np.asarray(errors, dtype=np.float64))
+    recall = (np.arange(len(errs)) + 1) / max(len(errs), 1)
+    errs = np.concatenate([[0.0], errs])
+    recall = np.concatenate([[0.0], recall])
+    out = []
+    for t in thresholds:
+        last = int(np.searchsorted(errs, t))
+        e = np.concatenate([errs[:last], [t]])
+        r = np.concatenate([recall[:last], [recall[last - 1]]])
+        out.append(float(np.trapezoid(r, x=e) / t))
+    return out
 
 
 def _angle_deg(R: np.ndarray) -> float:

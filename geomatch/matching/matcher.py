@@ -27,11 +27,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from .features.base import DenseHead, Extractor, ImageFeatures, SparseFeatures, SparseMatch, SparseMatcher
-from .features.registry import build_dense_head, build_extractor, build_sparse_matcher
-from .geometry import estimate_fundamental, sampson_distance, scale_fundamental
-from .imageio import Prepared, image_key, prepare, read_image
-from .lru import trim_lru
+from ..features.base import DenseHead, Extractor, ImageFeatures, SparseFeatures, SparseMatch, SparseMatcher
+from ..features.refine import RefineOptions
+from ..features.registry import build_dense_head, build_extractor, build_sparse_matcher
+from ..geometry import estimate_fundamental, sampson_distance, scale_fundamental
+from ..imageio import Prepared, image_key, prepare, read_image
+from ..lru import trim_lru
+from ..options import DEFAULTS, DENSE_BACKBONES, METHOD_FLAGS, METHODS, SPARSE_BACKBONES, Method
 from .optimizer import (
     Assignment,
     GeoOptions,
@@ -41,8 +43,6 @@ from .optimizer import (
     mutual_nn,
     optimise,
 )
-from .options import DEFAULTS, DENSE_BACKBONES, METHOD_FLAGS, METHODS, SPARSE_BACKBONES, Method
-from .refine import RefineOptions
 from .subpixel import SubpixelOptions, refine_points
 
 log = logging.getLogger(__name__)
@@ -87,12 +87,12 @@ class MatcherConfig:
     # the ``lightglue`` dense branch needs. Chosen by measurement: docs/benchmarks.md.
     lightglue_depth_confidence: float = -1.0
     lightglue_width_confidence: float = -1.0
-    # the quarter-turn probe (geomatch.rotation) only ranks four turns, so it matches each image's
+    # the quarter-turn probe (geomatch.matching.rotation) only ranks four turns, so it matches each image's
     # strongest ``probe_keypoints`` with LightGlue's adaptive depth and width on: on the 2-core CPU
     # a full-strength call on 2048 + 2048 points takes ~8 s, four of them per pair dominated an
     # aerial pair (bench/quarter_turns.py compares the two probes' choices)
     probe_keypoints: int = 512
-    # a tiled pair (geomatch.tiling): "probe" matches only the aerial crops where the cheap probe's
+    # a tiled pair (geomatch.matching.tiling): "probe" matches only the aerial crops where the cheap probe's
     # F-consistent matches lie (all five when it finds too few to tell), "all" the five crops
     tile_crops: str = "probe"
     dense_temperature: float | None = None  # None: the head's own (0.02 descriptor maps, 0.1 LoFTR)
@@ -114,7 +114,7 @@ class MatcherConfig:
     # x ground pairs always get the full method (Matcher.for_pair): that is where it was measured
     # to register views the anchors lose.
     anchors_suffice: int = 300
-    # least-squares matching of the final points in B (geomatch.subpixel): "auto" does it for the
+    # least-squares matching of the final points in B (geomatch.matching.subpixel): "auto" does it for the
     # methods that optimise (the paper's refinement stage, anchors included), "lsm" for any
     # method, "off" never
     subpixel: str = "auto"

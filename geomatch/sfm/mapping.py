@@ -18,13 +18,28 @@ from typing import Any
 import pycolmap
 from tqdm import tqdm
 
-from . import georef
+from ..geo import georef
+from ..geo.gps import GpsFixes
+from ..options import MAPPERS, MIN_POSE_INLIERS
 from .colmaplog import colmap_log
-from .gps import GpsFixes
-from .metrics import sfm_stats
-from .options import MAPPERS, MIN_POSE_INLIERS
 from .sqlitecopy import snapshot_sqlite
 from .viewgraph import filter_database
+
+
+def sfm_stats(rec: pycolmap.Reconstruction, n_images: int) -> dict[str, Any]:
+    return {
+        "registered": int(rec.num_reg_images()),
+        "images": int(n_images),
+        "points3D": int(rec.num_points3D()),
+        "observations": int(rec.compute_num_observations()),
+        "mean_track_length": float(rec.compute_mean_track_length()) if rec.num_points3D() else 0.0,
+        "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image())
+        if rec.num_reg_images()
+        else 0.0,
+        "mean_reprojection_error": float(rec.compute_mean_reprojection_error())
+        if rec.num_points3D()
+        else 0.0,
+    }
 
 
 def verify(database: Path, verbose: bool = False) -> int:
@@ -62,7 +77,7 @@ def reconstruct(
     """Map, export the largest model and return (and write) the summary.
 
     With ``gps`` every model with three or more registered images that have a fix is moved into
-    the fixes' ENU frame (georef.py) before it is written, so ``sparse/``, ``points.ply`` and the
+    the fixes' ENU frame (geo/georef.py) before it is written, so ``sparse/``, ``points.ply`` and the
     summary are all in ENU metres; the summary says whether the largest model was
     (``georeferenced``) and how well its cameras fit their fixes (``alignment``).
 

@@ -95,7 +95,7 @@ def load_model(folder: Path) -> pycolmap.Reconstruction:
 
 
 def exported_models(out: Path) -> list[Path]:
-    """``sparse/0``, ``sparse/1`` ... as sfm.py exports them, largest first."""
+    """``sparse/0``, ``sparse/1`` ... as sfm/mapping.py exports them, largest first."""
     sparse = out / "sparse"
     if not sparse.is_dir():
         return []

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import torch
 
-from .features.base import Refined
-from .geometry import sampson_distance
+from ..geometry import sampson_distance
+from .base import Refined
 
 
 @dataclass(frozen=True)

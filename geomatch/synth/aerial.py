@@ -29,9 +29,9 @@ import numpy as np
 from PIL import Image
 from PIL.PngImagePlugin import PngInfo
 
-from .geodesy import EnuFrame
-from .homography import photo
-from .metadata import ImageMeta, dji_xmp, exif_for, gps_exif, up_in_camera
+from ..geo.geodesy import EnuFrame
+from ..metadata import ImageMeta, dji_xmp, exif_for, gps_exif, up_in_camera
+from .photos import photo
 
 TEXTURES = (
     "astronaut",

@@ -1,4 +1,5 @@
-"""Warped-photo pairs with a known homography, and the HPatches-style metrics on them.
+"""Photos shipped with scikit-image: textures of the synthetic scenes, and warped-photo pairs with a
+known homography (the metrics on them: :mod:`geomatch.eval.homography`).
 
 Photos come from scikit-image's bundled data module, so tests and benchmarks need no download.
 """
@@ -89,41 +90,3 @@ def warped_pairs(
     count: int, seed: int = 0, strength: float = 0.2, max_side: int | None = 640
 ) -> list[WarpedPair]:
     return [warped_pair(PHOTOS[i % len(PHOTOS)], seed + i, strength, max_side) for i in range(count)]
-
-
-def apply_h(H: np.ndarray, points: np.ndarray) -> np.ndarray:
-    p = np.concatenate([points, np.ones((len(points), 1))], 1) @ H.T
-    return p[:, :2] / p[:, 2:3]
-
-
-def reprojection_errors(H: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray) -> np.ndarray:
-    """Distance in image1 between each match's point and where H sends its image0 point."""
-    if len(kpts0) == 0:
-        return np.zeros(0)
-    return np.linalg.norm(apply_h(H, kpts0.astype(np.float64)) - kpts1, axis=1)
-
-
-def corner_error(H_gt: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray, width: int, height: int) -> float:
-    """Mean corner distance of the homography estimated from the matches (inf when it fails)."""
-    if len(kpts0) < 4:
-        return float("inf")
-    H_est, _ = cv2.findHomography(kpts0.astype(np.float64), kpts1.astype(np.float64), cv2.USAC_MAGSAC, 3.0)
-    if H_est is None:
-        return float("inf")
-    corners = np.array([[0, 0], [width - 1, 0], [width - 1, height - 1], [0, height - 1]], np.float64)
-    return float(np.linalg.norm(apply_h(H_est, corners) - apply_h(H_gt, corners), axis=1).mean())
-
-
-def auc(errors: list[float] | np.ndarray, thresholds: tuple[float, ...]) -> list[float]:
-    """Area under the recall-vs-error curve up to each threshold (as in SuperGlue / LoFTR)."""
-    errs = np.sort(np.asarray(errors, dtype=np.float64))
-    recall = (np.arange(len(errs)) + 1) / max(len(errs), 1)
-    errs = np.concatenate([[0.0], errs])
-    recall = np.concatenate([[0.0], recall])
-    out = []
-    for t in thresholds:
-        last = int(np.searchsorted(errs, t))
-        e = np.concatenate([errs[:last], [t]])
-        r = np.concatenate([recall[:last], [recall[last - 1]]])
-        out.append(float(np.trapezoid(r, x=e) / t))
-    return out

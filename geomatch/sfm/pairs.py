@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .options import TILING
-from .options import PairSpecError as PairSpecError  # the grammar lives with the other options
-from .options import parse_plan as parse_plan
-from .options import parse_spec as parse_spec
+from ..options import TILING
+from ..options import PairSpecError as PairSpecError  # the grammar lives with the other options
+from ..options import parse_plan as parse_plan
+from ..options import parse_spec as parse_spec
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,7 @@ class Pair:
     tiled: bool = False  # exactly one side is aerial and tiling applies
     aerial_first: bool = True  # for tiled pairs: which side is aerial
     # an aerial side: a drone's heading is arbitrary, so the pair is matched at the best quarter
-    # turn (geomatch.rotation)
+    # turn (geomatch.matching.rotation)
     rotate: bool = False
 
     @property

@@ -1,7 +1,7 @@
 """Synthetic indoor rooms with ground truth: the wide-baseline pairs where held-out data says we fail.
 
 Real indoor scans (ScanNet-like, 640x480) are hard for other reasons than the outdoor scenes of
-:mod:`geomatch.synth`: most of the image is plain painted wall, floor and ceiling with nothing to
+:mod:`geomatch.synth.aerial`: most of the image is plain painted wall, floor and ceiling with nothing to
 detect, what texture there is often repeats (floor tiles, shelves, cupboard doors, the same poster
 twice), the camera is close to the geometry, so a 20-70 degree rotation changes the view a lot.
 A room here is the inside of a box (walls, floor, ceiling) holding furniture boxes on the floor,
@@ -24,8 +24,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .homography import photo as _load_photo
-from .synth import Camera, look_at, sample_texture, save_png, scribble, unique_texture, write_gt
+from .aerial import Camera, look_at, sample_texture, save_png, scribble, unique_texture, write_gt
+from .photos import photo as _load_photo
 
 PPM = 250.0  # texture pixels per metre: a wall 2 m away at f = 560 px is seen at ~280 px/m
 PHOTOS = ("astronaut", "coffee", "rocket", "chelsea", "motorcycle_left", "camera", "clock", "coins", "retina")
@@ -580,7 +580,7 @@ def _solvable(pair: IndoorPair) -> bool:
     """Exact correspondences recover the pose under the scoring protocol: a pair that is nearly one
     plane can fool the essential-matrix RANSAC even with perfect matches, and would measure luck,
     not matching."""
-    from .pose import relative_pose_error
+    from ..eval.pose import relative_pose_error
 
     h, w = pair.depth0.shape
     for stride in (2, 3, 4, 5, 7):  # several samplings: RANSAC on a near-degenerate pair is erratic

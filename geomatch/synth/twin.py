@@ -7,7 +7,7 @@ consistent inliers, a fraction of a right neighbour pair's 750-1500. The pairs p
 verification, and because the look-alike is a symmetry of the building they also agree with each
 other, so a triangle check over the view graph finds the loops among them consistent, and
 COLMAP's incremental mapper builds one confident model with a block of cameras turned about 180
-degrees. The scenes of :mod:`geomatch.synth` give every surface its own texture precisely to avoid
+degrees. The scenes of :mod:`geomatch.synth.aerial` give every surface its own texture precisely to avoid
 this; here it is built on purpose, so that a filter against it can be tested against ground truth.
 
 The building is one box at the origin, 10 m east-west, 7 m north-south, 6 m high. The upper half
@@ -46,8 +46,8 @@ the same (7 and 10 of 14 with nothing filtering, 14 of 14 with the default check
 ring neighbours 548-921) and the outcome is the same: 7 of 14 with nothing filtering, 14 of 14
 with the default checks.
 
-Output of :func:`write_twin_scene`: ``images/`` (PNG with the EXIF of :func:`geomatch.synth.save_png`)
-and ``gt/`` (COLMAP text model), as :func:`geomatch.synth.write_scene` writes them.
+Output of :func:`write_twin_scene`: ``images/`` (PNG with the EXIF of :func:`geomatch.synth.aerial.save_png`)
+and ``gt/`` (COLMAP text model), as :func:`geomatch.synth.aerial.write_scene` writes them.
 """
 
 from __future__ import annotations
@@ -56,8 +56,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .homography import photo
-from .synth import TEXTURES, Box, Camera, Scene, look_at, save_png, unique_texture, write_gt
+from .aerial import TEXTURES, Box, Camera, Scene, look_at, save_png, unique_texture, write_gt
+from .photos import photo
 
 # the building (metres): the long faces along x carry the look-alike band; near square, so that
 # the views off its corners see an end face and a long face at workable angles
@@ -81,7 +81,7 @@ def _face_texture(rng: np.random.Generator, name: str) -> np.ndarray:
 
 
 class TwinScene(Scene):
-    """The textured ground of :class:`geomatch.synth.Scene` with the one building on it."""
+    """The textured ground of :class:`geomatch.synth.aerial.Scene` with the one building on it."""
 
     def __init__(self, seed: int) -> None:
         super().__init__(seed, n_boxes=0)
