@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint format bench image clean
+.PHONY: setup demo test test-fast lint format bench image clean
 
 $(BIN)/python:
 	@command -v $(PY) >/dev/null 2>&1 || { echo "need $(PY) on PATH"; exit 1; }
@@ -42,6 +42,11 @@ test: setup
 	$(BIN)/python tests/service/ensure_redis.py
 	tests/ensure_browser.sh
 	$(BIN)/python -m pytest -q --durations=20 tests
+
+# The unit tier (pytest markers: pyproject.toml): no Redis, no browser, no networks, under 2
+# minutes on 2 cores; the check to run after every change.
+test-fast: setup
+	$(BIN)/python -m pytest -q -m unit --durations=5 tests
 
 lint: setup
 	$(BIN)/ruff check geomatch geomatch_core service workers geomatch_app tests bench

@@ -26,6 +26,7 @@ def pair_files(tmp_path_factory) -> tuple[Path, Path, np.ndarray]:
     return d / "a.jpg", d / "b.png", p.H
 
 
+@pytest.mark.nets
 def test_good_pair_writes_npz_and_picture(pair_files, tmp_path) -> None:
     a, b, H = pair_files
     out, viz = tmp_path / "m.npz", tmp_path / "m.png"
@@ -44,6 +45,7 @@ def test_good_pair_writes_npz_and_picture(pair_files, tmp_path) -> None:
     assert picture is not None and picture.shape[0] == 600
 
 
+@pytest.mark.unit
 def test_bad_file_exits_2_with_one_line(pair_files, tmp_path) -> None:
     a, _, _ = pair_files
     bad = tmp_path / "notes.jpg"
@@ -55,6 +57,7 @@ def test_bad_file_exits_2_with_one_line(pair_files, tmp_path) -> None:
     assert not (tmp_path / "x.npz").exists()
 
 
+@pytest.mark.unit
 def test_truncated_and_empty_files(pair_files, tmp_path) -> None:
     a, _, _ = pair_files
     trunc = tmp_path / "t.jpg"
@@ -66,6 +69,7 @@ def test_truncated_and_empty_files(pair_files, tmp_path) -> None:
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
 
 
+@pytest.mark.unit
 def test_missing_file_exits_2(pair_files, tmp_path) -> None:
     a, _, _ = pair_files
     res = run("match", str(tmp_path / "nope.jpg"), str(a), "--out", str(tmp_path / "x.npz"))
@@ -73,6 +77,7 @@ def test_missing_file_exits_2(pair_files, tmp_path) -> None:
     assert res.stderr.strip() == f"geomatch: error: {tmp_path / 'nope.jpg'}: no such file"
 
 
+@pytest.mark.unit
 def test_unavailable_device_is_a_one_line_error(pair_files, tmp_path) -> None:
     import torch
 
@@ -86,6 +91,7 @@ def test_unavailable_device_is_a_one_line_error(pair_files, tmp_path) -> None:
     ]
 
 
+@pytest.mark.unit
 def test_export_of_a_folder_without_a_model_is_a_one_line_error(tmp_path) -> None:
     """The command as installed (tests/test_export.py exports a real run, every format)."""
     res = run("export", str(tmp_path), "--format", "nerfstudio")

@@ -20,6 +20,8 @@ from geomatch.metadata import read_metadata
 from geomatch.sfm.colmapdb import ColmapDatabase
 from geomatch.synth.aerial import Scene, save_png
 
+pytestmark = pytest.mark.pipeline
+
 GLOG_LINE = re.compile(r"^[IWEF]\d{8} \d\d:\d\d:\d\d\.\d+ +\d+ [\w.]+:\d+\]", re.M)
 
 

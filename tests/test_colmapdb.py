@@ -7,6 +7,8 @@ import pytest
 from geomatch.metadata import ImageMeta
 from geomatch.sfm.colmapdb import ColmapDatabase
 
+pytestmark = pytest.mark.unit
+
 
 def _pair_points(rng: np.random.Generator, n: int = 200) -> tuple[np.ndarray, np.ndarray]:
     """Matches consistent with a real two-view geometry: 3D points seen by two cameras."""

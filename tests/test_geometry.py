@@ -7,6 +7,8 @@ import torch
 
 from geomatch.geometry import SampsonGrid, eight_point, estimate_fundamental, sampson_distance
 
+pytestmark = pytest.mark.unit
+
 
 def two_view(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points of a non-planar scene seen by two cameras, and the true F (x1^T F x0 = 0)."""

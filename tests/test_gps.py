@@ -32,6 +32,7 @@ from geomatch.synth.aerial import (
 )
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("suffix", [".png", ".jpg"])
 @pytest.mark.parametrize(("lat", "lon", "alt"), [(47.3769, 8.5417, 408.25), (-33.8568, -151.2153, -12.5)])
 def test_exif_gps_round_trip(tmp_path: Path, suffix: str, lat: float, lon: float, alt: float) -> None:
@@ -45,6 +46,7 @@ def test_exif_gps_round_trip(tmp_path: Path, suffix: str, lat: float, lon: float
     assert m.altitude_m == pytest.approx(alt, abs=1e-3)
 
 
+@pytest.mark.unit
 def test_no_gps_and_dji_absolute_altitude(tmp_path: Path) -> None:
     path = tmp_path / "plain.png"
     Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(path)
@@ -67,6 +69,7 @@ def test_no_gps_and_dji_absolute_altitude(tmp_path: Path) -> None:
     assert m.gimbal_yaw_deg == pytest.approx(-92.5)
 
 
+@pytest.mark.unit
 def test_synth_writes_fixes_and_leaves_renders_alone(tmp_path: Path) -> None:
     plain = write_scene(tmp_path / "plain", 2, 2, seed=3, width=64, height=48)
     noisy = write_scene(tmp_path / "gps", 2, 2, seed=3, width=64, height=48, gps_noise=2.0)
@@ -103,6 +106,7 @@ def test_synth_writes_fixes_and_leaves_renders_alone(tmp_path: Path) -> None:
     assert not (tmp_path / "plain" / "gt" / "gps.json").exists()
 
 
+@pytest.mark.unit
 def test_synth_command_takes_gps_noise(tmp_path: Path) -> None:
     args = ["synth", str(tmp_path), "--aerial", "1", "--ground", "1", "--width", "32", "--height", "24"]
     assert main([*args, "--gps-noise", "1.5"]) == 0
@@ -110,6 +114,7 @@ def test_synth_command_takes_gps_noise(tmp_path: Path) -> None:
     assert all(read_metadata(f).has_gps for f in (tmp_path / "images").iterdir())
 
 
+@pytest.mark.unit
 def test_robust_similarity_recovers_sim3_among_30_percent_outliers() -> None:
     rng = np.random.default_rng(7)
     src = rng.uniform(-50, 50, (40, 3))
@@ -130,6 +135,7 @@ def test_robust_similarity_recovers_sim3_among_30_percent_outliers() -> None:
     assert robust_similarity(src[:2], dst[:2]) is None
 
 
+@pytest.mark.unit
 def test_three_fixes_with_the_first_at_the_origin_align() -> None:
     """The ENU frame is centred on the first fix, so one fix is exactly (0, 0, 0); pycolmap's
     estimate_sim3d answers None for such a triple and left three-fix projects unreferenced."""
@@ -147,6 +153,8 @@ def _angle_deg(u: np.ndarray, v: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(u @ v / np.linalg.norm(u) / np.linalg.norm(v), -1, 1))))
 
 
+# pipeline tier, not unit: it renders three full-size aerial views (seconds), as the runs do
+@pytest.mark.pipeline
 def test_gimbal_xmp_says_where_up_is(tmp_path: Path) -> None:
     """synth writes DJI pitch, yaw and roll; read back, pitch and roll give the camera's up to
     the XMP's 0.1 deg, for obliques and nadir views alike; without roll only a nadir view does."""
@@ -162,6 +170,7 @@ def test_gimbal_xmp_says_where_up_is(tmp_path: Path) -> None:
     assert up_in_camera(ImageMeta(1, 1)) is None
 
 
+@pytest.mark.unit
 def test_upright_fit_is_exact_without_noise_and_keeps_up_vertical() -> None:
     rng = np.random.default_rng(4)
     src = rng.normal(0, 10, (6, 3))
@@ -195,6 +204,8 @@ def _georeference(
     return rec, align(rec, fixes, up_cam=ups, heights=heights)
 
 
+# pipeline tier, not unit: 60 robust fits of the run's last stage (RANSAC), seconds on 2 cores
+@pytest.mark.pipeline
 def test_gravity_from_the_gimbals_makes_georeferencing_better(tmp_path: Path) -> None:
     """A perfect 8 + 12 model in an arbitrary gauge, aligned to 30 draws of 2 m / 3 m fixes: the
     model's up comes back from the gimbals to 0.1 deg, and the upright fit lands the cameras
@@ -215,6 +226,7 @@ def test_gravity_from_the_gimbals_makes_georeferencing_better(tmp_path: Path) ->
     assert np.mean(upright) < 0.9 * np.mean(free), (np.mean(upright), np.mean(free))
 
 
+@pytest.mark.unit
 def test_upright_fit_with_heights_recovers_an_exact_similarity() -> None:
     rng = np.random.default_rng(4)
     src = rng.uniform(-20, 20, (12, 3))
@@ -229,6 +241,8 @@ def test_upright_fit_with_heights_recovers_an_exact_similarity() -> None:
     assert fit.redundancy.sum() == pytest.approx(41 - 5)
 
 
+# pipeline tier, not unit: 60 robust fits of the run's last stage (RANSAC), seconds on 2 cores
+@pytest.mark.pipeline
 def test_barometric_heights_fix_the_scale_gps_cannot(tmp_path: Path) -> None:
     """A perfect 8 + 12 model (seed 2: neither benchmark split), 30 draws of 2 m / 3 m fixes and
     0.3 m heights: the heights' differences over the flight take the scale error from GNSS's
@@ -249,6 +263,8 @@ def test_barometric_heights_fix_the_scale_gps_cannot(tmp_path: Path) -> None:
     assert 0.15 < sh < 0.5 and 1.4 < sg < 2.8, (sh, sg)
 
 
+# pipeline tier, not unit: 40-odd robust fits of the run's last stage (RANSAC), seconds on 2 cores
+@pytest.mark.pipeline
 def test_heights_from_another_take_off_are_dropped_and_noisy_ones_weigh_little(tmp_path: Path) -> None:
     cams, gauge, ups, truth = _perfect_model(tmp_path, 2)
     aerial = sorted(c.name for c in cams if c.aerial)
@@ -281,6 +297,7 @@ def test_heights_from_another_take_off_are_dropped_and_noisy_ones_weigh_little(t
     assert _georeference(tmp_path, gauge, fixes, ups, few)[1].heights is None
 
 
+@pytest.mark.unit
 def test_gps_plans() -> None:
     assert parse_plan("gps:5") == [("gps", 5)]
     assert parse_plan("gps:8+retrieval:4") == [("gps", 8), ("retrieval", 4)]
@@ -302,6 +319,7 @@ def test_gps_plans() -> None:
     assert two == [("a", "b"), ("a", "c"), ("b", "c"), ("c", "d"), ("c", "e"), ("d", "e")]
 
 
+@pytest.mark.unit
 def test_look_point_is_ahead_of_an_oblique_only() -> None:
     here = np.array([100.0, 50.0, 80.0])
     nadir = ImageMeta(8, 8, relative_altitude_m=80.0, gimbal_pitch_deg=-90.0, gimbal_yaw_deg=45.0)
@@ -317,6 +335,7 @@ def test_look_point_is_ahead_of_an_oblique_only() -> None:
     np.testing.assert_allclose(gps.look_point(here, ImageMeta(8, 8)), [100.0, 50.0])
 
 
+@pytest.mark.unit
 def test_footprint_is_the_image_cast_onto_the_ground() -> None:
     here = np.array([100.0, 50.0, 80.0])
     # nadir, heading north, focal = width: an 80 m x 60 m rectangle centred below the drone
@@ -355,6 +374,7 @@ def _drone(pitch: float, yaw: float) -> ImageMeta:
     )
 
 
+@pytest.mark.unit
 def test_gps_plan_ranks_by_shared_ground() -> None:
     """A low oblique 100 m behind a nadir image sees all of its ground; another nadir image 50 m
     to the side sees 42 % of it. By look point the side image is nearer (50 m against 65 m); by
@@ -376,6 +396,7 @@ def test_gps_plan_ranks_by_shared_ground() -> None:
     assert pairs.gps_neighbours(["a", "b", "c"], looks, 1, footprints=feet) == [("a", "b"), ("a", "c")]
 
 
+@pytest.mark.unit
 def test_pose_priors_are_written_and_replaced(tmp_path: Path) -> None:
     for i in range(3):
         exif = gps_exif(exif_for("g", "cam", 4.0, 100.0), 47.0 + i * 1e-4, 8.0, 400.0 + i)
@@ -418,6 +439,7 @@ def gps_run(tmp_path_factory):
     return scene, out
 
 
+@pytest.mark.pipeline
 def test_run_is_georeferenced_and_registers_images_without_gps(gps_run) -> None:
     scene, out = gps_run
     s = json.loads((out / "summary.json").read_text())
@@ -432,6 +454,7 @@ def test_run_is_georeferenced_and_registers_images_without_gps(gps_run) -> None:
     assert f"comment origin {first.latitude:.9f} {first.longitude:.9f}".encode() in header
 
 
+@pytest.mark.pipeline
 def test_model_is_in_enu_metres(gps_run) -> None:
     scene, out = gps_run
     s = json.loads((out / "summary.json").read_text())

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.unit
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("geomatch", "geomatch_core", "service", "workers", "geomatch_app")
 GENERATED = ("_pb2.py", "_pb2_grpc.py")

@@ -13,6 +13,8 @@ from geomatch import Matcher
 from geomatch.eval.pose import relative_pose_error, shuffled_errors
 from geomatch.synth.indoor import IndoorPair, gt_matches, indoor_pairs
 
+pytestmark = pytest.mark.nets
+
 SEED = 7
 
 

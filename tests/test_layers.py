@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.unit
+
 ROOT = Path(__file__).resolve().parents[1]
 LAYERS = {"geomatch": 0, "geomatch_core": 1, "service": 2, "workers": 2, "geomatch_app": 3}
 PACKAGES = tuple(LAYERS)

@@ -11,6 +11,8 @@ from geomatch import Matcher
 from geomatch.features.lightglue import FusedCrossBlock, LightGlueMatcher
 from geomatch.synth.photos import WarpedPair
 
+pytestmark = pytest.mark.nets
+
 
 @pytest.fixture(scope="module")
 def net() -> torch.nn.Module:

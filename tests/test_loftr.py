@@ -19,6 +19,7 @@ def checkpoint(tmp_path_factory) -> str:
     return str(path)
 
 
+@pytest.mark.nets
 def test_loading_and_shapes(checkpoint: str) -> None:
     ext = LoftrExtractor(torch.device("cpu"), weights=checkpoint)
     assert not ext.net.training
@@ -37,6 +38,7 @@ def test_loading_and_shapes(checkpoint: str) -> None:
     assert float((ref.points_b - pair.grid_b[idx + 1]).abs().max()) <= 4.0 + 1e-4
 
 
+@pytest.mark.nets
 def test_loftr_runs_through_the_matcher(checkpoint: str) -> None:
     rng = np.random.default_rng(0)
     img = (rng.uniform(0, 255, (120, 160, 3))).astype(np.uint8)
@@ -45,6 +47,7 @@ def test_loftr_runs_through_the_matcher(checkpoint: str) -> None:
     assert r.keypoints0.shape[1] == 2 and r.keypoints0.shape == r.keypoints1.shape
 
 
+@pytest.mark.unit
 def test_missing_checkpoint_is_a_clear_error(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("GEOMATCH_WEIGHTS_DIR", str(tmp_path))
     monkeypatch.delenv("GEOMATCH_LOFTR_WEIGHTS", raising=False)

@@ -13,6 +13,8 @@ from geomatch.matching.matcher import MatcherConfig
 from geomatch.options import OptionError, cache_budget
 from geomatch.steps import Images
 
+pytestmark = pytest.mark.unit
+
 MB = 2**20
 
 

@@ -10,6 +10,7 @@ from geomatch.eval.homography import reprojection_errors
 from geomatch.synth.photos import WarpedPair, warped_pair
 
 
+@pytest.mark.nets
 @pytest.mark.parametrize("method", METHODS)
 def test_every_method_matches_a_warped_photo_to_subpixel_median(
     matcher: Matcher, astronaut_pair: WarpedPair, method: str
@@ -28,6 +29,7 @@ def test_every_method_matches_a_warped_photo_to_subpixel_median(
     assert np.median(dist) < 2.0
 
 
+@pytest.mark.nets
 def test_geo_finds_more_correct_matches_than_either_backbone(
     matcher: Matcher, astronaut_pair: WarpedPair
 ) -> None:
@@ -46,6 +48,7 @@ def test_geo_finds_more_correct_matches_than_either_backbone(
     assert correct["geo"] > max(correct["sparse"], correct["dense"]), correct
 
 
+@pytest.mark.nets
 def test_geo_answers_a_pair_with_strong_anchors_as_sparse_does(
     matcher: Matcher, astronaut_pair: WarpedPair
 ) -> None:
@@ -66,6 +69,7 @@ def test_geo_answers_a_pair_with_strong_anchors_as_sparse_does(
     assert "init" in tiled.match(a, b).stats
 
 
+@pytest.mark.nets
 def test_features_are_computed_once_per_image(astronaut_pair: WarpedPair, matcher: Matcher) -> None:
     m = matcher.derive(method="geo")
     m.clear_caches(anchors=False)
@@ -78,6 +82,7 @@ def test_features_are_computed_once_per_image(astronaut_pair: WarpedPair, matche
     assert m.extract_calls - before == 6
 
 
+@pytest.mark.nets
 def test_feature_cache_is_bounded_in_bytes(astronaut_pair: WarpedPair, matcher: Matcher) -> None:
     """A worker's memory must not grow with the project: the LRU drops images past its byte budget
     (one DISK image with dense maps at 480 px is ~100 MB) and recomputes them when asked again."""
@@ -93,6 +98,7 @@ def test_feature_cache_is_bounded_in_bytes(astronaut_pair: WarpedPair, matcher: 
     assert np.median(reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)) < 2.0
 
 
+@pytest.mark.nets
 def test_disk_for_both_branches_runs_one_pass_per_image(astronaut_pair: WarpedPair, matcher: Matcher) -> None:
     m = matcher.derive(method="geo", sparse="disk", dense="disk")
     m.clear_caches(anchors=False)
@@ -102,6 +108,7 @@ def test_disk_for_both_branches_runs_one_pass_per_image(astronaut_pair: WarpedPa
     assert np.median(reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)) < 2.0
 
 
+@pytest.mark.nets
 def test_match_pair_api_takes_paths_and_options(tmp_path, astronaut_pair: WarpedPair) -> None:
     import cv2
 
@@ -116,6 +123,7 @@ def test_match_pair_api_takes_paths_and_options(tmp_path, astronaut_pair: Warped
         match_pair(p0, p1, method="magic")
 
 
+@pytest.mark.nets
 def test_geo_gives_nothing_for_images_that_do_not_overlap(matcher: Matcher) -> None:
     """Two unrelated photos: the optimiser alone would return matches that agree with a (wrong) F
     by construction, which COLMAP's verification would then accept; the anchor gate drops them."""
@@ -129,6 +137,7 @@ def test_geo_gives_nothing_for_images_that_do_not_overlap(matcher: Matcher) -> N
     assert len(ungated) > 0 and "rejected" not in ungated.stats
 
 
+@pytest.mark.nets
 def test_lightglue_assignment_branch_and_pruning_settings(
     matcher: Matcher, astronaut_pair: WarpedPair
 ) -> None:
@@ -150,6 +159,7 @@ def test_lightglue_assignment_branch_and_pruning_settings(
     assert same._anchors is m._anchors
 
 
+@pytest.mark.unit
 def test_the_method_flags_are_the_old_name_tests() -> None:
     """Matcher.match reads the method's flags; for the five methods they say what the names did."""
     from geomatch.matching.matcher import MatcherConfig

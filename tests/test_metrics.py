@@ -7,6 +7,8 @@ import pytest
 from geomatch.eval.metrics import evaluate, relative_pose_errors, scene_extent
 from geomatch.synth.aerial import Scene, write_gt
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module")
 def gt(tmp_path_factory) -> pycolmap.Reconstruction:

@@ -21,6 +21,8 @@ from geomatch.matching.optimizer import (
 
 from .test_geometry import two_view
 
+pytestmark = pytest.mark.unit
+
 TEMPERATURE = 0.1
 
 

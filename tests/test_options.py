@@ -15,6 +15,8 @@ import pytest
 from geomatch import options
 from geomatch.options import DEFAULTS, OPTIONS, PAIR_OPTIONS, PROJECT_OPTIONS
 
+pytestmark = pytest.mark.unit
+
 ROOT = Path(__file__).resolve().parents[1]
 PROTO = ROOT / "proto" / "geomatch" / "v1" / "geomatch.proto"
 PROTO_TYPES = {"string": str, "int32": int, "double": float}

@@ -9,6 +9,8 @@ from geomatch.sfm.retrieval import vlad
 from geomatch.steps import aerial_set, captures
 from geomatch.synth.aerial import write_scene
 
+pytestmark = pytest.mark.unit
+
 NAMES = ["a0.jpg", "a1.jpg", "g0.jpg", "g1.jpg", "g2.jpg"]
 
 

@@ -33,6 +33,7 @@ def run_dir(scene, tmp_path_factory):
     return out
 
 
+@pytest.mark.pipeline
 def test_every_image_is_registered(run_dir, scene) -> None:
     s = json.loads((run_dir / "summary.json").read_text())
     assert s["registered"] == s["images"] == 6, s
@@ -44,6 +45,7 @@ def test_every_image_is_registered(run_dir, scene) -> None:
     assert vg["pairs"] >= 10 and vg["loops"] >= 10 and isinstance(vg["dropped"], list), vg
 
 
+@pytest.mark.pipeline
 def test_outputs_open_in_colmap_formats(run_dir) -> None:
     model = run_dir / "sparse" / "0"
     for f in ("cameras", "images", "points3D"):
@@ -62,6 +64,7 @@ def test_outputs_open_in_colmap_formats(run_dir) -> None:
         db.close()
 
 
+@pytest.mark.pipeline
 def test_eval_against_ground_truth(run_dir, scene, capsys) -> None:
     assert main(["eval", str(run_dir), "--gt", str(scene / "gt")]) == 0
     printed = capsys.readouterr().out
@@ -72,6 +75,7 @@ def test_eval_against_ground_truth(run_dir, scene, capsys) -> None:
     assert m["auc@5"] > 60.0, m
 
 
+@pytest.mark.pipeline
 def test_rerun_resumes_without_matching_again(run_dir, scene) -> None:
     before = pycolmap.Database.open(str(run_dir / "database.db"))
     try:
@@ -99,6 +103,7 @@ def test_rerun_resumes_without_matching_again(run_dir, scene) -> None:
         after.close()
 
 
+@pytest.mark.unit
 def test_run_rejects_bad_input(tmp_path, capsys) -> None:
     empty = tmp_path / "empty"
     empty.mkdir()

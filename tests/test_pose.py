@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from geomatch.eval.pose import auc_over_runs, pose_auc, relative_pose_error, shuffled_errors
 from geomatch.synth.aerial import Camera, look_at
+
+pytestmark = pytest.mark.unit
 
 
 def _pair(noise_px: float, outliers: float, seed: int = 0):

@@ -9,6 +9,8 @@ import torch
 from geomatch.geometry import estimate_fundamental, sampson_distance
 from geomatch.robust_f import ransac_fundamental
 
+pytestmark = pytest.mark.unit
+
 
 def _scene(seed: int, n: int = 400, outliers: float = 0.4, noise: float = 0.5):
     """(pa, pb with noise and outliers, exact pa, exact pb, inlier mask) of a 640x480 pair."""

@@ -13,6 +13,7 @@ from geomatch.steps import match
 from geomatch.synth.photos import WarpedPair
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("turns", [0, 1, 2, 3])
 def test_points_come_back_to_the_same_pixel(turns: int) -> None:
     rng = np.random.default_rng(turns)
@@ -24,11 +25,13 @@ def test_points_come_back_to_the_same_pixel(turns: int) -> None:
     assert np.array_equal(turned[pts[:, 1].astype(int), pts[:, 0].astype(int)], img[back[:, 1], back[:, 0]])
 
 
+@pytest.mark.unit
 def test_pairs_with_an_aerial_side_are_turned() -> None:
     plan = {(p.name0, p.name1): p.rotate for p in finalize([("a", "b"), ("a", "g"), ("g", "h")], {"a", "b"})}
     assert plan == {("a", "b"): True, ("a", "g"): True, ("g", "h"): False}
 
 
+@pytest.mark.nets
 def test_a_turned_image_is_matched_at_its_turn_and_mapped_back(
     matcher: Matcher, astronaut_pair: WarpedPair
 ) -> None:

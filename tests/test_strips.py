@@ -25,6 +25,7 @@ def _image(h: int, w: int) -> torch.Tensor:
     return img
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("rows", [1, 8, 13, 100])
 def test_rows_through_equals_the_whole_stack(rows: int) -> None:
     torch.manual_seed(0)
@@ -46,6 +47,7 @@ def test_rows_through_equals_the_whole_stack(rows: int) -> None:
     assert torch.allclose(torch.cat(parts, dim=2), whole, atol=1e-5)
 
 
+@pytest.mark.unit
 def test_rows_through_refuses_strided_convolutions() -> None:
     with pytest.raises(ValueError, match="stride-1"):
         rows_through(
@@ -53,6 +55,7 @@ def test_rows_through_refuses_strided_convolutions() -> None:
         )
 
 
+@pytest.mark.nets
 @torch.inference_mode()
 def test_disk_maps_equal_the_unet_outputs() -> None:
     ext = DiskExtractor(CPU)
@@ -70,6 +73,7 @@ def test_disk_maps_equal_the_unet_outputs() -> None:
     assert torch.allclose(feats.sparse.descriptors, ref.descriptors, atol=2e-3)
 
 
+@pytest.mark.nets
 @torch.inference_mode()
 @pytest.mark.parametrize("size", [(160, 224), (176, 208)])  # the second is padded to 32 inside ALIKED
 def test_aliked_maps_equal_extract_dense_map(size: tuple[int, int]) -> None:

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from geomatch.eval.homography import apply_h
 from geomatch.imageio import prepare
 from geomatch.matching.subpixel import SubpixelOptions, neighbour_affine, refine_points
 from geomatch.synth.photos import warped_pair
+
+pytestmark = pytest.mark.unit
 
 
 def _setup(seed: int = 3) -> tuple[object, torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:

@@ -8,6 +8,8 @@ import pytest
 
 from geomatch.synth.aerial import Scene, covisibility, write_scene
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module")
 def scene() -> Scene:

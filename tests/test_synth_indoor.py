@@ -10,6 +10,8 @@ from geomatch.cli import main
 from geomatch.eval.pose import pose_auc, relative_pose_error
 from geomatch.synth.indoor import IndoorPair, covisibility, gt_matches, indoor_pairs, no_overlap_pairs
 
+pytestmark = pytest.mark.unit
+
 SMALL = {"width": 160, "height": 120, "supersample": 1}
 
 

@@ -2,12 +2,14 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from geomatch.eval.homography import reprojection_errors
 from geomatch.matching.tiling import SELECT_MIN_PROBE, five_crops, match_tiled, merge_matches, select_crops
 from geomatch.steps import tile_crops
 
 
+@pytest.mark.unit
 def test_crops_cover_the_image_and_map_back_exactly() -> None:
     w, h = 641, 479  # odd sizes: crops must still tile the whole frame
     crops = five_crops(w, h)
@@ -33,6 +35,7 @@ def test_crops_cover_the_image_and_map_back_exactly() -> None:
     assert abs(centre.x0 + centre.width / 2 - w / 2) <= 1 and abs(centre.y0 + centre.height / 2 - h / 2) <= 1
 
 
+@pytest.mark.unit
 def test_merge_drops_duplicates_keeping_the_best() -> None:
     a = np.array([[10.0, 10.0], [50.0, 50.0]])
     b = np.array([[20.0, 20.0], [60.0, 60.0]])
@@ -45,6 +48,7 @@ def test_merge_drops_duplicates_keeping_the_best() -> None:
     np.testing.assert_allclose(k0[1], a[0] + 0.3)
 
 
+@pytest.mark.nets
 def test_tiled_matches_land_in_the_full_frame(matcher, astronaut_pair) -> None:
     """Real matcher on the five crops of a warped photo: merged matches obey the true homography
     in full-image coordinates, in both pair orders."""
@@ -62,6 +66,7 @@ def test_tiled_matches_land_in_the_full_frame(matcher, astronaut_pair) -> None:
     np.testing.assert_allclose(rev.keypoints0, r.keypoints1)
 
 
+@pytest.mark.unit
 def test_select_crops_covers_where_the_probe_matched() -> None:
     """Greedy cover: points in one quadrant pick that quadrant alone; points along the right
     half pick the two right quadrants; too few points to tell pick all five."""
@@ -78,6 +83,7 @@ def test_select_crops_covers_where_the_probe_matched() -> None:
     assert [c.name for c in select_crops(crops, stray)] == ["top_left"]
 
 
+@pytest.mark.nets
 def test_probe_selects_the_crop_a_close_up_sees(matcher, astronaut_pair) -> None:
     """Real networks: the 'ground' image is the aerial's top-left quadrant seen closer up (2x),
     so the probe must send the pair to the crops that hold it, never to the bottom-right one,

@@ -1,8 +1,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from geomatch.sfm.tracks import snap, unique_matches
+
+pytestmark = pytest.mark.unit
 
 
 def test_snap_reuses_nearby_keypoints_and_appends_the_rest() -> None:

@@ -25,6 +25,8 @@ from geomatch.eval.evaluate import evaluate_run
 from geomatch.pipeline import RunOptions, run
 from geomatch.synth.twin import write_twin_scene
 
+pytestmark = pytest.mark.pipeline
+
 WIDTH, HEIGHT = 480, 360
 CAMERAS = 14
 STRONG = 60  # inliers: a look-alike pair as strong as castle-P19's

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from geomatch.sfm.viewgraph import inconsistent_pairs, loop_error, rotation_angle, tree_inconsistent_pairs
+
+pytestmark = pytest.mark.unit
 
 
 def _graph(

@@ -15,6 +15,8 @@ from PIL import Image
 
 from .harness import GEOMATCH, Deployment, sse_events, upload, wait_job
 
+pytestmark = pytest.mark.service
+
 
 def png_header_bomb(width: int = 50_000, height: int = 50_000) -> bytes:
     """A PNG whose header claims 2.5 gigapixels over a few kilobytes of data."""

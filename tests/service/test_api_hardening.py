@@ -1,4 +1,4 @@
-"""Issue 14's probe of the REST API, each finding a regression test, on every store the service
+"""Regression tests for what a hostile probe of the REST API found, each on every store the service
 runs on: the embedded default (SQLite, jobs in the API process), Redis mode over SQLite (the
 session's deployment, with a worker) and Redis mode over PostgreSQL (``DATABASE_URL``, no worker).
 
@@ -21,6 +21,8 @@ import httpx
 import pytest
 
 from .harness import Deployment, postgres_database, upload, wait_job
+
+pytestmark = pytest.mark.service
 
 UTC_STAMP = re.compile(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{6}Z")
 MiB = 1024 * 1024

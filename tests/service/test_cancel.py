@@ -6,9 +6,12 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import pytest
 import redis
 
 from .harness import Deployment, database_pairs, upload, wait_job
+
+pytestmark = pytest.mark.service
 
 GROUND = ["ground_00.png", "ground_01.png", "ground_02.png", "ground_03.png"]
 

@@ -1,6 +1,6 @@
-"""Chaos with real processes on loopback (issue 14 item 3): a full storage root, the API and a
-worker SIGKILLed at awkward moments. After each: every accepted upload is present and intact
-(sha256), every job ends in a truthful state, the COLMAP database passes `PRAGMA
+"""Chaos with real processes on loopback: a full storage root, the API and a worker SIGKILLed at
+awkward moments, Redis and PostgreSQL restarted. After each: every accepted upload is present and
+intact (sha256), every job ends in a truthful state, the COLMAP database passes `PRAGMA
 integrity_check`, and no pair is lost or written twice.
 
 A full disk is the storage layer's test hook GEOMATCH_TEST_FILL_LIMIT (bytes the storage root may
@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import httpx
+import pytest
 import redis
 
 from geomatch_core.locks import RedisLocks
@@ -32,6 +33,8 @@ from .harness import (
     upload,
     wait_job,
 )
+
+pytestmark = pytest.mark.chaos
 
 GROUND = ["ground_00.png", "ground_01.png", "ground_02.png", "ground_03.png"]
 ALL_PAIRS = sorted((a, b) for i, a in enumerate(GROUND) for b in GROUND[i + 1 :])

@@ -30,6 +30,8 @@ from .browser import chromium_path, require_playwright
 from .harness import Deployment, database_pairs
 from .test_embedded import printed_key
 
+pytestmark = pytest.mark.browser
+
 # one aerial and three ground views of the session's scene, at 320 px: a minute or two on 2 cores
 IMAGES = ["aerial_00.png", "ground_00.png", "ground_01.png", "ground_02.png"]
 RESIZE = 320

@@ -25,6 +25,8 @@ from geomatch.geo.geodesy import EnuFrame
 
 from .harness import GEOMATCH, Deployment, database_pairs, sse_events, upload, wait_job
 
+pytestmark = pytest.mark.service
+
 RESIZE = 480
 
 

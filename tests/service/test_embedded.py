@@ -22,6 +22,7 @@ def printed_key(d: Deployment) -> str:
     return m.group(1)
 
 
+@pytest.mark.service
 def test_embedded_default(tmp_path_factory: pytest.TempPathFactory, scene: Path, tmp_path: Path) -> None:
     d = Deployment(tmp_path_factory.mktemp("embedded"), None)
     assert "REDIS_URL" not in d.env and "DATABASE_URL" not in d.env
@@ -65,6 +66,7 @@ def test_embedded_default(tmp_path_factory: pytest.TempPathFactory, scene: Path,
         d.stop()
 
 
+@pytest.mark.unit
 def test_worker_needs_redis(tmp_path: Path) -> None:
     d = Deployment(tmp_path, None)
     r = subprocess.run([*GEOMATCH, "worker"], env=d.env, capture_output=True, text=True, timeout=120)

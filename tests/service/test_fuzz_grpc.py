@@ -1,5 +1,5 @@
-"""Fuzzing of the gRPC API (issue 14, item 2): every method of ``geomatch.v1.Matching`` gets
-generated requests (hypothesis), and no answer may be INTERNAL or UNKNOWN; the server stays healthy.
+"""Fuzzing of the gRPC API: every method of ``geomatch.v1.Matching`` gets generated requests
+(hypothesis), and no answer may be INTERNAL or UNKNOWN; the server stays healthy.
 
 Three kinds of input, per method:
 
@@ -37,6 +37,8 @@ from service.grpcapi.client import ImageSource
 from service.grpcapi.pb import SERVICE, pb2
 
 from .grpc_harness import GrpcDeployment, running_grpc
+
+pytestmark = pytest.mark.service
 
 EXAMPLES = 200  # generated calls per method
 FORBIDDEN = {grpc.StatusCode.INTERNAL, grpc.StatusCode.UNKNOWN}

@@ -1,4 +1,5 @@
-"""Property-based fuzzing of the REST API from its own OpenAPI schema (issue 14, item 2).
+"""Property-based fuzzing of the REST API from its own OpenAPI schema: no request, however odd, may
+get a server error or an answer the schema does not describe.
 
 schemathesis runs as one would run it from a shell (``st run``, every phase: the schema's examples,
 coverage of boundaries and of what the schema forbids, random fuzzing, and stateful sequences over
@@ -42,6 +43,8 @@ import httpx
 import pytest
 
 from .harness import Deployment, postgres_database
+
+pytestmark = pytest.mark.service
 
 SEED = int(os.environ.get("GEOMATCH_FUZZ_SEED", "1"))  # another seed explores other inputs
 MAX_EXAMPLES = 100  # per operation and phase: ~2200 requests, ~25 s a store on two cores

@@ -38,6 +38,8 @@ from ..small_scene import PAIRS  # the measured pair list (tests/small_scene.py)
 from .grpc_harness import GrpcDeployment, code_of, error_of
 from .test_api import bad_files
 
+pytestmark = pytest.mark.service
+
 # The end-to-end run is about the service, not the matcher (tests/test_pipeline_e2e.py and the REST
 # e2e run the paper's method on this scene): the sparse method at 480 px registers every image too
 # (measured), at a fraction of the CPU. MatchPair below runs the default method, checked against

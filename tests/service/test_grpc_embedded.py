@@ -44,6 +44,7 @@ def key(both: GrpcDeployment) -> str:
     return m.group(1)
 
 
+@pytest.mark.service
 def test_serve_runs_http_and_grpc_over_one_service(both: GrpcDeployment, key: str, scene: Path) -> None:
     assert f"gRPC (geomatch.v1.Matching) on {both.target}" in both.server_out
     with both.grpc_client(key) as g, both.client(key) as h:
@@ -64,6 +65,7 @@ def test_serve_runs_http_and_grpc_over_one_service(both: GrpcDeployment, key: st
         assert h.get("/readyz").json()["checks"]["mode"] == "embedded"
 
 
+@pytest.mark.service
 def test_match_pair_on_the_embedded_runner(both: GrpcDeployment, key: str, scene: Path) -> None:
     """Matched as test_submit matches: its batches then find these features on disk."""
     method, resize = SUBMIT
@@ -80,6 +82,7 @@ def geomatch(args: list[str]) -> subprocess.CompletedProcess[str]:
     return subprocess.run([*GEOMATCH, *args], capture_output=True, text=True, timeout=600)
 
 
+@pytest.mark.service
 @pytest.mark.parametrize("transport", ["grpc", "http"])
 def test_submit(both: GrpcDeployment, key: str, scene: Path, tmp_path: Path, transport: str) -> None:
     """`geomatch submit [--grpc] --out`: upload, match, reconstruct, wait, unpack the model; the one
@@ -128,6 +131,7 @@ def test_submit(both: GrpcDeployment, key: str, scene: Path, tmp_path: Path, tra
     assert bad.stderr.startswith("geomatch: error: "), bad.stderr
 
 
+@pytest.mark.service
 def test_explicit_port_taken_is_an_error(both: GrpcDeployment, tmp_path: Path) -> None:
     port = both.target.rsplit(":", 1)[1]  # held by the running server
     r = subprocess.run(
@@ -153,6 +157,7 @@ def default_port_taken() -> Iterator[None]:
         s.close()
 
 
+@pytest.mark.service
 def test_default_port_taken_serves_http_only_with_a_warning(tmp_path: Path) -> None:
     d = GrpcDeployment(tmp_path, None)
     try:
@@ -163,6 +168,7 @@ def test_default_port_taken_serves_http_only_with_a_warning(tmp_path: Path) -> N
         d.stop()
 
 
+@pytest.mark.service
 def test_grpc_serve_alone_on_a_free_port(tmp_path: Path) -> None:
     d = GrpcDeployment(tmp_path, None)
     try:
@@ -188,6 +194,7 @@ def test_grpc_serve_alone_on_a_free_port(tmp_path: Path) -> None:
 
 
 # -- the generated code ------------------------------------------------------------------------------
+@pytest.mark.unit
 def test_codegen_writes_importable_modules(tmp_path: Path) -> None:
     written = codegen.generate(out_dir=tmp_path / "gen")
     assert sorted(p.name for p in written) == sorted(codegen.OUTPUTS)
@@ -202,6 +209,7 @@ def _import_pb(setup: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
 
 
+@pytest.mark.unit
 def test_missing_generated_code_says_how_to_make_it() -> None:
     r = _import_pb(
         """
@@ -216,6 +224,7 @@ def test_missing_generated_code_says_how_to_make_it() -> None:
     assert r.returncode != 0 and "GeneratedCodeMissing" in r.stderr and "make setup" in r.stderr, r.stderr
 
 
+@pytest.mark.unit
 def test_stale_generated_code_says_how_to_remake_it(tmp_path: Path) -> None:
     proto = tmp_path / "geomatch" / "v1" / "geomatch.proto"
     proto.parent.mkdir(parents=True)

@@ -1,4 +1,4 @@
-"""Issue 14's probe of the gRPC API, each finding a regression test: text that is not UTF-8 or holds
+"""Regression tests for what a hostile probe of the gRPC API found: text that is not UTF-8 or holds
 control characters, file names over 255 bytes (INVALID_ARGUMENT, no server path in the message),
 and idle streams of one tenant that used to take every handler thread, so that health checks and
 GetProject missed a 3 s deadline.
@@ -23,6 +23,8 @@ from service.grpcapi.limits import STREAMS
 from service.grpcapi.pb import pb2
 
 from .grpc_harness import GrpcDeployment, error_of, running_grpc
+
+pytestmark = pytest.mark.service
 
 PER_TENANT = 30
 IDLE_S = 15

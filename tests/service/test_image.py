@@ -32,7 +32,7 @@ from .image_harness import (
 
 IMAGE = image_name()
 _why = unavailable(IMAGE)
-pytestmark = pytest.mark.skipif(_why is not None, reason=_why or "")
+pytestmark = [pytest.mark.service, pytest.mark.skipif(_why is not None, reason=_why or "")]
 
 GROUND = ("ground_00.png", "ground_01.png", "ground_02.png", "ground_03.png")
 

@@ -28,6 +28,7 @@ from service import validation
 from ..loaded_modules import loaded_after
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize(
     "spec",
     [
@@ -69,6 +70,7 @@ def test_pair_grammar_is_the_librarys(spec: str) -> None:
     assert bool(re.fullmatch(PAIR_SPEC_PATTERN, spec)) == library_ok
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize(
     "name", ["a.jpg", "DJI_0001.JPG", "photo 1.png", "é.png", "a.b.c.tif", "文" * 83 + ".png"]
 )
@@ -76,6 +78,7 @@ def test_names_accepted(name: str) -> None:
     assert validation.check_name(name) == name
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize(
     "name",
     [
@@ -112,6 +115,7 @@ def png(ihdr: bytes, raw: bytes) -> bytes:
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + idat + chunk(b"IEND", b"")
 
 
+@pytest.mark.unit
 def test_png_check_takes_every_kind_of_png_and_refuses_damage(tmp_path: Path) -> None:
     """The upload check streams a PNG's data instead of decoding it: it must agree with Pillow on
     what a whole PNG is (bit depths, palettes, interlacing) and still find damage."""
@@ -147,6 +151,7 @@ def test_png_check_takes_every_kind_of_png_and_refuses_damage(tmp_path: Path) ->
         assert message in e.value.message, (label, e.value.message)
 
 
+@pytest.mark.unit
 def test_project_name_pattern_is_the_use_cases_rule() -> None:
     """OpenAPI's pattern and length for a project name take exactly what the use case stores:
     every BMP character alone, between letters, and at either end, against check_project_name."""
@@ -170,6 +175,7 @@ def test_project_name_pattern_is_the_use_cases_rule() -> None:
         assert schema_valid(name) == accepted(name), name
 
 
+@pytest.mark.unit
 def test_service_modules_do_not_import_torch() -> None:
     modules = (
         "service.api, geomatch_app.bootstrap, geomatch_app.cli, service.cli, "
@@ -188,6 +194,7 @@ def test_service_modules_do_not_import_torch() -> None:
 
 
 # -- feature store -------------------------------------------------------------------------------
+@pytest.mark.nets
 def test_features_are_computed_once_across_processes(tmp_path: Path, astronaut_pair: WarpedPair) -> None:
     """A second matcher (as in another worker process) reads the first one's features from disk:
     no network pass, identical matches."""
@@ -208,6 +215,7 @@ def test_features_are_computed_once_across_processes(tmp_path: Path, astronaut_p
     assert other_resolution.extract_calls == 2  # resolution is part of the address
 
 
+@pytest.mark.nets
 def test_feature_store_prunes_least_recently_used(tmp_path: Path, astronaut_pair: WarpedPair) -> None:
     store = steps.FeatureStore(tmp_path / "features")
     m = steps.build_matcher(store, method="sparse", resize=256, device="cpu")
@@ -240,7 +248,13 @@ def _postgres_url() -> str | None:
         return None
 
 
-@pytest.fixture(params=["sqlite", "postgresql"])
+# the tier goes with the backend: SQLite is a file, PostgreSQL a server (skipped where none runs)
+@pytest.fixture(
+    params=[
+        pytest.param("sqlite", marks=pytest.mark.unit),
+        pytest.param("postgresql", marks=pytest.mark.service),
+    ]
+)
 def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[MetadataStore]:
     if request.param == "sqlite":
         s = MetadataStore(f"sqlite:///{tmp_path / 'meta.sqlite'}")
@@ -307,6 +321,7 @@ def test_terminal_states_are_final(store: MetadataStore) -> None:
         assert s.scalar(select(Job.state).where(Job.id == job_id)) == "cancelled"
 
 
+@pytest.mark.unit
 def test_retry_policy() -> None:
     """Bad data, bad options and missing weights fail a job at once; I/O and the like are retried."""
     from geomatch.imageio import ImageReadError

@@ -15,6 +15,8 @@ import pytest
 
 from .harness import Deployment, database_pairs, ground_match_under_kill, wait_job
 
+pytestmark = pytest.mark.chaos
+
 GROUND = ["ground_00.png", "ground_01.png", "ground_02.png", "ground_03.png"]
 
 
