@@ -17,6 +17,7 @@ import shutil
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -104,6 +105,34 @@ def sift_pair(
             db.close()
     p0, p1 = k0[m[:, 0]] - COLMAP_OFFSET, k1[m[:, 1]] - COLMAP_OFFSET
     return p0.astype(np.float32), p1.astype(np.float32), seconds
+
+
+PEER = "COLMAP SIFT (peer)"
+
+
+@dataclass
+class PeerMatch:
+    """The peer's answer for a pair, shaped like geomatch's MatchResult where the benchmarks read it."""
+
+    keypoints0: np.ndarray
+    keypoints1: np.ndarray
+    seconds: float
+
+    def __len__(self) -> int:
+        return len(self.keypoints0)
+
+
+class SiftPeer:
+    """:func:`sift_pair` with a Matcher's ``match``, so a benchmark's loop over variants runs the
+    peer as one more row."""
+
+    def match(self, image0: np.ndarray, image1: np.ndarray) -> PeerMatch:
+        return PeerMatch(*sift_pair(image0, image1))
+
+
+def with_peer(variants: list[tuple[str, Any]], peer: bool = True) -> list[tuple[str, Any]]:
+    """(label, matcher) rows with the peer's first, unless ``peer`` is False."""
+    return [(PEER, SiftPeer()), *variants] if peer else variants
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -4,8 +4,8 @@
 
 Prints, per method: matches, matches within 3 px of the ground-truth homography, precision
 (fraction within 3 px), homography AUC@3/5/10 px (mean corner error of a MAGSAC homography) and
-seconds per pair, with COLMAP's own SIFT matching (``bench/peer_colmap.sift_pair``: extraction at
-the photos' own size and verified matches) as the first row, timed in the same run.
+seconds per pair, with COLMAP's own SIFT matching (``bench/peer_colmap.SiftPeer``: extraction at
+the photos' own size, up to 1600 px, and verified matches) as the first row, timed in the same run.
 """
 
 from __future__ import annotations
@@ -18,14 +18,12 @@ from pathlib import Path
 
 import numpy as np
 from common import parse_variants, print_table
-from peer_colmap import sift_pair
+from peer_colmap import with_peer
 
 from geomatch import METHODS, Matcher, MatcherConfig
 from geomatch.eval.homography import corner_error, reprojection_errors
 from geomatch.eval.metrics import auc
 from geomatch.synth.photos import warped_pairs
-
-PEER = "COLMAP SIFT (peer)"
 
 
 def main() -> None:
@@ -42,12 +40,13 @@ def main() -> None:
 
     pairs = warped_pairs(args.pairs, args.seed, args.strength)
     base = Matcher(MatcherConfig(resize=args.resize, cache_anchors_mb=4096))
-    variants: list[tuple[str, Matcher | None]] = [
-        (label, base.derive(method=method, **options))
-        for label, method, options in parse_variants(args.variants, args.methods)
-    ]
-    if not args.no_peer:
-        variants.insert(0, (PEER, None))
+    variants = with_peer(
+        [
+            (label, base.derive(method=method, **options))
+            for label, method, options in parse_variants(args.variants, args.methods)
+        ],
+        not args.no_peer,
+    )
     # pairs outside, variants inside: a pair's features (DISK maps with their fp16 fine map are
     # ~90 MB an image at 640 px) are extracted once and shared by every variant while they are in
     # the byte-bounded cache; the other way round, an ablation of a dozen rows re-extracted all
@@ -60,14 +59,10 @@ def main() -> None:
     for i, p in enumerate(pairs):
         print(f"pair {i + 1}/{len(pairs)}", file=sys.stderr, flush=True)
         for v, (_, matcher) in enumerate(variants):
-            if matcher is None:  # the peer matches the photos at their own size (up to 1600 px)
-                k0, k1, s = sift_pair(p.image0, p.image1)
-            else:
-                t0 = time.perf_counter()
-                r = matcher.match(p.image0, p.image1)
-                s = time.perf_counter() - t0
-                k0, k1 = r.keypoints0, r.keypoints1
-            secs[v] += s
+            t0 = time.perf_counter()
+            r = matcher.match(p.image0, p.image1)
+            secs[v] += time.perf_counter() - t0
+            k0, k1 = r.keypoints0, r.keypoints1
             e = reprojection_errors(p.H, k0, k1)
             n_all[v].append(len(k0))
             n_good[v].append(int((e < 3).sum()))

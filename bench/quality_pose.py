@@ -9,7 +9,9 @@ exhaustive matching, incremental mapping), which none of the compared methods ta
 is computed once and cached under bench/out/. Every pair of registered images is then matched by
 each method, the relative pose is estimated from the matches with the reference intrinsics
 (essential matrix, MAGSAC, 1 px threshold), and the pose error max(angle(R), angle(t)) is
-summarised as AUC@5/10/20 degrees, as in the IMC / LoFTR protocol.
+summarised as AUC@5/10/20 degrees, as in the IMC / LoFTR protocol. The first row is the peer,
+COLMAP's own SIFT matching of each pair at the photos' size (``peer_colmap.SiftPeer``); on real
+photos it is judged against a reference built by a close relative of itself.
 
 ``--set indoor`` renders wide-baseline pairs of synthetic rooms (geomatch.synth.indoor: rotation
 20-70 degrees, covisibility >= 10 %), a tuning split (``--seeds``) and a test split
@@ -30,11 +32,13 @@ import json
 import shutil
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 import pycolmap
 from common import parse_variants, print_table
+from peer_colmap import with_peer
 
 from geomatch import METHODS, Matcher, MatcherConfig, read_image
 from geomatch.eval.pose import auc_over_runs, relative_pose_error, shuffled_errors
@@ -139,12 +143,19 @@ def pose_row(split: str, label: str, errs: list[np.ndarray], n: list[int]) -> di
     }
 
 
+def matchers(base: Matcher, args: argparse.Namespace) -> list[tuple[str, Any]]:
+    """The rows' matchers: the peer (COLMAP SIFT's own matching at the photos' size) first."""
+    specs = parse_variants(args.variants, args.methods)
+    rows = [(label, base.derive(method=m, **o)) for label, m, o in specs]
+    return with_peer(rows, not args.no_peer)
+
+
 def run_indoor(args: argparse.Namespace) -> None:
     seeds_of = {"tuning": args.seeds, "test": args.test_seeds}
     splits = {name: [int(x) for x in seeds_of[name].split(",")] for name in args.splits.split(",")}
     # every pair's LightGlue output and every image's features stay cached across the variants
     base = Matcher(MatcherConfig(resize=args.resize, cache_anchors_mb=2048, cache_features_mb=3072))
-    variants = parse_variants(args.variants, args.methods)
+    variants = matchers(base, args)
     report: dict[str, object] = {"pairs_per_seed": args.pairs_per_seed, "no_overlap": args.no_overlap}
     for split, seeds in splits.items():
         t0 = time.perf_counter()
@@ -155,8 +166,7 @@ def run_indoor(args: argparse.Namespace) -> None:
             f"ready in {time.perf_counter() - t0:.0f}s"
         )
         rows, none_rows = [], []
-        for label, method, options in variants:
-            m = base.derive(method=method, **options)
+        for label, m in variants:
             errs, n, hits, t0 = [], [], 0, time.perf_counter()
             for p in pairs:
                 r = m.match(p.image0, p.image1)
@@ -244,6 +254,7 @@ def main() -> None:
         "(RANSAC's draw alone moves AUC@10 by ~3.5 points on 30 pairs; sd@10 is that spread)",
     )
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--no-peer", action="store_true", help="skip COLMAP SIFT's row")
     args = ap.parse_args()
     if args.set == "indoor":
         run_indoor(args)
@@ -264,8 +275,7 @@ def main() -> None:
     for split in args.splits.split(","):
         pairs = list(itertools.combinations(groups[split], 2))
         split_rows = []
-        for label, method, options in parse_variants(args.variants, args.methods):
-            m = base.derive(method=method, **options)
+        for label, m in matchers(base, args):
             errs, n, t0 = [], [], time.perf_counter()
             for a, b in pairs:
                 r = m.match(pixels[a.name], pixels[b.name])

@@ -113,3 +113,21 @@ def test_a_pair_with_no_matches_counts_as_matched(tmp_path) -> None:
         assert db.has_pair(a, c) and db.has_pair(c, a)
         assert db.write_pair(a, c, empty, empty, np.zeros(0), 1.5, 1.5).skipped
         assert not db.has_pair(a, b)
+
+
+def test_verification_gives_the_same_inliers_for_the_same_matches(tmp_path) -> None:
+    """COLMAP seeds its RANSAC anew on every call; the database fixes the seed, so writing the same
+    matches again keeps the same inliers (noise near the threshold and outliers, where another
+    draw moves the count)."""
+    rng = np.random.default_rng(0)
+    k0, k1 = _pair_points(rng, 400)
+    k1 = k1 + rng.normal(0, 2.5, size=k1.shape).astype(np.float32)
+    n_out = len(k0) // 3
+    k1[:n_out] = rng.uniform([0, 0], [640, 480], size=(n_out, 2)).astype(np.float32)
+    inliers = []
+    for run in range(6):
+        with ColmapDatabase(tmp_path / f"{run}.db") as db:
+            a = db.add_image("a.jpg", DRONE)
+            b = db.add_image("b.jpg", DRONE)
+            inliers.append(db.write_pair(a, b, k0, k1, np.ones(len(k0)), 1.5, 1.5).inliers)
+    assert inliers[0] > 0 and len(set(inliers)) == 1, inliers

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from geomatch.sfm.viewgraph import inconsistent_pairs, loop_error, rotation_angle, tree_inconsistent_pairs
+from geomatch.sfm.viewgraph import (
+    inconsistent_pairs,
+    loop_error,
+    rotation_angle,
+    spanning_tree,
+    tree_inconsistent_pairs,
+)
 
 pytestmark = pytest.mark.unit
 
@@ -153,3 +159,25 @@ def test_a_tree_pair_takes_the_candidate_its_triangles_vote_for() -> None:
     wrong_first = Rotation.from_euler("x", 60, degrees=True).as_matrix() @ edges[(0, 1)][0]
     edges[(0, 1)] = [wrong_first, edges[(0, 1)][0]]
     assert tree_inconsistent_pairs(edges, support) == []
+
+
+def test_the_loop_check_never_drops_a_pair_of_the_spanning_tree() -> None:
+    """Image 0's pairs with 2-5 are look-alike pairs that agree with each other (as if 0 were
+    turned), so the loops among them hold and every loop through its one right pair, with 1,
+    breaks: the loop check alone drops that pair (a 722-inlier neighbour pair on a repeated
+    courtyard, which left seven cameras attached by a wrong pair). With the spanning tree's pairs
+    kept it stays, and the tree check drops the look-alike ones."""
+    world, edges, _ = _graph(6, seed=5)
+    turned = Rotation.from_euler("y", 150, degrees=True).as_matrix() @ world[0]
+    wrong = [(0, 2), (0, 3), (0, 4), (0, 5)]
+    for _, j in wrong:
+        edges[(0, j)] = [world[j] @ turned.T]
+    support = {e: 900 for e in edges} | dict.fromkeys(wrong, 150) | {(0, 1): 1200}
+    alone = [e for e, _, _ in inconsistent_pairs(edges, support=support)[0]]
+    assert (0, 1) in alone
+    tree = set(spanning_tree(edges, support))
+    assert (0, 1) in tree
+    assert (0, 1) not in [e for e, _, _ in inconsistent_pairs(edges, support=support, keep=tree)[0]]
+    # all but one: image 0 keeps two pairs
+    tree_dropped = [e for e, _, _ in tree_inconsistent_pairs(edges, support)]
+    assert len(tree_dropped) == 3 and set(tree_dropped) <= set(wrong)
