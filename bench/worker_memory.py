@@ -6,7 +6,7 @@
 
 Why a bench and not a test: a worker's memory is bounded by its caches (GEOMATCH_CACHE_MB, each
 cache in bytes) plus what no cache holds (networks, torch's allocator, one pair's working set).
-Only a whole project shows whether the bound holds; the target (issue 13) is <= 3 GB peak RSS for
+Only a whole project shows whether the bound holds; the target is <= 3 GB peak RSS for
 a worker on a 30-image 1024 px project.
 
 The worker runs as its own process tree (Celery's prefork pool, concurrency 1, as deployed); every

@@ -40,11 +40,6 @@ def is_active(store: MetadataStore, job_id: str) -> bool:
         return s.scalar(select(Job.state).where(Job.id == job_id)) == "running"
 
 
-def set_total(store: MetadataStore, job_id: str, total: int) -> None:
-    with store.session() as s:
-        s.execute(update(Job).where(Job.id == job_id).values(total=total))
-
-
 def mark_pair_done(store: MetadataStore, job_id: str, idx: int, matches: int, inliers: int) -> bool:
     """True the first time only: the pair's row flips and the job's counter moves in one transaction."""
     with store.session() as s:

@@ -1,6 +1,6 @@
 """The application layer: every operation the API offers, free of any transport.
 
-Routers (HTTP today, gRPC in issue 5) translate requests into these calls and the typed errors
+Routers (REST and gRPC) translate requests into these calls and the typed errors
 of ``geomatch_core.errors`` into statuses. A use case validates everything before it stores or
 enqueues anything, so a rejected request leaves no trace.
 """

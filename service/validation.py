@@ -245,10 +245,6 @@ def check_option(name: str, value: Any) -> Any:
         raise InvalidRequest(str(e)) from None
 
 
-def check_pair_spec(spec: str) -> str:
-    return str(check_option("pairs", spec))
-
-
 def check_pair_list(pairs: list[list[str]], names: set[str]) -> list[list[str]]:
     if not pairs:
         raise InvalidRequest("the pair list is empty")

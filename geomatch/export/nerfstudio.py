@@ -59,16 +59,6 @@ def camera_to_world(cam_from_world: pycolmap.Rigid3d) -> np.ndarray:
     return c2w
 
 
-def colmap_pose(transform_matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The inverse of :func:`camera_to_world`: COLMAP's (R, t) world-to-camera of a frame."""
-    c2w = np.array(transform_matrix, dtype=float).copy()
-    c2w[2, :] *= -1
-    c2w = c2w[[0, 2, 1, 3], :]
-    c2w[:3, :3] = c2w[:3, :3] @ OPENCV_TO_OPENGL
-    w2c = np.linalg.inv(c2w)
-    return w2c[:3, :3], w2c[:3, 3]
-
-
 def _write_points(rec: pycolmap.Reconstruction, path: Path) -> None:
     ids = sorted(rec.points3D)
     xyz = np.array([rec.points3D[i].xyz for i in ids], dtype=float).reshape(-1, 3)

@@ -533,6 +533,20 @@ class Matcher:
                 if support < cfg.min_anchor_support:
                     stats["rejected"] = f"{support} anchors support the pair's F"
                     pa, pb, ps = pa[:0], pb[:0], ps[:0]
+        return self._result(pa, pb, ps, F_net, prep0, prep1, stats, timer)
+
+    def _result(
+        self,
+        pa: torch.Tensor,
+        pb: torch.Tensor,
+        ps: torch.Tensor,
+        F_net: torch.Tensor | None,
+        prep0: Prepared,
+        prep1: Prepared,
+        stats: dict[str, Any],
+        timer: _Timer,
+    ) -> MatchResult:
+        """Points and F from the network inputs' frames to the original images'."""
         F = np.zeros((3, 3))
         if F_net is not None:
             F = scale_fundamental(F_net.double().cpu().numpy(), prep0.from_original(), prep1.from_original())
@@ -540,9 +554,9 @@ class Matcher:
         return MatchResult(
             keypoints0=prep0.to_original(pa).astype(np.float32),
             keypoints1=prep1.to_original(pb).astype(np.float32),
-            scores=ps.detach().cpu().numpy().astype(np.float32),
+            scores=ps.detach().float().cpu().numpy().astype(np.float32),
             F=F,
-            method=cfg.method,
+            method=self.config.method,
             image_sizes=(prep0.original_size, prep1.original_size),
             timings=timer.times,
             stats=stats,
@@ -561,20 +575,7 @@ class Matcher:
         pa, pb, ps = anchors
         with timer("merge"):
             F_net, _ = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
-        F = np.zeros((3, 3))
-        if F_net is not None:
-            F = scale_fundamental(F_net.double().cpu().numpy(), prep0.from_original(), prep1.from_original())
-        timer.times["total"] = sum(timer.times.values())
-        return MatchResult(
-            keypoints0=prep0.to_original(pa).astype(np.float32),
-            keypoints1=prep1.to_original(pb).astype(np.float32),
-            scores=ps.detach().float().cpu().numpy().astype(np.float32),
-            F=F,
-            method=cfg.method,
-            image_sizes=(prep0.original_size, prep1.original_size),
-            timings=timer.times,
-            stats=stats,
-        )
+        return self._result(pa, pb, ps, F_net, prep0, prep1, stats, timer)
 
     def _dense_from_maps(
         self,

@@ -150,10 +150,7 @@ def inconsistent_pairs(
     def rot(a: int, b: int) -> list[np.ndarray]:
         return edges[(a, b)] if a < b else [R.T for R in edges[(b, a)]]
 
-    nbrs: dict[int, set[int]] = {}
-    for a, b in edges:
-        nbrs.setdefault(a, set()).add(b)
-        nbrs.setdefault(b, set()).add(a)
+    nbrs = _neighbours(edges)
     broken: dict[tuple[int, int, int], bool] = {}
     for a, b in edges:
         for c in nbrs[a] & nbrs[b]:
@@ -223,10 +220,7 @@ def tree_inconsistent_pairs(
     def rot(a: int, b: int) -> list[np.ndarray]:
         return edges[(a, b)] if a < b else [R.T for R in edges[(b, a)]]
 
-    nbrs: dict[int, set[int]] = {}
-    for a, b in edges:
-        nbrs.setdefault(a, set()).add(b)
-        nbrs.setdefault(b, set()).add(a)
+    nbrs = _neighbours(edges)
     tree: dict[int, list[tuple[int, np.ndarray]]] = {}
     for a, b in spanning_tree(edges, support):
         R = _voted_candidate(a, b, rot, nbrs)
@@ -274,6 +268,14 @@ def tree_inconsistent_pairs(
         nbrs[b].discard(a)
         out.append(((a, b), err, h))
     return sorted(out)
+
+
+def _neighbours(pairs: Iterable[tuple[int, int]]) -> dict[int, set[int]]:
+    nbrs: dict[int, set[int]] = {}
+    for a, b in pairs:
+        nbrs.setdefault(a, set()).add(b)
+        nbrs.setdefault(b, set()).add(a)
+    return nbrs
 
 
 def _voted_candidate(

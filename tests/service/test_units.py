@@ -62,7 +62,7 @@ def test_pair_grammar_is_the_librarys(spec: str) -> None:
     except PairSpecError:
         library_ok = False
     try:
-        validation.check_pair_spec(spec)
+        validation.check_option("pairs", spec)
         service_ok = True
     except InvalidRequest:
         service_ok = False
