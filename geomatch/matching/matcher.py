@@ -485,10 +485,10 @@ class Matcher:
                 stats["anchors"] = int(lg.idx_a.numel())
         if anchors is not None and cfg.flags.optimise and cfg.anchors_suffice > 0:
             with timer("anchors"):
-                strong = _anchor_inliers(anchors, cfg) >= cfg.anchors_suffice
-            if strong:
+                F_anchors, inliers = _anchor_fit(anchors, cfg)
+            if inliers >= cfg.anchors_suffice:  # the answer sparse gives: the anchors and their F
                 stats["anchors_suffice"] = True
-                return self._anchors_only(anchors, prep0, prep1, stats, timer)
+                return self._result(*anchors, F_anchors, prep0, prep1, stats, timer)
 
         if cfg.needs_dense and cfg.dense == "lightglue":
             assert lg is not None
@@ -561,21 +561,6 @@ class Matcher:
             timings=timer.times,
             stats=stats,
         )
-
-    def _anchors_only(
-        self,
-        anchors: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-        prep0: Prepared,
-        prep1: Prepared,
-        stats: dict[str, Any],
-        timer: _Timer,
-    ) -> MatchResult:
-        """The answer ``sparse`` gives the same pair: the anchors and their F."""
-        cfg = self.config
-        pa, pb, ps = anchors
-        with timer("merge"):
-            F_net, _ = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
-        return self._result(pa, pb, ps, F_net, prep0, prep1, stats, timer)
 
     def _dense_from_maps(
         self,
@@ -659,12 +644,15 @@ class Matcher:
         return ga[ci], gb[cj], conf.float()
 
 
-def _anchor_inliers(anchors: tuple[torch.Tensor, torch.Tensor, torch.Tensor], cfg: MatcherConfig) -> int:
-    """Anchors on the F fitted to the anchors alone (the optimiser's own starting point)."""
+def _anchor_fit(
+    anchors: tuple[torch.Tensor, torch.Tensor, torch.Tensor], cfg: MatcherConfig
+) -> tuple[torch.Tensor | None, int]:
+    """The F fitted to the anchors alone (the optimiser's own starting point, and what ``sparse``
+    answers with) and its inlier count; no fit when there are fewer anchors than the threshold."""
     if anchors[0].shape[0] < cfg.anchors_suffice:
-        return 0
-    _, mask = estimate_fundamental(anchors[0], anchors[1], cfg.geo.f_estimator, cfg.geo.f_threshold)
-    return 0 if mask is None else int(mask.sum())
+        return None, 0
+    F, mask = estimate_fundamental(anchors[0], anchors[1], cfg.geo.f_estimator, cfg.geo.f_threshold)
+    return F, 0 if mask is None else int(mask.sum())
 
 
 def _strongest(f: SparseFeatures | None, n: int) -> SparseFeatures:

@@ -37,7 +37,7 @@ Relative rotations come from the verified inliers: an essential matrix on normal
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Set
 from dataclasses import dataclass, field
 
 import cv2
@@ -137,7 +137,7 @@ def inconsistent_pairs(
     rotations: Mapping[tuple[int, int], list[np.ndarray]],
     loop_deg: float = LOOP_DEG,
     support: Mapping[tuple[int, int], int] | None = None,
-    keep: frozenset[tuple[int, int]] | set[tuple[int, int]] = frozenset(),
+    keep: Set[tuple[int, int]] = frozenset(),
 ) -> tuple[list[tuple[tuple[int, int], int, int]], int]:
     """Greedy loop check over ``rotations`` {(i, j): candidate R_ij, i < j}: the pairs to drop,
     each with (broken loops, loops) at the time it was dropped, and the number of loops at the
