@@ -1,6 +1,6 @@
 """Pairs per second over a whole image set, per method and size, with stage shares and peak memory.
 
-    python bench/gpu_throughput.py [--images DIR] [--sizes 640,1024] [--methods sparse,dense,geo]
+    python bench/gpu_throughput.py [--images DIR] [--sizes 640,1024] [--methods "sparse,dense,geo,geo anchors_suffice=0"]
                                    [--pairs N] [--device auto] [--plot PNG] [--json OUT]
 
 What a worker does on a project: every pair of a folder matched by one ``Matcher`` in one
@@ -30,6 +30,8 @@ import sys
 import time
 from itertools import combinations
 from pathlib import Path
+
+from common import parse_value
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_SET = HERE.parent.parent / "shared" / "data" / "real" / "sacre_coeur"
@@ -65,12 +67,14 @@ def _load_pairs(images: str | None, n_pairs: int) -> list[tuple[object, object]]
 def worker(args: argparse.Namespace) -> None:
     import torch
 
-    from geomatch import Matcher, MatcherConfig
-    from geomatch.matching.matcher import resolve_device
+    from geomatch import Matcher
+    from geomatch.matching.matcher import config_from_options, resolve_device
 
     device = resolve_device(args.device)
     pairs = _load_pairs(args.images, args.pairs)
-    m = Matcher(MatcherConfig(method=args.method, resize=args.size, device=str(device)))
+    method, *kvs = args.method.split()
+    options = {k: parse_value(v) for k, v in (kv.split("=", 1) for kv in kvs)}
+    m = Matcher(config_from_options(method=method, resize=args.size, device=str(device), **options))
     m.match(*pairs[0])  # networks loaded and run once, not timed
     m.clear_caches()
     m.extract_calls = 0
@@ -139,7 +143,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--images", default=str(DEFAULT_SET) if DEFAULT_SET.is_dir() else None)
     ap.add_argument("--sizes", default="640,1024")
-    ap.add_argument("--methods", default="sparse,dense,geo")
+    # a row may carry matcher options after its method: "geo anchors_suffice=0" is geo's full method
+    # on every pair (the default geo answers strong pairs from their anchors alone)
+    ap.add_argument("--methods", default="sparse,dense,geo,geo anchors_suffice=0")
     ap.add_argument("--pairs", type=int, default=0, help="first N pairs only (0: all)")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--plot", type=Path, default=HERE / "out" / "gpu_throughput.png")
