@@ -48,6 +48,9 @@ class RunOptions:
     # drop verified pairs whose relative rotation disagrees with the tree of the strongest pairs:
     # repeated and symmetric structure (geomatch.sfm.viewgraph)
     tree_check: bool = True
+    # align each track's points on the original photos before mapping (geomatch.sfm.trackrefine):
+    # the matcher places them at the network's input size
+    track_refine: bool = True
     # images with EXIF GPS: pose priors in the database, the model moved into ENU metres
     georeference: bool = True
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
@@ -135,6 +138,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         progress=opts.progress,
         loop_check=opts.loop_check,
         tree_check=opts.tree_check,
+        track_refine=opts.track_refine,
         gps=fixes,
     )
     summary["pose_priors"] = priors

@@ -553,11 +553,13 @@ def reconstruct(
     loop_check: bool = True,
     gps: GpsFixes | None = None,
     tree_check: bool = True,
+    track_refine: bool = True,
 ) -> dict[str, Any]:
     """Map the matched database; the models land in ``out/sparse`` (the largest first) with
     ``out/points.ply``; returns the summary. ``loop_check`` / ``tree_check``: drop the pairs the
     view graph's loops / its tree of strongest pairs reject before mapping (geomatch.sfm.viewgraph).
-    ``gps``: georeference to these fixes."""
+    ``gps``: georeference to these fixes. ``track_refine``: align each track's points on the photos
+    before mapping (geomatch.sfm.trackrefine)."""
     return mapping.reconstruct(
         database,
         image_dir,
@@ -570,6 +572,7 @@ def reconstruct(
         loop_check=loop_check,
         gps=gps,
         tree_check=tree_check,
+        track_refine=track_refine,
     )
 
 

@@ -8,7 +8,7 @@ import torch
 
 from geomatch.eval.homography import apply_h
 from geomatch.imageio import prepare
-from geomatch.matching.subpixel import SubpixelOptions, neighbour_affine, refine_points
+from geomatch.features.subpixel import SubpixelOptions, neighbour_affine, refine_points
 from geomatch.synth.photos import warped_pair
 
 pytestmark = pytest.mark.unit

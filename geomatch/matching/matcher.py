@@ -30,6 +30,7 @@ import torch
 from ..features.base import DenseHead, Extractor, ImageFeatures, SparseFeatures, SparseMatch, SparseMatcher
 from ..features.refine import RefineOptions
 from ..features.registry import build_dense_head, build_extractor, build_sparse_matcher
+from ..features.subpixel import SubpixelOptions, refine_points
 from ..geometry import estimate_fundamental, sampson_distance, scale_fundamental
 from ..imageio import Prepared, image_key, prepare, read_image
 from ..lru import trim_lru
@@ -43,7 +44,6 @@ from .optimizer import (
     mutual_nn,
     optimise,
 )
-from .subpixel import SubpixelOptions, refine_points
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +114,7 @@ class MatcherConfig:
     # x ground pairs always get the full method (Matcher.for_pair): that is where it was measured
     # to register views the anchors lose.
     anchors_suffice: int = 300
-    # least-squares matching of the final points in B (geomatch.matching.subpixel): "auto" does it for the
+    # least-squares matching of the final points in B (geomatch.features.subpixel): "auto" does it for the
     # methods that optimise (the paper's refinement stage, anchors included), "lsm" for any
     # method, "off" never
     subpixel: str = "auto"

@@ -23,6 +23,7 @@ from ..geo.gps import GpsFixes
 from ..options import MAPPERS, MIN_POSE_INLIERS
 from .colmaplog import colmap_log
 from .sqlitecopy import snapshot_sqlite
+from .trackrefine import refine_tracks
 from .viewgraph import filter_database
 
 
@@ -73,6 +74,7 @@ def reconstruct(
     loop_check: bool = True,
     gps: GpsFixes | None = None,
     tree_check: bool = True,
+    track_refine: bool = True,
 ) -> dict[str, Any]:
     """Map, export the largest model and return (and write) the summary.
 
@@ -83,8 +85,10 @@ def reconstruct(
 
     The mapper reads a private copy of the database in which the pairs that the view graph's
     loops or its spanning tree of the strongest pairs reject (viewgraph.py) are marked
-    degenerate; ``database`` itself keeps every verified pair, and the summary lists the dropped
-    ones (``view_graph``). ``verbose`` lets COLMAP's own
+    degenerate and, with ``track_refine``, each track's keypoints are aligned on the photos
+    (trackrefine.py); ``database`` itself keeps every verified pair and the matcher's keypoints,
+    and the summary lists the dropped pairs (``view_graph``) and the moved points
+    (``track_refinement``). ``verbose`` lets COLMAP's own
     log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
     line a user watching a terminal needs.
     """
@@ -98,6 +102,7 @@ def reconstruct(
     snapshot_sqlite(database, mapped)
     checked = loop_check or tree_check
     report = filter_database(str(mapped), loops=loop_check, tree=tree_check) if checked else None
+    refined = refine_tracks(mapped, image_dir) if track_refine else None
     db = pycolmap.Database.open(str(mapped))
     try:
         n_images = int(db.num_images())
@@ -142,6 +147,7 @@ def reconstruct(
     shutil.rmtree(work, ignore_errors=True)
     summary: dict[str, Any] = {"mapper": mapper, "models": len(ranked)}
     summary["view_graph"] = report.as_dict() if report is not None else None
+    summary["track_refinement"] = refined
     summary.update(georef.summary_fields(gps, alignments[0] if alignments else None))
     if ranked:
         best = ranked[0]

@@ -58,19 +58,26 @@ def _sample(maps: torch.Tensor, pts: torch.Tensor) -> tuple[torch.Tensor, torch.
     return v, inside
 
 
-def neighbour_affine(pa: torch.Tensor, pb: torch.Tensor, opts: SubpixelOptions) -> torch.Tensor:
-    """(N, 2, 2) local linear map from A to B around each match, from its neighbours' matches
-    (Gaussian weights); the identity where fewer than ``min_neighbours`` are near."""
+def neighbour_affine(
+    pa: torch.Tensor,
+    pb: torch.Tensor,
+    opts: SubpixelOptions,
+    around: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """(N, 2, 2) local linear map from A to B around each match, from the matches ``around`` it
+    (default: the matches themselves; Gaussian weights); the identity where fewer than
+    ``min_neighbours`` are near."""
     n = pa.shape[0]
     eye = torch.eye(2, device=pa.device).expand(n, 2, 2).clone()
-    if n < opts.min_neighbours:
+    ra, rb = around if around is not None else (pa, pb)
+    if ra.shape[0] < opts.min_neighbours:
         return eye
     out = eye
     chunk = 1024  # rows of the (chunk, N) weight matrix at a time: bounded memory
-    ones = torch.ones(n, 1, device=pa.device)
+    ones = torch.ones(ra.shape[0], 1, device=pa.device)
     for s in range(0, n, chunk):
-        da = pa[None] - pa[s : s + chunk, None]  # (c, N, 2)
-        db = pb[None] - pb[s : s + chunk, None]
+        da = ra[None] - pa[s : s + chunk, None]  # (c, N, 2)
+        db = rb[None] - pb[s : s + chunk, None]
         d2 = (da**2).sum(-1)
         w = torch.exp(-d2 / opts.neighbour_radius**2)
         w = torch.where(d2 < (2.5 * opts.neighbour_radius) ** 2, w, torch.zeros_like(w))
@@ -93,22 +100,61 @@ def refine_points(
     pa: torch.Tensor,
     pb: torch.Tensor,
     opts: SubpixelOptions | None = None,
+    around: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(refined B points, mask of the refined ones) for matches ``pa`` -> ``pb`` (network-input
-    pixels, centres at integers) between two prepared (1, 3, H, W) images."""
+    """(refined B points, mask of the refined ones) for matches ``pa`` -> ``pb`` (pixels, centres at
+    integers) between two (1, C, H, W) images in [0, 1]. ``around``: the matches whose local affine
+    map starts each warp (default: ``pa`` -> ``pb`` themselves)."""
     opts = opts or SubpixelOptions()
+    return refine_on_maps(
+        _gray(image_a, opts.sigma), gradient_maps(_gray(image_b, opts.sigma)), pa, pb, opts, around
+    )
+
+
+def gradient_maps(gray: torch.Tensor) -> torch.Tensor:
+    """(3, H, W): a smoothed (H, W) luminance and its x and y gradients, what B is sampled from."""
+    gy, gx = torch.gradient(gray)
+    return torch.stack([gray, gx, gy])
+
+
+def refine_on_maps(
+    ga: torch.Tensor,
+    maps_b: torch.Tensor,
+    pa: torch.Tensor,
+    pb: torch.Tensor,
+    opts: SubpixelOptions,
+    around: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``refine_points`` on images already smoothed (``opts.sigma`` is not applied again): A's (H, W)
+    luminance and B's ``gradient_maps``, so that a photo in many pairs is prepared once."""
     n = pa.shape[0]
     if n == 0:
         return pb, torch.zeros(0, dtype=torch.bool, device=pb.device)
     pa, pb = pa.float(), pb.float()
-    ga, gb = _gray(image_a, opts.sigma), _gray(image_b, opts.sigma)
-    gy, gx = torch.gradient(gb)
-    maps_b = torch.stack([gb, gx, gy])
     o = torch.arange(-opts.radius, opts.radius + 1, device=pa.device, dtype=pa.dtype)
     grid = torch.stack(torch.meshgrid(o, o, indexing="xy"), -1).reshape(-1, 2)  # (P, 2)
+    lin = neighbour_affine(pa, pb, opts, around)
+    # points at a time: the (points, patch samples, 8) Jacobian stays under ~64 MB
+    chunk = max(1, (1 << 21) // grid.shape[0])
+    out, ok = pb.clone(), torch.zeros(n, dtype=torch.bool, device=pb.device)
+    for s in range(0, n, chunk):
+        sl = slice(s, s + chunk)
+        out[sl], ok[sl] = _gauss_newton(ga, maps_b, grid, pa[sl], pb[sl], lin[sl].clone(), opts)
+    return out, ok
+
+
+def _gauss_newton(
+    ga: torch.Tensor,
+    maps_b: torch.Tensor,
+    grid: torch.Tensor,
+    pa: torch.Tensor,
+    pb: torch.Tensor,
+    lin: torch.Tensor,
+    opts: SubpixelOptions,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    n = pa.shape[0]
     tmpl, inside_a = _sample(ga[None], pa[:, None] + grid[None])
     tmpl = tmpl[0] - tmpl[0].mean(1, keepdim=True)
-    lin = neighbour_affine(pa, pb, opts)
     t = pb.clone()
     gain = torch.ones(n, device=pa.device)
     bias = torch.zeros(n, device=pa.device)
@@ -133,7 +179,7 @@ def refine_points(
         gain = gain - step[:, 6]
         bias = bias - step[:, 7]
     pts = t[:, None] + torch.einsum("nij,pj->npi", lin, grid)
-    (val,), inside = _sample(gb[None], pts)
+    (val,), inside = _sample(maps_b[:1], pts)
     vc = val - val.mean(1, keepdim=True)
     ncc = (vc * tmpl).sum(1) / (vc.norm(dim=1) * tmpl.norm(dim=1) + 1e-9)
     ok = (

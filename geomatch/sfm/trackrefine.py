@@ -1,0 +1,193 @@
+"""Each track's observations aligned on the original photos before mapping.
+
+Why: the matcher places its points at the network's input size (640 px by default), so on a
+1536 px photo a point is known to a network pixel, 2.4 photo pixels; SIFT detects at the photo's own
+size and places its points more precisely, and camera errors follow the points. Refining each pair
+on its own would give one keypoint a different position in each of its pairs, while COLMAP links
+observations into tracks by keypoint: so the refinement is per track. A track is a connected set of
+keypoints joined by the verified inlier matches that reach the mapper; its reference observation
+(the one matched to most others of the track) stays where it is, and every observation matched
+directly to the reference moves to where the reference's patch lands in its photo: least-squares
+matching (features/subpixel.py) at the photo's own resolution, each warp started from the affine map
+of that pair's other matches around the point. A keypoint belongs to one track, so it moves once and
+keeps one position in all of its pairs. A track that holds two keypoints of one photo is a merge of
+two scene points and is left alone, as is every point whose alignment does not converge close by
+with a high correlation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pycolmap
+import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from ..features.subpixel import SubpixelOptions, gradient_maps, refine_on_maps
+from ..imageio import read_image
+from ..lru import ByteLRU
+from .colmapdb import COLMAP_OFFSET
+
+UNUSABLE = (pycolmap.TwoViewGeometryConfiguration.UNDEFINED, pycolmap.TwoViewGeometryConfiguration.DEGENERATE)
+
+
+@dataclass(frozen=True)
+class TrackRefineOptions:
+    radius: int = 12  # patch half-size in photo pixels
+    sigma: float = 1.0  # Gaussian pre-smoothing, photo pixels
+    max_shift: float = 4.0  # photo pixels a point may move; farther means it converged elsewhere
+    min_ncc: float = 0.8
+    neighbour_radius: float = 100.0  # photo pixels: the scale of the neighbours' weights
+    max_track: int = 64  # observations; a larger component is several scene points chained together
+    images_mb: float = 512.0  # decoded photos held at once
+
+
+@dataclass
+class Tracks:
+    """Keypoints as nodes 0..N-1 (image by image), the verified inlier matches as edges."""
+
+    image_ids: list[int]
+    offsets: np.ndarray  # node of each image's first keypoint; offsets[-1] = N
+    edges: np.ndarray  # (E, 2) node pairs, first node in the lower image id
+
+    def image_of(self, nodes: np.ndarray) -> np.ndarray:
+        return np.asarray(self.image_ids)[np.searchsorted(self.offsets, nodes, side="right") - 1]
+
+
+def read_tracks(db: pycolmap.Database) -> tuple[Tracks, dict[int, np.ndarray]]:
+    """The tracks the mapper will see, and each image's keypoint rows (COLMAP's convention)."""
+    ids = sorted(im.image_id for im in db.read_all_images())
+    empty = np.zeros((0, 2), np.float32)
+    keypoints = {i: db.read_keypoints(i) if db.exists_keypoints(i) else empty for i in ids}
+    offsets = np.cumsum([0] + [len(keypoints[i]) for i in ids])
+    start = dict(zip(ids, offsets[:-1], strict=False))
+    pair_ids, geometries = db.read_two_view_geometries()
+    edges = []
+    for pair_id, g in zip(pair_ids, geometries, strict=True):
+        m = np.asarray(g.inlier_matches, np.int64).reshape(-1, 2)
+        if g.config in UNUSABLE or not len(m):
+            continue
+        a, b = pycolmap.pair_id_to_image_pair(pair_id)
+        edges.append(np.stack([m[:, 0] + start[a], m[:, 1] + start[b]], 1))
+    e = np.concatenate(edges) if edges else np.zeros((0, 2), np.int64)
+    return Tracks(ids, offsets, e), keypoints
+
+
+def references(tracks: Tracks, max_track: int) -> np.ndarray:
+    """The reference node of each node's track, or -1 where the track is not refined (a single
+    keypoint, too long, or two keypoints of one image)."""
+    n = int(tracks.offsets[-1])
+    ref = np.full(n, -1, np.int64)
+    if not len(tracks.edges):
+        return ref
+    e = tracks.edges
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    degree = np.bincount(e.ravel(), minlength=n)
+    size = np.bincount(label)
+    n_images = len(tracks.image_ids)
+    slot = np.searchsorted(tracks.image_ids, tracks.image_of(np.arange(n)))
+    # images per track: fewer than its keypoints means two keypoints of one image
+    distinct = np.bincount(np.unique(label * n_images + slot) // n_images, minlength=len(size))
+    good = (size >= 2) & (size <= max_track) & (distinct == size)
+    order = np.lexsort((np.arange(n), -degree, label))  # by track, most matched first
+    first = np.ones(n, bool)
+    first[1:] = label[order][1:] != label[order][:-1]
+    head = np.empty(len(size), np.int64)
+    head[label[order][first]] = order[first]
+    ok = good[label]
+    ref[ok] = head[label[ok]]
+    return ref
+
+
+def tasks(tracks: Tracks, ref: np.ndarray) -> np.ndarray:
+    """(K, 2) (reference node, node to move): the edges that touch their track's reference."""
+    e = tracks.edges
+    a_ref = (ref[e[:, 0]] == e[:, 0]) & (ref[e[:, 1]] >= 0)
+    b_ref = (ref[e[:, 1]] == e[:, 1]) & (ref[e[:, 0]] >= 0)
+    return np.concatenate([e[a_ref], e[b_ref][:, ::-1]])
+
+
+def _by_pair(tracks: Tracks, todo: np.ndarray) -> Iterator[tuple[int, int, np.ndarray]]:
+    """Tasks grouped by (reference image, other image), reference images in order (one decoded
+    photo serves all of its partners)."""
+    ia, ib = tracks.image_of(todo[:, 0]), tracks.image_of(todo[:, 1])
+    order = np.lexsort((ib, ia))
+    todo, ia, ib = todo[order], ia[order], ib[order]
+    cut = np.flatnonzero((np.diff(ia) != 0) | (np.diff(ib) != 0)) + 1
+    for chunk in np.split(np.arange(len(todo)), cut):
+        if len(chunk):
+            yield int(ia[chunk[0]]), int(ib[chunk[0]]), todo[chunk]
+
+
+def refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | None = None) -> dict[str, Any]:
+    """Move the keypoints of ``database`` (in place) onto their tracks' references; returns counts
+    for the summary."""
+    opts = opts or TrackRefineOptions()
+    lsm = SubpixelOptions(
+        radius=opts.radius,
+        sigma=opts.sigma,
+        max_shift=opts.max_shift,
+        min_ncc=opts.min_ncc,
+        neighbour_radius=opts.neighbour_radius,
+    )
+    db = pycolmap.Database.open(str(database))
+    try:
+        tracks, keypoints = read_tracks(db)
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        ref = references(tracks, opts.max_track)
+        todo = tasks(tracks, ref)
+        start = dict(zip(tracks.image_ids, tracks.offsets[:-1], strict=False))
+        xy = {
+            i: torch.from_numpy(np.array(k[:, :2], np.float32) - COLMAP_OFFSET) for i, k in keypoints.items()
+        }
+        photos: ByteLRU[int, torch.Tensor] = ByteLRU(opts.images_mb, lambda t: t.numel() * t.element_size())
+
+        def photo(i: int) -> torch.Tensor:
+            """The photo's smoothed luminance and its gradients, (3, H, W), prepared once."""
+            maps = photos.get(i)
+            if maps is None:
+                gray = cv2.cvtColor(read_image(image_dir / names[i]), cv2.COLOR_RGB2GRAY).astype(np.float32)
+                gray = cv2.GaussianBlur(gray / 255.0, (0, 0), opts.sigma) if opts.sigma > 0 else gray / 255.0
+                maps = gradient_maps(torch.from_numpy(gray))
+                photos.put(i, maps)
+            return maps
+
+        moved = np.zeros(int(tracks.offsets[-1]), bool)
+        shifts: list[np.ndarray] = []
+        new_xy = {i: v.clone() for i, v in xy.items()}
+        e = tracks.edges
+        ea, eb = tracks.image_of(e[:, 0]), tracks.image_of(e[:, 1])
+        for ia, ib, pair_tasks in _by_pair(tracks, todo):
+            # the pair's verified matches, oriented reference image -> other, start each warp
+            fwd = (ea == ia) & (eb == ib)
+            bwd = (ea == ib) & (eb == ia)
+            na = np.concatenate([e[fwd, 0], e[bwd, 1]]) - start[ia]
+            nb = np.concatenate([e[fwd, 1], e[bwd, 0]]) - start[ib]
+            pa = xy[ia][pair_tasks[:, 0] - start[ia]]
+            pb = xy[ib][pair_tasks[:, 1] - start[ib]]
+            out, ok = refine_on_maps(photo(ia)[0], photo(ib), pa, pb, lsm, around=(xy[ia][na], xy[ib][nb]))
+            idx = pair_tasks[ok.numpy(), 1]
+            new_xy[ib][idx - start[ib]] = out[ok]
+            moved[idx] = True
+            shifts.append((out[ok] - pb[ok]).norm(dim=1).numpy())
+        for i in tracks.image_ids:
+            if len(keypoints[i]) and moved[start[i] : start[i] + len(keypoints[i])].any():
+                rows = np.array(keypoints[i], np.float32, copy=True)
+                rows[:, :2] = new_xy[i].numpy() + COLMAP_OFFSET
+                db.update_keypoints(i, rows)
+    finally:
+        db.close()
+    shift = np.concatenate(shifts) if shifts else np.zeros(0)
+    return {
+        "tracks": len(np.unique(ref[ref >= 0])),
+        "observations_to_align": len(todo),
+        "moved": int(moved.sum()),
+        "median_shift_px": float(np.median(shift)) if len(shift) else 0.0,
+    }
