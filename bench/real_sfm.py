@@ -59,6 +59,7 @@ def sift_reference(images: Path) -> Path:
     the reference of a scene that has no surveyed cameras."""
     import pycolmap
 
+    from geomatch.sfm.colmapdb import seeded_verification
     from geomatch.sfm.colmaplog import colmap_log
 
     ref = OUT / f"{images.name}_reference"
@@ -74,10 +75,13 @@ def sift_reference(images: Path) -> Path:
     ex.sift.domain_size_pooling = True
     mo = pycolmap.FeatureMatchingOptions()
     mo.guided_matching = True
+    # seeded like the runs it judges: a rebuilt reference moved camera errors by a factor of two
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.random_seed = 0
     with colmap_log(False):
         pycolmap.extract_features(db, images, extraction_options=ex)
-        pycolmap.match_exhaustive(db, matching_options=mo)
-        recs = pycolmap.incremental_mapping(db, images, ref / "sparse")
+        pycolmap.match_exhaustive(db, matching_options=mo, verification_options=seeded_verification())
+        recs = pycolmap.incremental_mapping(db, images, ref / "sparse", mapping)
     best = max(recs.values(), key=lambda r: r.num_reg_images())
     model.mkdir(exist_ok=True)
     best.write_binary(str(model))

@@ -28,6 +28,7 @@ class SubpixelOptions:
     radius: int = 10  # patch half-size, px at network input (21 x 21 samples)
     sigma: float = 0.7  # Gaussian pre-smoothing, px
     iterations: int = 15
+    tolerance: float = 1e-3  # px: Gauss-Newton stops once no point of a batch moves more
     max_shift: float = 3.0  # px a point may move; farther means it converged elsewhere
     min_ncc: float = 0.8
     neighbour_radius: float = 40.0  # px scale of the neighbours' weights for the initial affine
@@ -160,24 +161,35 @@ def _gauss_newton(
     bias = torch.zeros(n, device=pa.device)
     eye8 = torch.eye(8, device=pa.device)
     solved = torch.ones(n, dtype=torch.bool, device=pa.device)
+    # a point stops iterating once its step is below ``tolerance`` (or it has left ``max_shift``,
+    # which rejects it): most converge in a few steps, and computing only the moving ones halves
+    # the work
+    act = torch.arange(n, device=pa.device)
+    gx_, gy_ = grid[:, 0], grid[:, 1]
     for _ in range(opts.iterations):
-        pts = t[:, None] + torch.einsum("nij,pj->npi", lin, grid)
+        if not len(act):
+            break
+        la, ga_, ba = lin[act], gain[act], bias[act]
+        pts = t[act][:, None] + torch.einsum("nij,pj->npi", la, grid)
         (val, ix, iy), inside = _sample(maps_b, pts)
-        res = gain[:, None] * val + bias[:, None] - tmpl
-        gix, giy = gain[:, None] * ix, gain[:, None] * iy
-        gx_, gy_ = grid[:, 0], grid[:, 1]
+        res = ga_[:, None] * val + ba[:, None] - tmpl[act]
+        gix, giy = ga_[:, None] * ix, ga_[:, None] * iy
         parts = [gix, giy, gix * gx_, gix * gy_, giy * gx_, giy * gy_, val, torch.ones_like(val)]
         jac = torch.stack(parts, -1)  # (N, P, 8): shift, linear map, gain, offset
-        jw = (jac * (inside & inside_a)[..., None].float()).transpose(1, 2)
+        jw = (jac * (inside & inside_a[act])[..., None].float()).transpose(1, 2)
         normal = jw @ jac
         damping = 1e-4 * normal.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] + 1e-6
         step, info = torch.linalg.solve_ex(normal + damping * eye8, jw @ res[..., None])
-        solved = solved & (info == 0)
-        step = torch.where(solved[:, None], torch.nan_to_num(step[..., 0]), torch.zeros_like(step[..., 0]))
-        t = t - step[:, :2]
-        lin = lin - step[:, 2:6].reshape(n, 2, 2)
-        gain = gain - step[:, 6]
-        bias = bias - step[:, 7]
+        ok_step = solved[act] & (info == 0)
+        solved[act] = ok_step
+        step = torch.where(ok_step[:, None], torch.nan_to_num(step[..., 0]), torch.zeros_like(step[..., 0]))
+        t[act] = t[act] - step[:, :2]
+        lin[act] = la - step[:, 2:6].reshape(-1, 2, 2)
+        gain[act] = ga_ - step[:, 6]
+        bias[act] = ba - step[:, 7]
+        moving = step[:, :2].abs().max(1).values >= opts.tolerance
+        near = (t[act] - pb[act]).norm(dim=1) <= opts.max_shift  # farther is rejected anyway
+        act = act[ok_step & moving & near]
     pts = t[:, None] + torch.einsum("nij,pj->npi", lin, grid)
     (val,), inside = _sample(maps_b[:1], pts)
     vc = val - val.mean(1, keepdim=True)

@@ -41,8 +41,8 @@ UNUSABLE = (pycolmap.TwoViewGeometryConfiguration.UNDEFINED, pycolmap.TwoViewGeo
 class TrackRefineOptions:
     radius: int = 12  # patch half-size in photo pixels
     sigma: float = 1.0  # Gaussian pre-smoothing, photo pixels
-    max_shift: float = 4.0  # photo pixels a point may move; farther means it converged elsewhere
-    min_ncc: float = 0.8
+    max_shift: float = 2.5  # photo pixels a point may move; farther means it converged elsewhere
+    min_ncc: float = 0.9
     neighbour_radius: float = 100.0  # photo pixels: the scale of the neighbours' weights
     max_track: int = 64  # observations; a larger component is several scene points chained together
     images_mb: float = 512.0  # decoded photos held at once
