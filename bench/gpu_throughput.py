@@ -1,6 +1,7 @@
 """Pairs per second over a whole image set, per method and size, with stage shares and peak memory.
 
-    python bench/gpu_throughput.py [--images DIR] [--sizes 640,1024] [--methods "sparse,dense,geo,geo anchors_suffice=0"]
+    python bench/gpu_throughput.py [--images DIR] [--sizes 640,1024]
+                                   [--methods "sparse,dense,geo,geo anchors_suffice=0"]
                                    [--pairs N] [--device auto] [--plot PNG] [--json OUT]
 
 What a worker does on a project: every pair of a folder matched by one ``Matcher`` in one
