@@ -48,9 +48,12 @@ test: setup
 test-fast: setup
 	$(BIN)/python -m pytest -q -m unit --durations=5 tests
 
+# mypy: the package code, as configured in pyproject.toml ([tool.mypy]); tests/test_types.py runs
+# the same check in the unit tier, so `make test` (CI) fails on a type error too
 lint: setup
 	$(BIN)/ruff check geomatch geomatch_core service workers geomatch_app tests bench
 	$(BIN)/ruff format --check geomatch geomatch_core service workers geomatch_app tests bench
+	$(BIN)/mypy
 
 format: setup
 	$(BIN)/ruff format geomatch geomatch_core service workers geomatch_app tests bench

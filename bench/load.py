@@ -21,6 +21,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -82,12 +83,10 @@ def main() -> int:
 
     start = threading.Barrier(args.uploaders + args.watchers + 1)
 
-    def op(
-        c: httpx.Client, name: str, method: str, path: str, want: int, **kw: object
-    ) -> httpx.Response | None:
+    def op(c: httpx.Client, name: str, method: str, path: str, want: int, **kw: Any) -> httpx.Response | None:
         t0 = time.perf_counter()
         try:
-            r = c.request(method, path, **kw)  # type: ignore[arg-type]
+            r = c.request(method, path, **kw)
             err = None if r.status_code == want else f"HTTP {r.status_code}: {r.text[:120]}"
         except httpx.HTTPError as e:
             r, err = None, repr(e)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -115,13 +116,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def format_summary(s: dict[str, object]) -> str:
+def format_summary(s: Mapping[str, Any]) -> str:
     t = s.get("timings", {})
     total = f" in {t['total']:.0f}s" if isinstance(t, dict) and "total" in t else ""
     return (
         f"registered {s['registered']}/{s['images']} images, {s['points3D']} 3D points, "
-        f"mean track length {float(s['mean_track_length']):.2f}, "  # type: ignore[arg-type]
-        f"mean reprojection error {float(s['mean_reprojection_error']):.3f} px{total}"  # type: ignore[arg-type]
+        f"mean track length {float(s['mean_track_length']):.2f}, "
+        f"mean reprojection error {float(s['mean_reprojection_error']):.3f} px{total}"
     )
 
 

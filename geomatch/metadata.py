@@ -9,8 +9,10 @@ becomes a position prior and puts the model in a real-world frame (geo/gps.py, g
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -50,6 +52,13 @@ class ImageMeta:
     @property
     def has_gps(self) -> bool:
         return self.latitude is not None and self.longitude is not None
+
+    @property
+    def lat_lon(self) -> tuple[float, float] | None:
+        """(latitude, longitude) in degrees; None without a fix."""
+        if self.latitude is None or self.longitude is None:
+            return None
+        return self.latitude, self.longitude
 
     @property
     def device(self) -> tuple[str, str, int, int, float | None]:
@@ -151,9 +160,13 @@ def read_metadata(path: str | Path) -> ImageMeta:
     )
 
 
-def _dms(value: object, ref: object, negative: str) -> float | None:
+# EXIF values are Any: whatever the file holds (ints, rationals, bytes, tuples of them); float()
+# inside a try decides whether one is a number
+
+
+def _dms(value: Any, ref: object, negative: str) -> float | None:
     try:
-        d, m, sec = (float(v) for v in value)  # type: ignore[attr-defined]
+        d, m, sec = (float(v) for v in value)
     except (TypeError, ValueError, ZeroDivisionError):
         return None
     deg = d + m / 60.0 + sec / 3600.0
@@ -162,7 +175,7 @@ def _dms(value: object, ref: object, negative: str) -> float | None:
     return -deg if str(ref).strip("\x00 ").upper() == negative else deg
 
 
-def _gps(gps: dict[int, object]) -> tuple[float | None, float | None, float | None]:
+def _gps(gps: Mapping[int, Any]) -> tuple[float | None, float | None, float | None]:
     """Latitude, longitude (degrees) and altitude (metres) of an EXIF GPSInfo IFD; a field that
     is missing or malformed is None (a camera without a fix writes zeros or nothing)."""
     if not gps or _GPS_LAT not in gps or _GPS_LON not in gps:
@@ -174,7 +187,7 @@ def _gps(gps: dict[int, object]) -> tuple[float | None, float | None, float | No
     alt = None
     try:
         if _GPS_ALT in gps:
-            alt = float(gps[_GPS_ALT])  # type: ignore[arg-type]
+            alt = float(gps[_GPS_ALT])
             ref = gps.get(_GPS_ALT_REF, 0)
             below = ref in (1, b"\x01") or (isinstance(ref, bytes) and ref[:1] == b"\x01")
             alt = -alt if below else alt
@@ -203,16 +216,16 @@ def gps_exif(exif: Image.Exif, lat: float, lon: float, alt: float) -> Image.Exif
     return exif
 
 
-def _focal_px(sub: dict[int, object], width: int, height: int) -> float | None:
+def _focal_px(sub: Mapping[int, Any], width: int, height: int) -> float | None:
     try:
         if _FOCAL in sub and _FP_XRES in sub:
-            mm_per_unit = _UNIT_MM.get(int(sub.get(_FP_UNIT, 2)))  # type: ignore[call-overload]
-            f_mm, px_per_unit = float(sub[_FOCAL]), float(sub[_FP_XRES])  # type: ignore[arg-type]
+            mm_per_unit = _UNIT_MM.get(int(sub.get(_FP_UNIT, 2)))
+            f_mm, px_per_unit = float(sub[_FOCAL]), float(sub[_FP_XRES])
             if mm_per_unit and f_mm > 0 and px_per_unit > 0:
                 return f_mm * px_per_unit / mm_per_unit
-        if _FOCAL35 in sub and float(sub[_FOCAL35]) > 0:  # type: ignore[arg-type]
+        if _FOCAL35 in sub and float(sub[_FOCAL35]) > 0:
             # 35 mm equivalent: the long side of the 36 x 24 mm frame is the long side of the image
-            return float(sub[_FOCAL35]) / 36.0 * max(width, height)  # type: ignore[arg-type]
+            return float(sub[_FOCAL35]) / 36.0 * max(width, height)
     except (TypeError, ValueError, ZeroDivisionError):
         return None
     return None

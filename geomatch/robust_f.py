@@ -102,7 +102,7 @@ def ransac_fundamental(
         cost = d.clamp(max=thr2).sum(1)
         cost = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, float("inf")))
         k = cost.argmin()
-        if best_cost is None:
+        if best_F is None or best_cost is None:
             best_F, best_cost = F[k], cost[k]
         else:
             better = cost[k] < best_cost

@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.util
 import os
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -63,7 +64,8 @@ def weight_path(filename: str, explicit: str | os.PathLike[str] | None = None) -
     raise WeightsNotFoundError(f"weights file {filename!r} not found (looked in: {where}); {HOW_TO_GET}")
 
 
-def load_state_dict(filename: str, explicit: str | os.PathLike[str] | None = None) -> dict[str, torch.Tensor]:
+def load_state_dict(filename: str, explicit: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+    """Names to tensors; a checkpoint may nest the state dict (DISK's, under ``"extractor"``)."""
     path = weight_path(filename, explicit)
     state = torch.load(str(path), map_location="cpu", weights_only=True)
     if not isinstance(state, dict):

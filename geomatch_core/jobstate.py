@@ -7,13 +7,20 @@ counted once, and exactly one caller sees a job complete.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import select, update
+from sqlalchemy import CursorResult, Update, select, update
+from sqlalchemy.orm import Session
 
 from .models import TERMINAL_STATES, Job, JobPair, now
 from .queue import ENTRY_STEP, JobQueue
 from .store import MetadataStore
+
+
+def _changed(s: Session, statement: Update) -> int:
+    """Run an UPDATE; how many rows it changed (Session.execute is typed as returning a Result,
+    which for an UPDATE is a CursorResult, the one with the count)."""
+    return cast(CursorResult[Any], s.execute(statement)).rowcount
 
 
 def get(store: MetadataStore, job_id: str) -> Job | None:
@@ -43,11 +50,12 @@ def is_active(store: MetadataStore, job_id: str) -> bool:
 def mark_pair_done(store: MetadataStore, job_id: str, idx: int, matches: int, inliers: int) -> bool:
     """True the first time only: the pair's row flips and the job's counter moves in one transaction."""
     with store.session() as s:
-        flipped = s.execute(
+        flipped = _changed(
+            s,
             update(JobPair)
             .where(JobPair.job_id == job_id, JobPair.idx == idx, JobPair.done.is_(False))
-            .values(done=True, matches=matches, inliers=inliers)
-        ).rowcount
+            .values(done=True, matches=matches, inliers=inliers),
+        )
         if flipped:
             s.execute(update(Job).where(Job.id == job_id).values(done=Job.done + 1))
         return bool(flipped)
@@ -56,44 +64,48 @@ def mark_pair_done(store: MetadataStore, job_id: str, idx: int, matches: int, in
 def finish_if_complete(store: MetadataStore, job_id: str, result: dict[str, Any] | None = None) -> bool:
     with store.session() as s:
         return bool(
-            s.execute(
+            _changed(
+                s,
                 update(Job)
                 .where(Job.id == job_id, Job.state == "running", Job.planned.is_(True), Job.done >= Job.total)
-                .values(state="succeeded", finished_at=now(), result=result)
-            ).rowcount
+                .values(state="succeeded", finished_at=now(), result=result),
+            )
         )
 
 
 def succeed(store: MetadataStore, job_id: str, result: dict[str, Any] | None = None) -> bool:
     with store.session() as s:
         return bool(
-            s.execute(
+            _changed(
+                s,
                 update(Job)
                 .where(Job.id == job_id, Job.state == "running")
-                .values(state="succeeded", finished_at=now(), result=result, done=Job.total)
-            ).rowcount
+                .values(state="succeeded", finished_at=now(), result=result, done=Job.total),
+            )
         )
 
 
 def fail(store: MetadataStore, job_id: str, error: str) -> bool:
     with store.session() as s:
         return bool(
-            s.execute(
+            _changed(
+                s,
                 update(Job)
                 .where(Job.id == job_id, Job.state.not_in(TERMINAL_STATES))
-                .values(state="failed", finished_at=now(), error=error[:4000])
-            ).rowcount
+                .values(state="failed", finished_at=now(), error=error[:4000]),
+            )
         )
 
 
 def cancel(store: MetadataStore, job_id: str, reason: str | None = None) -> bool:
     with store.session() as s:
         return bool(
-            s.execute(
+            _changed(
+                s,
                 update(Job)
                 .where(Job.id == job_id, Job.state.not_in(TERMINAL_STATES))
-                .values(state="cancelled", finished_at=now(), error=reason)
-            ).rowcount
+                .values(state="cancelled", finished_at=now(), error=reason),
+            )
         )
 
 
@@ -105,8 +117,8 @@ def release_followers(store: MetadataStore, queue: JobQueue, job_id: str) -> Non
     """
     with store.session() as s:
         state = s.scalar(select(Job.state).where(Job.id == job_id))
-        followers = s.scalars(select(Job).where(Job.after_job_id == job_id, Job.state == "queued")).all()
-        followers = [(f.id, f.kind) for f in followers]
+        waiting = s.scalars(select(Job).where(Job.after_job_id == job_id, Job.state == "queued")).all()
+        followers = [(f.id, f.kind) for f in waiting]
     for fid, kind in followers:
         if state == "succeeded":
             queue.enqueue(ENTRY_STEP[kind], fid)

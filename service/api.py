@@ -66,7 +66,12 @@ def create_app(service: Service) -> FastAPI:
     app.state.service = service
     metrics = Metrics(service.store)
     app.middleware("http")(metrics.middleware)
-    service.on_upload = lambda n, size: (metrics.uploaded_images.inc(n), metrics.uploaded_bytes.inc(size))
+
+    def count_upload(n: int, size: int) -> None:
+        metrics.uploaded_images.inc(n)
+        metrics.uploaded_bytes.inc(size)
+
+    service.on_upload = count_upload
     app.include_router(router)
     console.mount(app)
 

@@ -85,7 +85,8 @@ class Client:
         body: dict[str, Any] = {"name": name}
         if config:
             body["config"] = config
-        return self.request("POST", "/v1/projects", json=body).json()  # type: ignore[no-any-return]
+        project: dict[str, Any] = self.request("POST", "/v1/projects", json=body).json()
+        return project
 
     def upload(
         self,
@@ -114,14 +115,17 @@ class Client:
                 data={"capture": capture},
                 rewind=rewind,
             )
-        return r.json()["images"][0]  # type: ignore[no-any-return]
+        image: dict[str, Any] = r.json()["images"][0]
+        return image
 
     def match(self, project_id: str, **options: Any) -> dict[str, Any]:
         body = {k: v for k, v in options.items() if v is not None}
-        return self.request("POST", f"/v1/projects/{project_id}/match", json=body).json()  # type: ignore[no-any-return]
+        accepted: dict[str, Any] = self.request("POST", f"/v1/projects/{project_id}/match", json=body).json()
+        return accepted
 
     def job(self, job_id: str) -> dict[str, Any]:
-        return self.request("GET", f"/v1/jobs/{job_id}").json()  # type: ignore[no-any-return]
+        job: dict[str, Any] = self.request("GET", f"/v1/jobs/{job_id}").json()
+        return job
 
     def wait(
         self, job_id: str, on_update: Callable[[dict[str, Any]], object] = lambda j: None, poll_s: float = 1.0

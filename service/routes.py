@@ -55,7 +55,7 @@ EVENTS_POLL_S = 0.5
 
 
 def service(request: Request) -> Service:
-    return request.app.state.service  # type: ignore[no-any-return]
+    return request.app.state.service  # type: ignore[no-any-return]  # Starlette's State holds Any
 
 
 def tenant(

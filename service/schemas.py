@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import re
 from datetime import UTC, datetime
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import (
     AfterValidator,
@@ -133,7 +133,14 @@ def _option_fields(pairs_list: bool) -> dict[str, Any]:
     return fields
 
 
-ProjectConfig = create_model("ProjectConfig", __base__=_Strict, **_option_fields(pairs_list=False))
+if TYPE_CHECKING:  # models made at run time, field by field from the options: to a checker, strict models
+
+    class ProjectConfig(_Strict): ...
+
+    class MatchIn(_Strict): ...
+
+else:
+    ProjectConfig = create_model("ProjectConfig", __base__=_Strict, **_option_fields(pairs_list=False))
 
 
 class ProjectCreate(_Strict):
@@ -181,18 +188,20 @@ class ImagesOut(BaseModel):
     images: list[ImageOut]
 
 
-MatchIn = create_model(
-    "MatchIn",
-    __base__=_Strict,
-    **_option_fields(pairs_list=True),
-    reconstruct=(
-        bool,
-        Field(False, description="also queue a reconstruct job that starts when matching succeeds"),
-    ),
-)
+if not TYPE_CHECKING:
+    MatchIn = create_model(
+        "MatchIn",
+        __base__=_Strict,
+        **_option_fields(pairs_list=True),
+        reconstruct=(
+            bool,
+            Field(False, description="also queue a reconstruct job that starts when matching succeeds"),
+        ),
+    )
 
 
 class ReconstructIn(_Strict):
+    # a type built at run time from the options (choices, checks, schema), which pydantic reads
     mapper: option_type("mapper") | None = Field(  # type: ignore[valid-type]
         None, examples=[options.DEFAULTS["mapper"]], description=" | ".join(options.MAPPERS)
     )

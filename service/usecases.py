@@ -247,7 +247,7 @@ class Service:
             jobstate.cancel(self.store, job_id, "project deleted")
         with self.store.session() as s:
             gone = s.execute(delete(Project).where(Project.id == project_id, Project.tenant_id == tenant_id))
-            if gone.rowcount != 1:  # type: ignore[attr-defined]
+            if gone.rowcount != 1:  # type: ignore[attr-defined]  # typed Result; a DELETE gets a CursorResult
                 raise NotFound(f"project {project_id} not found")
         # the writer lock: a worker writing this project right now finishes before the files go
         with self.locks.project(project_id):

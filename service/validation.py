@@ -3,7 +3,7 @@
 Image checks use Pillow only (the library's ``read_image`` would pull torch into the API): the
 header gives the size, which is checked against the pixel limit BEFORE any decoding, so a
 decompression bomb costs nothing. The data is then checked for truncation and corruption without
-ever holding the whole bitmap (one upload of a 9400x9400 PNG used to cost this process 320 MiB):
+ever holding the whole bitmap (a full decode of one 9400x9400 PNG costs this process 320 MiB):
 a PNG is inflated in a stream and counted, a JPEG is decoded at a reduced scale, and another format
 is decoded only while its bitmap fits ``DECODE_BUDGET``; past that its header is all the API reads,
 and a worker that cannot decode it fails the job with the reason. Option values are checked by

@@ -30,7 +30,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, TypeGuard
 
 import pytest
 import yaml
@@ -56,9 +56,11 @@ REQUIRED_SERVER_COMMANDS = ("serve", "worker", "grpc-serve")
 def _module_constants(tree: ast.Module) -> dict[str, str]:
     out = {}
     for node in tree.body:
-        value = node.value if isinstance(node, ast.Assign) else None
+        if not isinstance(node, ast.Assign):
+            continue
+        value = node.value
         if isinstance(value, ast.Constant) and isinstance(value.value, str):
-            out.update({t.id: value.value for t in node.targets if isinstance(t, ast.Name)})  # type: ignore[union-attr]
+            out.update({t.id: value.value for t in node.targets if isinstance(t, ast.Name)})
     return out
 
 
@@ -68,7 +70,7 @@ def _is_environ(node: ast.AST) -> bool:
     )
 
 
-def _is_environ_get(node: ast.AST) -> bool:
+def _is_environ_get(node: ast.AST) -> TypeGuard[ast.Call]:
     if not isinstance(node, ast.Call):
         return False
     f = node.func
@@ -95,7 +97,7 @@ def env_reads(path: Path) -> list[tuple[str, Any]]:
                     and n.args
                     and isinstance(n.args[0], ast.Name)
                     and n.args[0].id == first
-                ):  # type: ignore[attr-defined]
+                ):
                     readers.add(fn.name)
                     inside.add(id(n))
     found = []
@@ -105,7 +107,7 @@ def env_reads(path: Path) -> list[tuple[str, Any]]:
         if _is_environ_get(n) or (
             isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id in readers
         ):
-            args = n.args  # type: ignore[attr-defined]
+            args = n.args
             if not args:
                 continue
             name_node, default = args[0], args[1] if len(args) > 1 else None

@@ -76,8 +76,7 @@ class LocalQueue:
         with store.session() as s:
             rows = s.execute(
                 select(Job.id, Job.kind, Job.after_job_id).where(Job.state.in_(("queued", "running")))
-            )
-            rows = rows.all()
+            ).all()
         n = 0
         for job_id, kind, after in rows:
             if after is not None:

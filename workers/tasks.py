@@ -52,7 +52,7 @@ def context(app: Celery) -> Context:
 
 
 def register(app: Celery) -> None:
-    class StepTask(Task):  # type: ignore[misc]
+    class StepTask(Task[Any, Any]):
         autoretry_for = (Exception,)
         dont_autoretry_for = (PermanentError, ValueError, TypeError, LookupError, NotImplementedError)
         max_retries = 3
@@ -74,7 +74,7 @@ def register(app: Celery) -> None:
             app.task(name=name, ignore_result=False, acks_late=False, max_retries=0)(once)
             continue
 
-        def run(self: Task, *args: Any, _fn: Any = fn) -> Any:
+        def run(self: Task[Any, Any], *args: Any, _fn: Any = fn) -> Any:
             try:
                 return _fn(context(app), *args)
             except Exception as e:  # e.g. missing weights (an OSError): fail now, not after 3 retries
@@ -88,7 +88,7 @@ def register(app: Celery) -> None:
 
 
 def _recovery_step(app: Celery) -> type:
-    class Recover(bootsteps.StartStopStep):  # type: ignore[misc]
+    class Recover(bootsteps.StartStopStep):
         """Runs each time the consumer (re)connects to the broker: see ``workers.recovery``."""
 
         requires = ("celery.worker.consumer.tasks:Tasks",)

@@ -50,7 +50,10 @@ def estimate_relative_pose(
         return None
     best, best_n = None, 0
     for E_i in np.split(E, len(E) // 3):
-        n, R, t, _ = cv2.recoverPose(E_i, n0, n1, np.eye(3), 1e9, mask=mask.copy())
+        # OpenCV binds the positional 1e9 to the output R of the 4-result overload (a scalar converts
+        # to a Mat), not to distanceThresh: no distance limit is set here and OpenCV's default (50)
+        # applies to the cheirality count; the stubs pick the 5-result distanceThresh overload
+        n, R, t, _ = cv2.recoverPose(E_i, n0, n1, np.eye(3), 1e9, mask=mask.copy())  # type: ignore[misc]
         if n > best_n:
             best_n, best = n, (R, t.ravel(), mask.ravel() > 0)
     return best

@@ -73,13 +73,13 @@ def _writer(fmt: str) -> Callable[[Source, Path], list[Path]]:
     if fmt == "nerfstudio":
         from . import nerfstudio as m
     elif fmt == "colmap-text":
-        from . import colmap_text as m  # type: ignore[no-redef]
+        from . import colmap_text as m  # type: ignore[no-redef]  # one name, whichever format's module
     elif fmt == "ply":
-        from . import ply as m  # type: ignore[no-redef]
+        from . import ply as m  # type: ignore[no-redef]  # ditto
     elif fmt == "hloc":
-        from . import hloc as m  # type: ignore[no-redef]
+        from . import hloc as m  # type: ignore[no-redef]  # ditto
     else:
-        from . import openmvs as m  # type: ignore[no-redef]
+        from . import openmvs as m  # type: ignore[no-redef]  # ditto
     return m.write
 
 

@@ -14,6 +14,7 @@ full-resolution descriptor map never exists whole.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -53,7 +54,7 @@ def disk_maps(
     rows: int = STRIP_ROWS,
 ) -> DiskMaps:
     """The maps :class:`~geomatch.features.disk.DiskExtractor` keeps, for a (1, 3, H, W) image."""
-    unet = net.unet
+    unet: Any = net.unet  # kornia types it as any Module; DISK() builds its Unet, read layer by layer
     if image.shape[0] != 1:
         raise ValueError("disk_maps takes one image at a time")
     if rows % stride:

@@ -11,10 +11,12 @@ on the 2-core CPU, with the same matches (scores within 1e-6): bench/lightglue_p
 from __future__ import annotations
 
 import contextlib
+from typing import cast
 
 import torch
 import torch.nn.functional as F
 from kornia.feature import LightGlue
+from kornia.feature.lightglue import CrossBlock
 from torch import nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
@@ -50,7 +52,7 @@ class FusedCrossBlock(nn.Module):
     weights and arithmetic as its bidirectional einsum path (softmax(q0 k1^T / sqrt(d)) v1 and
     the reverse), without materialising the N x M similarity and its transposed copy."""
 
-    def __init__(self, block: nn.Module) -> None:
+    def __init__(self, block: CrossBlock) -> None:
         super().__init__()
         self.block = block
 
@@ -87,7 +89,7 @@ class LightGlueMatcher(SparseMatcher):
             raise ValueError(f"no LightGlue weights for {features!r}; choose from {sorted(CHECKPOINTS)}")
         self.name = f"{features}+lightglue"
         net = LightGlue(
-            None,
+            None,  # type: ignore[arg-type]  # kornia annotates str, and takes None: no checkpoint download
             input_dim=128,
             descriptor_dim=256,
             flash=False,
@@ -104,7 +106,8 @@ class LightGlueMatcher(SparseMatcher):
         self.fused = fused
         if fused:
             for layer in net.transformers:
-                layer.cross_attn = FusedCrossBlock(layer.cross_attn)
+                # a ModuleList's items and their attributes are typed as any Module (or Tensor)
+                layer.cross_attn = FusedCrossBlock(cast(CrossBlock, layer.cross_attn))
         self.net = net.eval().to(device)
 
     @torch.inference_mode()

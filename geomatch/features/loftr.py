@@ -8,6 +8,7 @@ refines the selected coarse matches. Per-image CNN features are extracted once a
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -47,10 +48,10 @@ class LoftrExtractor(Extractor):
         gray = (0.299 * image[:, 0] + 0.587 * image[:, 1] + 0.114 * image[:, 2])[:, None]
         feats = self.net.extract_features(gray)
         h, w = image.shape[-2:]
-        dense = DenseFeatures(
+        maps = DenseFeatures(
             coarse=feats["coarse"][0], fine=feats["fine"][0], stride=self.stride, image_size=(w, h)
         )
-        return ImageFeatures(dense=dense)
+        return ImageFeatures(dense=maps)
 
 
 class LoftrHead(DenseHead):
@@ -83,7 +84,9 @@ class LoftrHead(DenseHead):
     ) -> Refined:
         stride_c, stride_f = (int(s) for s in self.net.config["resolution"])
         t0, t1 = pair.context["tokens"]
-        data = {
+        if a.fine is None or b.fine is None:
+            raise ValueError("LoFTR's fine stage needs both images' fine maps (LoftrExtractor keeps them)")
+        data: dict[str, Any] = {  # kornia's fine stage reads its inputs here and writes its answer
             "b_ids": torch.zeros_like(idx_a),
             "i_ids": idx_a,
             "j_ids": idx_b,

@@ -36,7 +36,7 @@ def _row_pad(layer: Layer) -> int:
 def _col_pad(conv: nn.Conv2d) -> int:
     if conv.padding == "same":
         return conv.dilation[1] * (conv.kernel_size[1] - 1) // 2
-    return int(conv.padding[1])  # type: ignore[index]
+    return int(conv.padding[1])
 
 
 def rows_through(

@@ -228,7 +228,8 @@ def align(
         return None
     if gravity is not None:
         result = replace(result, up_images=gravity[1])
-        named = sorted(n for n in centres if n in (heights or {}))
+        known = heights or {}
+        named = sorted(n for n in centres if n in known)
         if len(named) >= MIN_HEIGHTS:
             inl = result.inliers
             refined = fit_with_heights(
@@ -237,7 +238,7 @@ def align(
                 gravity[0],
                 result.sim,
                 np.stack([centres[n] for n in named]),
-                np.array([heights[n] for n in named]),
+                np.array([known[n] for n in named]),
             )
             if refined is not None:
                 sim, use = refined

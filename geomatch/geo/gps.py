@@ -35,22 +35,18 @@ class GpsFixes:
 
 def fixes(names: Sequence[str], metas: Mapping[str, ImageMeta]) -> GpsFixes | None:
     """The images' fixes in the ENU frame of the first one; None when no image has GPS."""
-    located = [n for n in sorted(names) if metas[n].has_gps]
+    located = {n: ll for n in sorted(names) if (ll := metas[n].lat_lon) is not None}
     if not located:
         return None
-    alts = [metas[n].altitude_m for n in located if metas[n].altitude_m is not None]
+    alts = [a for n in located if (a := metas[n].altitude_m) is not None]
     fallback = float(np.median(alts)) if alts else 0.0
-    first = metas[located[0]]
-    frame = EnuFrame(
-        float(first.latitude),  # type: ignore[arg-type]
-        float(first.longitude),  # type: ignore[arg-type]
-        float(first.altitude_m if first.altitude_m is not None else fallback),
-    )
+    name0, (lat0, lon0) = next(iter(located.items()))
+    alt0 = metas[name0].altitude_m
+    frame = EnuFrame(float(lat0), float(lon0), float(alt0 if alt0 is not None else fallback))
     enu = {}
-    for n in located:
-        m = metas[n]
-        alt = m.altitude_m if m.altitude_m is not None else fallback
-        enu[n] = frame.from_geodetic(m.latitude, m.longitude, alt)  # type: ignore[arg-type]
+    for n, (lat, lon) in located.items():
+        alt = metas[n].altitude_m
+        enu[n] = frame.from_geodetic(lat, lon, alt if alt is not None else fallback)
     up = {n: u for n in names if (u := up_in_camera(metas[n])) is not None}
     heights = {n: h for n in names if (h := metas[n].relative_altitude_m) is not None}
     return GpsFixes(frame, enu, bool(alts), up, heights)
@@ -117,7 +113,8 @@ def footprint(position: np.ndarray, meta: ImageMeta) -> np.ndarray | None:
     the metadata cannot say (no gimbal or altitude, a ground camera)."""
     R = camera_from_gimbal(meta)
     h = meta.relative_altitude_m
-    if R is None or h is None or h <= 0 or meta.gimbal_pitch_deg > MIN_TILT_PITCH_DEG:  # type: ignore[operator]
+    pitch = meta.gimbal_pitch_deg  # set wherever R is: the rotation is the gimbal's
+    if R is None or h is None or h <= 0 or pitch is None or pitch > MIN_TILT_PITCH_DEG:
         return None
     w, ht = meta.width, meta.height
     f = meta.focal_px or (w / 2) / np.tan(np.radians(FALLBACK_HFOV_DEG / 2))

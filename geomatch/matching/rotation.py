@@ -11,8 +11,8 @@ So for a pair with an aerial side, one image is tried at the four quarter turns 
 LightGlue pass (``Matcher.probe_count``: each image's 512 strongest keypoints, LightGlue's adaptive
 depth and width on); when its best turn is not clear-cut (``PROBE_MARGIN``) the four turns are
 ranked again by the full-strength anchors; the pair is matched at the turn that gives the most.
-Keypoints come back in the image's own frame. The probe used to be the full-strength anchors
-alone: four ~8-10 s LightGlue calls per pair on the 2-core CPU, half of a tiled pair's time.
+Keypoints come back in the image's own frame. Why a cheap probe first: the full-strength anchors
+alone would be four ~8-10 s LightGlue calls per pair on the 2-core CPU, half of a tiled pair's time.
 """
 
 from __future__ import annotations

@@ -17,6 +17,7 @@ import sqlite3
 from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
+from typing import SupportsInt
 
 import numpy as np
 import pycolmap
@@ -113,8 +114,9 @@ class ColmapDatabase:
 
     def add_image(self, name: str, meta: ImageMeta, share_camera: bool | None = None) -> int:
         """Idempotent by name. ``share_camera`` None: share when EXIF names the device."""
-        if self.db.exists_image(name):
-            return int(self.db.read_image_with_name(name).image_id)
+        existing = self.db.read_image_with_name(name) if self.db.exists_image(name) else None
+        if existing is not None:
+            return int(existing.image_id)
         shared = meta.has_device if share_camera is None else share_camera
         cam_id = self._camera_for(meta, shared)
         rig_id = next(r.rig_id for r in self.db.read_all_rigs() if r.ref_sensor_id.id == cam_id)
@@ -237,8 +239,8 @@ def _drop_unused(points: np.ndarray, n_old: int, idx: np.ndarray) -> tuple[np.nd
     return np.concatenate([points[:n_old], points[used_new]]), remap[idx].astype(np.uint32)
 
 
-def _config_name(config: object) -> str:
+def _config_name(config: SupportsInt) -> str:
     try:
-        return pycolmap.TwoViewGeometryConfiguration(int(config)).name  # type: ignore[call-overload]
+        return pycolmap.TwoViewGeometryConfiguration(int(config)).name
     except (TypeError, ValueError):
         return str(config)

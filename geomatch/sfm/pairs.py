@@ -107,9 +107,10 @@ def gps_neighbours(
         d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
         np.fill_diagonal(d, np.inf)
         overlap = np.zeros_like(d)
-        with_fp = [i for i, n in enumerate(located) if footprints and n in footprints]
+        fp = footprints or {}
+        with_fp = [i for i, n in enumerate(located) if n in fp]
         if len(with_fp) > 1:
-            ov = footprint_overlap([footprints[located[i]] for i in with_fp])  # type: ignore[index]
+            ov = footprint_overlap([fp[located[i]] for i in with_fp])
             overlap[np.ix_(with_fp, with_fp)] = ov
         np.fill_diagonal(overlap, -1.0)
         for i, a in enumerate(located):

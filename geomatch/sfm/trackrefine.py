@@ -153,8 +153,11 @@ def refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | No
             """The photo's smoothed luminance and its gradients, (3, H, W), prepared once."""
             maps = photos.get(i)
             if maps is None:
-                gray = cv2.cvtColor(read_image(image_dir / names[i]), cv2.COLOR_RGB2GRAY).astype(np.float32)
-                gray = cv2.GaussianBlur(gray / 255.0, (0, 0), opts.sigma) if opts.sigma > 0 else gray / 255.0
+                raw = (
+                    cv2.cvtColor(read_image(image_dir / names[i]), cv2.COLOR_RGB2GRAY).astype(np.float32)
+                    / 255.0
+                )
+                gray = cv2.GaussianBlur(raw, (0, 0), opts.sigma) if opts.sigma > 0 else raw
                 maps = gradient_maps(torch.from_numpy(gray))
                 photos.put(i, maps)
             return maps

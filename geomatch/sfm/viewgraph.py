@@ -110,8 +110,11 @@ def candidate_rotations(
         if n >= 8:
             out.append(R)
     # sets geometry.cam2_from_cam1 on the caller's copy read from the database; nothing is written
-    if pycolmap.estimate_two_view_geometry_pose(
-        cam0, kp0.astype(np.float64), cam1, kp1.astype(np.float64), geometry
+    if (
+        pycolmap.estimate_two_view_geometry_pose(
+            cam0, kp0.astype(np.float64), cam1, kp1.astype(np.float64), geometry
+        )
+        and geometry.cam2_from_cam1 is not None  # what a successful estimate sets
     ):
         out.append(geometry.cam2_from_cam1.rotation.matrix())
     H, _ = cv2.findHomography(n0, n1, cv2.RANSAC, 2.0 / focal)
@@ -157,14 +160,14 @@ def inconsistent_pairs(
             tri = tuple(sorted((a, b, c)))
             if tri not in broken:
                 i, j, k = tri
-                broken[tri] = loop_error(rot(i, j), rot(j, k), rot(i, k)) > loop_deg  # type: ignore[index]
+                broken[tri] = loop_error(rot(i, j), rot(j, k), rot(i, k)) > loop_deg
     n_loops = len(broken)
     dropped: list[tuple[tuple[int, int], int, int]] = []
     while True:
         worst, worst_key = None, (0.0, 0, 0.0)
         for a, b in edges:
             loops = [t for c in nbrs[a] & nbrs[b] if (t := tuple(sorted((a, b, c)))) in broken]
-            bad = sum(broken[t] for t in loops)  # type: ignore[index]
+            bad = sum(broken[t] for t in loops)
             if len(nbrs[a]) <= MIN_PAIRS or len(nbrs[b]) <= MIN_PAIRS or (a, b) in keep:
                 continue  # the last pairs of an image: dropping them would leave it out for sure
             if bad == 1 and not _weakest_in_broken(a, b, loops, broken, support):
@@ -304,8 +307,8 @@ def _voted_candidate(
 def _weakest_in_broken(
     a: int,
     b: int,
-    loops: list[tuple[int, ...]],
-    broken: Mapping[tuple[int, ...], bool],
+    loops: list[tuple[int, int, int]],
+    broken: Mapping[tuple[int, int, int], bool],
     support: Mapping[tuple[int, int], int],
 ) -> bool:
     """Whether (a, b) has the fewest inliers of a broken loop it is in."""

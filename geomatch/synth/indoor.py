@@ -17,9 +17,10 @@ covisibility of at least 10 %, computed from depth (see :func:`covisibility`). P
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -50,7 +51,7 @@ def _canvas(w_m: float, h_m: float) -> tuple[int, int]:
     return max(2, round(h_m * PPM)), max(2, round(w_m * PPM))
 
 
-def _paint(h: int, w: int, base: tuple[int, int, int], rng: np.random.Generator, noise: float = 2.0):
+def _paint(h: int, w: int, base: tuple[int, ...], rng: np.random.Generator, noise: float = 2.0) -> np.ndarray:
     """Plain paint: flat colour, a faint low-frequency blotch and texel noise (no corners to detect)."""
     low = cv2.resize(rng.normal(0, 5.0, (4, 6)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC)
     fine = cv2.GaussianBlur(rng.normal(0, noise, (h, w)).astype(np.float32), (3, 3), 0)
@@ -82,7 +83,9 @@ def _crop(src: np.ndarray, aspect: float, rng: np.random.Generator) -> np.ndarra
     return np.ascontiguousarray(src[y : y + ch, x : x + cw])
 
 
-def _wall(w_m: float, h_m: float, paint: tuple[int, int, int], rng: np.random.Generator, shared: dict):
+def _wall(
+    w_m: float, h_m: float, paint: tuple[int, int, int], rng: np.random.Generator, shared: dict[str, Any]
+) -> np.ndarray:
     """A painted wall with a skirting board and a few things on it: a door, a window, framed photos
     (one of them the room's repeated poster), a whiteboard, switches. Mostly paint, on purpose."""
     h, w = _canvas(w_m, h_m)
@@ -154,9 +157,9 @@ def _floor(w_m: float, h_m: float, rng: np.random.Generator) -> np.ndarray:
         img = _paint(h, w, base, rng, noise=9.0)
     if rng.random() < 0.6:  # a rug
         rw, rh = rng.uniform(1.2, 2.0), rng.uniform(0.8, 1.4)
-        x, y = rng.uniform(0.5, max(0.6, w_m - rw - 0.5)), rng.uniform(0.5, max(0.6, h_m - rh - 0.5))
+        rx, ry = rng.uniform(0.5, max(0.6, w_m - rw - 0.5)), rng.uniform(0.5, max(0.6, h_m - rh - 0.5))
         rug = unique_texture(photo(str(rng.choice(FABRICS + PHOTOS))), 256, rng, shapes=20)
-        _poster(img, x, y, rug, rw, rh)
+        _poster(img, rx, ry, rug, rw, rh)
     return img
 
 
@@ -172,7 +175,7 @@ def _ceiling(w_m: float, h_m: float, rng: np.random.Generator) -> np.ndarray:
     return img
 
 
-def _front(kind: str, w_m: float, h_m: float, rng: np.random.Generator, shared: dict) -> np.ndarray:
+def _front(kind: str, w_m: float, h_m: float, rng: np.random.Generator, shared: dict[str, Any]) -> np.ndarray:
     """A vertical furniture face: cupboard doors, shelves of books, fabric, or a textured object."""
     h, w = _canvas(w_m, h_m)
     if kind == "cupboard":  # plain doors, identical handles: repeated, low texture
@@ -273,7 +276,7 @@ class Room:
             np.array([rng.uniform(0.25, 0.75) * L, rng.uniform(0.25, 0.75) * W, H - 0.3]) for _ in range(2)
         ]
 
-    def _furnish(self, rng: np.random.Generator, shared: dict) -> None:
+    def _furnish(self, rng: np.random.Generator, shared: dict[str, Any]) -> None:
         L, W, _ = self.size
         kinds = ["table", "cupboard", "shelf", "sofa", "object"]
         kinds += list(rng.choice(["table", "cupboard", "shelf", "object"], size=int(rng.integers(2, 5))))
@@ -372,22 +375,21 @@ class Room:
         axis = np.where(exits[0] == t_best, 0, np.where(exits[1] == t_best, 1, 2))
         face = 2 * axis + (np.choose(axis, comps) > 0)
         for k, item in enumerate(self.items[1:], 1):
-            t_enter = t_exit = None
-            tmins = []
+            tmins, tmaxs = [], []
             for a in range(3):
                 t0, t1 = (item.lo[a] - o[a]) * inv[a], (item.hi[a] - o[a]) * inv[a]
-                tmin, tmax = np.minimum(t0, t1), np.maximum(t0, t1)
-                tmins.append(tmin)
-                t_enter = tmin if t_enter is None else np.maximum(t_enter, tmin)
-                t_exit = tmax if t_exit is None else np.minimum(t_exit, tmax)
+                tmins.append(np.minimum(t0, t1))
+                tmaxs.append(np.maximum(t0, t1))
+            t_enter = np.maximum(np.maximum(tmins[0], tmins[1]), tmins[2])
+            t_exit = np.minimum(np.minimum(tmaxs[0], tmaxs[1]), tmaxs[2])
             hit = (t_enter <= t_exit) & (t_enter > 0) & (t_enter < t_best)
             idx = np.flatnonzero(hit)
             if idx.size == 0:
                 continue
             te = t_enter[idx]
-            a = np.where(tmins[0][idx] == te, 0, np.where(tmins[1][idx] == te, 1, 2))
+            hit_axis = np.where(tmins[0][idx] == te, 0, np.where(tmins[1][idx] == te, 1, 2))
             t_best[idx] = te
-            face[idx] = 6 * k + 2 * a + (np.choose(a, [c[idx] for c in comps]) < 0)
+            face[idx] = 6 * k + 2 * hit_axis + (np.choose(hit_axis, [c[idx] for c in comps]) < 0)
         return t_best, face
 
     def _rays(self, cam: Camera, s: int, dtype: type = np.float64) -> tuple[np.ndarray, int, int]:
@@ -430,7 +432,7 @@ class Room:
             normal = np.zeros(3)
             normal[a] = 1.0 if positive != item.inside else -1.0
             shade[sel] = self._shade(q, normal)
-        img = (colour * shade[:, None]).reshape(h, w, 3)
+        img: np.ndarray = (colour * shade[:, None]).reshape(h, w, 3)
         if s > 1:
             img = cv2.resize(img, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
         if noise_seed is not None:  # per-shot exposure and sensor noise: view-dependent, as in a scan
@@ -546,10 +548,14 @@ def _small(cam: Camera, width: int = 80) -> Camera:
     return Camera(cam.name, np.diag([s, s, 1.0]) @ cam.K, cam.R, cam.t, width, round(cam.height * s), False)
 
 
-def _candidates(room: Room, rng: np.random.Generator, n: int, width: int, height: int):
+def _candidates(
+    room: Room, rng: np.random.Generator, n: int, width: int, height: int
+) -> tuple[list[Camera], list[Camera], list[np.ndarray]]:
     """``n`` cameras with their 80-px depth renders; views closer than 1.3 m (median) to what they
     look at are dropped: a scanner operator does not film a wall from arm's length."""
-    cams, small, depths = [], [], []
+    cams: list[Camera] = []
+    small: list[Camera] = []
+    depths: list[np.ndarray] = []
     while len(cams) < n:
         cam = room.camera(rng, width, height, f"view_{len(cams):02d}.png")
         sc = _small(cam)
@@ -592,7 +598,7 @@ def _solvable(pair: IndoorPair) -> bool:
     return True
 
 
-def _rooms(seed: int, salt: int):
+def _rooms(seed: int, salt: int) -> Iterator[tuple[int, Room, np.random.Generator]]:
     k = 0
     while True:
         ss = np.random.SeedSequence([seed, salt, k])

@@ -290,7 +290,7 @@ class GrpcClient:
         tiling: str | None = None,
         timeout: float | None = 600.0,
     ) -> PairResult:
-        opts = {
+        opts: dict[str, Any] = {
             k: v for k, v in (("method", method), ("resize", resize), ("tiling", tiling)) if v is not None
         }
 

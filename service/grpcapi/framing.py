@@ -127,5 +127,6 @@ def images(messages: Messages, max_bytes: int, project_id: str = "") -> Iterator
         if header.capture not in CAPTURES:
             raise InvalidRequest(f"{header.name}: unknown capture {header.capture}")
         reader = ChunkReader(messages, header.name, declared)
+        # a RawIOBase with the read() the use case calls: typing.BinaryIO is nominal, no io class is one
         yield Upload(header.name, reader, CAPTURES[header.capture])  # type: ignore[arg-type]
         reader.drain()  # the use case read it all, unless it stopped early (then it raised)

@@ -1,8 +1,8 @@
 """What keeps one client from stalling the gRPC server.
 
 grpcio's synchronous server runs every call, health checks included, on one pool of threads, and
-a streaming call holds its thread for as long as it is open: 70 idle UploadImages streams of one
-tenant used to take all 64, and health and GetProject then waited for a thread that never came.
+a streaming call holds its thread for as long as it is open: unchecked, 70 idle UploadImages
+streams of one tenant take all 64, and health and GetProject wait for a thread that never comes.
 Three rules keep the server answering:
 
 - streaming calls (UploadImages, MatchPair, WatchJob, GetModel) hold at most ``STREAMS`` threads in

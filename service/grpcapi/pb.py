@@ -8,8 +8,11 @@ of with an ImportError deep in a stub.
 from __future__ import annotations
 
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 from . import codegen
+
+__all__ = ["SERVICE", "SERVICE_NAME", "GeneratedCodeMissing", "pb2", "pb2_grpc"]
 
 
 class GeneratedCodeMissing(RuntimeError):
@@ -31,6 +34,12 @@ def _load() -> tuple[ModuleType, ModuleType]:
     return geomatch_pb2, geomatch_pb2_grpc
 
 
-pb2, pb2_grpc = _load()
+if TYPE_CHECKING:
+    # the checker reads the generated modules themselves (the messages' classes are in protoc's
+    # geomatch_pb2.pyi); at run time they come through _load and its checks
+    from . import geomatch_pb2 as pb2
+    from . import geomatch_pb2_grpc as pb2_grpc
+else:
+    pb2, pb2_grpc = _load()
 SERVICE = pb2.DESCRIPTOR.services_by_name["Matching"]
 SERVICE_NAME: str = SERVICE.full_name  # "geomatch.v1.Matching"

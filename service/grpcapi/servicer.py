@@ -30,7 +30,7 @@ MATCH_PAIR_TIMEOUT_S = 600.0  # MatchPair without a deadline waits this long for
 DEADLINE_MARGIN_S = 0.25  # left for the answer to travel back before the client's deadline
 
 
-class MatchingServicer(pb2_grpc.MatchingServicer):  # type: ignore[misc]
+class MatchingServicer(pb2_grpc.MatchingServicer):
     """Streaming methods take one of ``streams`` while they last, and request streams are watched
     for silence (``limits``): open streams cannot starve health checks and unary calls."""
 

@@ -81,7 +81,9 @@ def _unexpected(context: grpc.ServicerContext, name: str, exc: Exception) -> NoR
     raise AssertionError("context.abort returned")
 
 
-F = TypeVar("F", bound=Callable[..., Any])
+S = TypeVar("S")  # the servicer
+Req = TypeVar("Req")  # a request, or an iterator of them for a client stream
+R = TypeVar("R")  # a response
 
 
 def _tenant(servicer: Any, request: Any, context: grpc.ServicerContext) -> str:
@@ -91,34 +93,39 @@ def _tenant(servicer: Any, request: Any, context: grpc.ServicerContext) -> str:
     return str(tenant_id)
 
 
-def rpc(method: F) -> F:
+def rpc(
+    method: Callable[[S, Req, grpc.ServicerContext, str], R],
+) -> Callable[[S, Req, grpc.ServicerContext], R]:
     @functools.wraps(method)
-    def wrapper(self: Any, request: Any, context: grpc.ServicerContext) -> Any:
+    def wrapper(self: S, request: Req, context: grpc.ServicerContext) -> R:
         try:
             return method(self, request, context, _tenant(self, request, context))
         except Exception as e:
             _answer(context, method.__name__, e)
 
-    return wrapper  # type: ignore[return-value]
+    return wrapper
 
 
-def rpc_stream(method: F) -> F:
+def rpc_stream(
+    method: Callable[[S, Req, grpc.ServicerContext, str], Iterator[R]],
+) -> Callable[[S, Req, grpc.ServicerContext], Iterator[R]]:
     @functools.wraps(method)
-    def wrapper(self: Any, request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
+    def wrapper(self: S, request: Req, context: grpc.ServicerContext) -> Iterator[R]:
         try:
             yield from method(self, request, context, _tenant(self, request, context))
         except Exception as e:
             _answer(context, method.__name__, e)
 
-    return wrapper  # type: ignore[return-value]
+    return wrapper
 
 
-def _answer(context: grpc.ServicerContext, name: str, exc: Exception) -> None:
+def _answer(context: grpc.ServicerContext, name: str, exc: Exception) -> NoReturn:
     """The status of a call that raised ``exc`` (``context.abort`` raises; an abort goes through)."""
     if isinstance(exc, errors.DomainError):
         abort(context, exc)
     elif isinstance(exc, grpc.RpcError):  # reading a request stream the client abandoned
         context.abort(grpc.StatusCode.CANCELLED, "the client cancelled the call")
+        raise AssertionError("context.abort returned")  # it raises; this line tells type checkers so
     elif _is_abort(exc):
         raise exc
     else:

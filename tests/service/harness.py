@@ -249,6 +249,7 @@ def database_pairs(c: httpx.Client, project_id: str, dest: Path) -> list[tuple[s
         db.close()
     with contextlib.closing(sqlite3.connect(dest)) as con:
         pair_ids = [int(p) for (p,) in con.execute("SELECT pair_id FROM matches")]
+    # tuple(sorted(pair)) is a pair; mypy sees tuple[str, ...]
     return sorted(tuple(sorted(names[i] for i in pycolmap.pair_id_to_image_pair(p))) for p in pair_ids)  # type: ignore[misc]
 
 

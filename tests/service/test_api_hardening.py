@@ -178,7 +178,7 @@ def test_concurrent_deletes_of_one_project_one_wins(
 def test_loosely_typed_match_request_is_422(
     server: tuple[Deployment, httpx.Client], scene: Path, body: dict[str, object], message: str
 ) -> None:
-    """The project has two images: a value coerced into shape used to start a real job."""
+    """The project has two images: a value coerced into shape would start a real job."""
     d, c = server
     pid = two_images(c, scene, "types")
     r = c.post(f"/v1/projects/{pid}/match", json=body)

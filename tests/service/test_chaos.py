@@ -157,7 +157,7 @@ def test_api_killed_during_upload_keeps_accepted_uploads_only(
         t = threading.Thread(target=send)
         t.start()
         assert half.wait(60)
-        Deployment.kill(d.server)  # type: ignore[arg-type]
+        Deployment.kill(d.server)  # type: ignore[arg-type]  # started: not None
         t.join(60)
         assert result and isinstance(result[0], httpx.HTTPError), result  # never a false 201
 
@@ -189,7 +189,7 @@ def test_api_and_worker_killed_around_reconstruct(
         )
         t.start()
         time.sleep(0.05)
-        Deployment.kill(d.server)  # type: ignore[arg-type]
+        Deployment.kill(d.server)  # type: ignore[arg-type]  # started: not None
         t.join(60)
         d.start_server()
         c = d.client(key)

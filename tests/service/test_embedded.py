@@ -58,7 +58,7 @@ def test_embedded_default(tmp_path_factory: pytest.TempPathFactory, scene: Path,
             db.close()
 
         # a restart keeps projects, and the same key
-        d.kill(d.server)  # type: ignore[arg-type]
+        d.kill(d.server)  # type: ignore[arg-type]  # started: not None
         d.start_server()
         assert printed_key(d) == key
         assert [p["id"] for p in d.client(key).get("/v1/projects").json()] == [pid]

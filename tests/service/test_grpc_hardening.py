@@ -1,7 +1,7 @@
 """Regression tests for what a hostile probe of the gRPC API found: text that is not UTF-8 or holds
 control characters, file names over 255 bytes (INVALID_ARGUMENT, no server path in the message),
-and idle streams of one tenant that used to take every handler thread, so that health checks and
-GetProject missed a 3 s deadline.
+and idle streams of one tenant that, unlimited, take every handler thread, so that health checks and
+GetProject miss a 3 s deadline.
 
 The server runs in Redis mode with no worker (no job runs here), its per-tenant stream limit raised
 to 30 so that two tenants reach the server's own limit (48 streams), and a short idle timeout."""
