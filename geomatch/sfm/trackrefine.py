@@ -17,6 +17,7 @@ with a high correlation.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -130,6 +131,7 @@ def refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | No
     """Move the keypoints of ``database`` (in place) onto their tracks' references; returns counts
     for the summary."""
     opts = opts or TrackRefineOptions()
+    t0 = time.perf_counter()
     lsm = SubpixelOptions(
         radius=opts.radius,
         sigma=opts.sigma,
@@ -193,4 +195,5 @@ def refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | No
         "observations_to_align": len(todo),
         "moved": int(moved.sum()),
         "median_shift_px": float(np.median(shift)) if len(shift) else 0.0,
+        "seconds": time.perf_counter() - t0,
     }
