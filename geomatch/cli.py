@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from . import options
+from .export.formats import FORMATS, choices_help
 from .options import EXIT_BAD_INPUT, EXIT_FAILED
 
 if TYPE_CHECKING:
@@ -264,7 +265,7 @@ def register(sub: Any) -> None:
 
     x = sub.add_parser("export", help="write a run's model for another tool (nerfstudio, hloc, OpenMVS ...)")
     x.add_argument("out", type=Path, help="the run's output folder (of geomatch run or demo)")
-    x.add_argument("--format", required=True, choices=options.EXPORT_FORMATS)
+    x.add_argument("--format", required=True, choices=tuple(FORMATS), help=choices_help())
     x.add_argument("--to", type=Path, default=None, help="folder to write (default OUT/export/FORMAT)")
     x.add_argument(
         "--images", type=Path, default=None, help="the run's images (default: the folder the run read)"

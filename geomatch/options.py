@@ -70,8 +70,6 @@ DENSE_BACKBONES = ("disk", "aliked", "loftr", "lightglue", "disk-lightglue", "al
 MAPPERS = ("incremental", "global")
 TILING = ("auto", "on", "off")
 CAMERAS = ("auto", "per-image")
-# ``geomatch export --format`` (geomatch.export: one module each; docs/exports.md)
-EXPORT_FORMATS = ("nerfstudio", "colmap-text", "ply", "hloc", "openmvs")
 CAPTURES = ("aerial", "ground", "auto")  # how an uploaded image was taken (auto: EXIF/XMP decides)
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
 PAIR_SPEC_HELP = "exhaustive | sequential:K | retrieval:K | gps:K | a union such as gps:K+retrieval:K"

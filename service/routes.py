@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import AsyncIterator
-from typing import Annotated, Literal, get_args
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import FileResponse, StreamingResponse
@@ -35,14 +35,14 @@ from .schemas import (
     SceneOut,
 )
 from .usecases import (
-    EXPORT_FORMATS,
     IMAGE_MEDIA,
-    MODEL_FORMATS,
     JobView,
     JobWatch,
     MatchRequest,
     Service,
     Upload,
+    export_formats,
+    model_files,
     remove_quietly,
 )
 
@@ -196,37 +196,42 @@ async def job_events(job_id: str, svc: Svc, tenant_id: Tenant) -> StreamingRespo
 
 
 # -- outputs -------------------------------------------------------------------------------------
-_MEDIA = {"zip": "application/zip", "ply": "application/octet-stream", "json": "application/json"}
-_MEDIA.update(dict.fromkeys(EXPORT_FORMATS, "application/zip"))
-_FORMATS = (
-    "zip: COLMAP binary + text, ply: points, json: summary, scene: points and cameras for a viewer; "
-    "zips for other tools (docs/exports.md), built on first request: nerfstudio: transforms.json + "
-    "images, colmap-text: COLMAP text model, hloc: features.h5 + matches.h5 + pairs.txt, "
-    "openmvs: undistorted COLMAP folder for OpenMVS's InterfaceCOLMAP"
-)
-ModelFormat = Literal["zip", "ply", "json", "scene", "nerfstudio", "colmap-text", "hloc", "openmvs"]
+SCENE = "scene"  # computed from the model's text files for a viewer, not a stored file
 
 
-@router.get(
-    "/projects/{project_id}/model",
-    tags=["outputs"],
-    response_class=FileResponse,
-    responses={200: {"content": {m: {} for m in _MEDIA.values()}}},
-)
-def model(
-    project_id: str,
-    svc: Svc,
-    tenant_id: Tenant,
-    format: Annotated[ModelFormat, Query(description=_FORMATS)] = "zip",
-) -> Response:
-    if format == "scene":  # computed from the model's text files, not a stored file
-        scene = SceneOut.model_validate(svc.model_scene(tenant_id, project_id))
-        return Response(scene.model_dump_json(), media_type="application/json")
-    path = svc.model_file(tenant_id, project_id, format)
-    return FileResponse(path, media_type=_MEDIA[format], filename=f"{project_id}-{path.name}")
+def model_router() -> APIRouter:
+    """GET /projects/{id}/model, made with each app: its formats are the export table's
+    (geomatch.export.formats) as it is then, which the OpenAPI schema lists."""
+    files, exports = model_files(), export_formats()
+    media = {m.name: m.media_type for m in files} | {f.name: f.media_type for f in exports}
+    names = (*(m.name for m in files), SCENE, *(f.name for f in exports))
+    described = (
+        ", ".join(f"{m.name}: {m.help}" for m in files)
+        + f", {SCENE}: points and cameras for a viewer; zips for other tools (docs/exports.md), built on "
+        + "first request: "
+        + ", ".join(f"{f.name}: {f.help}" for f in exports)
+    )
+    out = APIRouter(prefix="/v1", responses=ERRORS)
 
+    def model(project_id: str, svc: Svc, tenant_id: Tenant, format: str = "zip") -> Response:
+        if format == SCENE:
+            scene = SceneOut.model_validate(svc.model_scene(tenant_id, project_id))
+            return Response(scene.model_dump_json(), media_type="application/json")
+        path = svc.model_file(tenant_id, project_id, format)
+        return FileResponse(path, media_type=media[format], filename=f"{project_id}-{path.name}")
 
-assert set(get_args(ModelFormat)) == {*MODEL_FORMATS, "scene"}  # the OpenAPI list is the use case's
+    # the formats are known only now, and this module's annotations are strings resolved in its
+    # globals: the parameter's type is set on the function itself
+    model.__annotations__["format"] = Annotated[Literal[names], Query(description=described)]  # type: ignore[valid-type]
+    out.add_api_route(
+        "/projects/{project_id}/model",
+        model,
+        methods=["GET"],
+        tags=["outputs"],
+        response_class=FileResponse,
+        responses={200: {"content": {m: {} for m in media.values()}}},
+    )
+    return out
 
 
 @router.get(

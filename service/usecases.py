@@ -25,6 +25,7 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
 
+from geomatch.export.formats import DATABASE, FORMATS, ExportFormat
 from geomatch.options import CAPTURES, PROJECT_OPTIONS, defaults
 from geomatch.options import PAIR_OPTIONS as PAIR_OPTIONS  # what match_two accepts of DEFAULTS
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
@@ -59,11 +60,38 @@ from .validation import (
 
 # a project's configuration and a match job's options: geomatch.options holds them, with defaults
 DEFAULTS: dict[str, Any] = defaults(PROJECT_OPTIONS)
-MODEL_FILES = {"zip": "model.zip", "ply": "points.ply", "json": "summary.json"}
-# built from the model on first request and kept beside it as zips (geomatch.export.FORMATS less
-# ply, which MODEL_FILES serves already as the pipeline wrote it)
-EXPORT_FORMATS = ("nerfstudio", "colmap-text", "hloc", "openmvs")
-MODEL_FORMATS = (*MODEL_FILES, *EXPORT_FORMATS)
+
+
+@dataclass(frozen=True)
+class ModelFile:
+    """A format served as a file of the model folder, as the pipeline or the job wrote it."""
+
+    name: str
+    file: str
+    media_type: str
+    help: str
+
+
+def model_files() -> list[ModelFile]:
+    """The archive, the export formats whose file the pipeline writes already (ply), the summary."""
+    rows = [f for f in FORMATS.values() if f.model_file is not None]
+    return [
+        ModelFile("zip", "model.zip", "application/zip", "COLMAP binary + text"),
+        *(ModelFile(f.name, f.model_file or "", f.media_type, f.help) for f in rows),
+        ModelFile("json", "summary.json", "application/json", "summary"),
+    ]
+
+
+def export_formats() -> list[ExportFormat]:
+    """The formats built from the model on first request and kept beside it as zips."""
+    return [f for f in FORMATS.values() if f.model_file is None]
+
+
+def model_formats() -> tuple[str, ...]:
+    """Every format ``model_file`` answers (read at each call: the export table may grow)."""
+    return (*(m.name for m in model_files()), *(f.name for f in export_formats()))
+
+
 # how a stored image is served back (the validated format, never the client's claim)
 IMAGE_MEDIA = {
     "jpeg": "image/jpeg",
@@ -481,12 +509,13 @@ class Service:
 
     # -- outputs ---------------------------------------------------------------------------
     def model_file(self, tenant_id: str, project_id: str, fmt: str) -> Path:
-        if fmt not in MODEL_FORMATS:
-            raise InvalidRequest(f"format must be one of {', '.join(MODEL_FORMATS)}, not {fmt!r}")
+        files = {m.name: m.file for m in model_files()}
+        if fmt not in files and fmt not in {f.name for f in export_formats()}:
+            raise InvalidRequest(f"format must be one of {', '.join(model_formats())}, not {fmt!r}")
         self.get_project(tenant_id, project_id)
-        if fmt in EXPORT_FORMATS:
+        if fmt not in files:
             return self._model_export(project_id, fmt)
-        path = self.storage.model_dir(project_id) / MODEL_FILES[fmt]
+        path = self.storage.model_dir(project_id) / files[fmt]
         if not path.is_file():
             if not (self.storage.model_dir(project_id) / "summary.json").is_file():
                 raise NotFound(f"project {project_id} has no model yet: POST .../reconstruct")
@@ -500,9 +529,9 @@ class Service:
         reconstruction swaps the whole folder, so a new model never serves an old export, and an
         export still being built from the old model when the swap happens lands under the old
         key, which the new summary never asks for. The zip is written beside and renamed (in
-        ``export_zip``), so a concurrent request sees it whole or not at all. hloc reads a
-        snapshot of the project's database (keypoints and verified matches as of the first
-        request for this model).
+        ``export_zip``), so a concurrent request sees it whole or not at all. A format that reads
+        the database (hloc) reads a snapshot of the project's (keypoints and verified matches as
+        of the first request for this model).
         """
         from geomatch.export import ExportError, export_zip, model_dir, open_run
 
@@ -518,7 +547,7 @@ class Service:
             return path
         snapshot = None
         try:
-            if fmt == "hloc":
+            if DATABASE in FORMATS[fmt].needs:
                 fd, snapshot = self.storage.temp_file()
                 os.close(fd)
                 snapshot_sqlite(self.storage.database_path(project_id), snapshot)
