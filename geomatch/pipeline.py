@@ -10,7 +10,9 @@ pairs.
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,7 +23,7 @@ from . import steps
 from .geo import gps as gpsfix
 from .matching.matcher import Matcher, config_from_options
 from .metadata import read_metadata
-from .options import DEFAULTS, cache_budget, parse_plan
+from .options import DEFAULTS, cache_budget, parse_plan, resolve
 from .sfm.colmapdb import ColmapDatabase
 from .steps import PipelineError as PipelineError  # a run's bad input; defined with the stages
 from .steps import list_images as list_images
@@ -57,6 +59,16 @@ class RunOptions:
     match_cache: str | None = None  # folder of raw pair matches shared by runs (benchmarks, variants)
     progress: bool = True
     verbose: bool = False  # COLMAP's own log (glog) on stderr; off: a progress bar per stage only
+
+    @classmethod
+    def of(cls, values: Mapping[str, Any], **fields: Any) -> RunOptions:
+        """From option values by name (``geomatch.options``: the CLI's flags, a job's options) as
+        ``options.resolve`` makes them (resize 0: full size, camera: share_camera); the names
+        that are no field here (the optimizer's, the backbones') go to ``matcher``."""
+        own = {f.name for f in dataclasses.fields(cls)}
+        resolved = resolve(values)
+        matcher = {k: v for k, v in resolved.items() if k not in own}
+        return cls(**{k: v for k, v in resolved.items() if k in own}, matcher=matcher, **fields)
 
 
 def pair_timing_summary(pair_seconds: dict[str, list[float]]) -> dict[str, float]:

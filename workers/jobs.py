@@ -51,7 +51,7 @@ def _plan(ctx: Context, job: Job) -> None:
     from geomatch.sfm.colmapdb import ColmapDatabase
 
     t0 = time.perf_counter()
-    opts, pid = job.options, job.project_id
+    opts, pid = runtime.job_options(job.options), job.project_id
     with ctx.store.session() as s:
         rows = s.execute(
             select(Image.name, Image.capture).where(Image.project_id == pid).order_by(Image.name)
@@ -65,20 +65,18 @@ def _plan(ctx: Context, job: Job) -> None:
             s.execute(
                 update(Image).where(Image.project_id == pid, Image.name == n).values(aerial=n in aerial)
             )
-    share_camera = False if opts.get("camera") == "per-image" else None
     spec = opts["pairs"] if isinstance(opts["pairs"], str) else DEFAULTS["pairs"]
     pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
     matcher = runtime.matcher(ctx, opts) if "retrieval" in spec and pairs_list is None else None
-    tiling = opts.get("tiling", DEFAULTS["tiling"])
     fixes = gps.fixes(names, metas)
     planned = steps.plan(
-        image_dir, names, aerial, spec, pairs_list, tiling, matcher, fixes=fixes, metas=metas
+        image_dir, names, aerial, spec, pairs_list, opts["tiling"], matcher, fixes=fixes, metas=metas
     )
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
             return
         with ColmapDatabase(ctx.storage.database_path(pid)) as db:
-            ids = steps.register(db, names, metas, share_camera)
+            ids = steps.register(db, names, metas, opts["share_camera"])
             todo = steps.unmatched(db, ids, planned)
         if fixes is not None:
             gps.write_pose_priors(ctx.storage.database_path(pid), ids, fixes)
@@ -88,7 +86,12 @@ def _plan(ctx: Context, job: Job) -> None:
             return
         s.add_all(
             JobPair(
-                job_id=job.id, idx=i, name0=p.name0, name1=p.name1, tiled=p.tiled, aerial_first=p.aerial_first
+                job_id=job.id,
+                idx=i,
+                name0=p.name0,
+                name1=p.name1,
+                tiled=p.tiled,
+                aerial_first=p.aerial_first,
             )
             for i, p in enumerate(todo)
         )
@@ -136,7 +139,7 @@ def extract(ctx: Context, job_id: str, name: str, full: bool, crops: bool) -> st
     if job is None or job.state != "running":
         return "skipped"
     image = runtime.image(ctx, ctx.storage.image_path(job.project_id, name))
-    n = steps.extract(runtime.matcher(ctx, job.options), image, full, crops)
+    n = steps.extract(runtime.matcher(ctx, runtime.job_options(job.options)), image, full, crops)
     return f"{n} feature entries"
 
 
@@ -160,7 +163,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         aerial_project = bool(aerial_names)
     if p is None:
         return "skipped"
-    pid, opts = job.project_id, job.options
+    pid, opts = job.project_id, runtime.job_options(job.options)
     db_path = ctx.storage.database_path(pid)
     matches = inliers = 0
     if not p.done:
@@ -174,14 +177,12 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, rotate=airborne)
             m = steps.match(runtime.matcher(ctx, opts), pair, a, b, aerial_project=aerial_project)
             t1 = time.perf_counter()
-            resize = opts.get("resize") or None
-            radius = float(opts.get("snap_radius", DEFAULTS["snap_radius"]))
             with ctx.locks.project(pid):
                 if not jobstate.is_active(ctx.store, job_id):  # cancelled while matching: write nothing
                     return "cancelled"
                 ctx.storage.check_space(1 << 16)  # test hook (GEOMATCH_TEST_FILL_LIMIT); no-op otherwise
                 with ColmapDatabase(db_path) as db:
-                    w = steps.write(db, id0, id1, m, radius, resize)
+                    w = steps.write(db, id0, id1, m, float(opts["snap_radius"]), opts["resize"])
             matches, inliers = w.matches, w.inliers
             log.info(
                 "pair %s x %s: %d matches, %d inliers (%s), match %.2fs write %.2fs",
@@ -233,7 +234,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
             snapshot,
             images,
             out,
-            job.options.get("mapper", DEFAULTS["mapper"]),
+            runtime.job_options(job.options)["mapper"],
             gps=gps.fixes_of_database(snapshot, images),
         )
         with ColmapDatabase(snapshot) as db:
