@@ -20,7 +20,7 @@ import logging
 import time
 from typing import Any
 
-from sqlalchemy import select, update
+from sqlalchemy import exists, select, update
 
 from geomatch.options import DEFAULTS
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
@@ -92,6 +92,7 @@ def _plan(ctx: Context, job: Job) -> None:
                 name1=p.name1,
                 tiled=p.tiled,
                 aerial_first=p.aerial_first,
+                rotate=p.rotate,
             )
             for i, p in enumerate(todo)
         )
@@ -153,14 +154,11 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         return "skipped"
     with ctx.store.session() as s:
         p = s.get(JobPair, (job_id, idx))
-        # the plan step marked the aerial images: a pair with an aerial side is matched at its
-        # best quarter turn (geomatch.matching.rotation), and under ``auto`` a project with any aerial
-        # image matches every pair with ``geo``
-        aerial_names = set(
-            s.scalars(select(Image.name).where(Image.project_id == job.project_id, Image.aerial.is_(True)))
+        # the plan step marked the aerial images: under ``auto`` a project with any aerial image
+        # matches every pair with ``geo``
+        aerial_project = bool(
+            s.scalar(select(exists().where(Image.project_id == job.project_id, Image.aerial.is_(True))))
         )
-        airborne = p is not None and bool({p.name0, p.name1} & aerial_names)
-        aerial_project = bool(aerial_names)
     if p is None:
         return "skipped"
     pid, opts = job.project_id, runtime.job_options(job.options)
@@ -174,7 +172,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             t0 = time.perf_counter()
             a = runtime.image(ctx, ctx.storage.image_path(pid, p.name0))
             b = runtime.image(ctx, ctx.storage.image_path(pid, p.name1))
-            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, rotate=airborne)
+            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate)
             m = steps.match(runtime.matcher(ctx, opts), pair, a, b, aerial_project=aerial_project)
             t1 = time.perf_counter()
             with ctx.locks.project(pid):
