@@ -18,6 +18,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import exists, select, update
@@ -169,18 +172,16 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             id0, id1 = _image_id(db, p.name0), _image_id(db, p.name1)
             present = db.has_pair(id0, id1)  # redelivered after its write, or matched by another job
         if not present:
-            t0 = time.perf_counter()
             a = runtime.image(ctx, ctx.storage.image_path(pid, p.name0))
             b = runtime.image(ctx, ctx.storage.image_path(pid, p.name1))
             pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate)
-            m = steps.match(runtime.matcher(ctx, opts), pair, a, b, aerial_project=aerial_project)
-            t1 = time.perf_counter()
-            with ctx.locks.project(pid):
-                if not jobstate.is_active(ctx.store, job_id):  # cancelled while matching: write nothing
-                    return "cancelled"
-                ctx.storage.check_space(1 << 16)  # test hook (GEOMATCH_TEST_FILL_LIMIT); no-op otherwise
-                with ColmapDatabase(db_path) as db:
-                    w = steps.write(db, id0, id1, m, float(opts["snap_radius"]), opts["resize"])
+            target = steps.PairTarget(
+                lambda: _writable(ctx, job_id, pid, db_path), id0, id1, float(opts["snap_radius"])
+            )
+            r = steps.run_pair(runtime.matcher(ctx, opts), pair, a, b, target, aerial_project=aerial_project)
+            if r.written is None:
+                return "cancelled"
+            w = r.written
             matches, inliers = w.matches, w.inliers
             log.info(
                 "pair %s x %s: %d matches, %d inliers (%s), match %.2fs write %.2fs",
@@ -189,8 +190,8 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
                 w.matches,
                 w.inliers,
                 w.config or "present",
-                t1 - t0,
-                time.perf_counter() - t1,
+                r.match_s,
+                r.write_s,
                 extra={"job_id": job_id, "project_id": pid},
             )
     jobstate.mark_pair_done(ctx.store, job_id, idx, matches, inliers)
@@ -198,6 +199,21 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         log.info("match job succeeded", extra={"job_id": job_id, "project_id": pid})
         jobstate.release_followers(ctx.store, ctx.queue, job_id)
     return "done"
+
+
+@contextmanager
+def _writable(ctx: Context, job_id: str, pid: str, db_path: Path) -> Iterator[Any]:
+    """The project's COLMAP database under its writer lock, or None when the job was cancelled
+    while its pair was matched (nothing is written then)."""
+    from geomatch.sfm.colmapdb import ColmapDatabase
+
+    with ctx.locks.project(pid):
+        if not jobstate.is_active(ctx.store, job_id):
+            yield None
+            return
+        ctx.storage.check_space(1 << 16)  # test hook (GEOMATCH_TEST_FILL_LIMIT); no-op otherwise
+        with ColmapDatabase(db_path) as db:
+            yield db
 
 
 def _image_id(db: Any, name: str) -> int:
@@ -210,6 +226,7 @@ def _image_id(db: Any, name: str) -> int:
 def reconstruct(ctx: Context, job_id: str) -> str:
     from geomatch import steps
     from geomatch.geo import gps
+    from geomatch.sfm import mapping
     from geomatch.sfm.colmapdb import ColmapDatabase
 
     job = jobstate.claim(ctx.store, job_id)
@@ -228,7 +245,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
             snapshot_sqlite(db_path, snapshot)
         out = work / "model"
         images = ctx.storage.images_dir(pid)
-        summary = steps.reconstruct(
+        summary = mapping.reconstruct(
             snapshot,
             images,
             out,
