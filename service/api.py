@@ -19,7 +19,7 @@ from geomatch_core import errors
 
 from . import console
 from .metrics import Metrics
-from .routes import model_router, router
+from .routes import build_router
 from .usecases import Service
 
 log = logging.getLogger("geomatch.service")
@@ -67,8 +67,7 @@ def create_app(service: Service) -> FastAPI:
     metrics = Metrics(service.store)
     app.middleware("http")(metrics.middleware)
     service.on_upload = lambda n, size: (metrics.uploaded_images.inc(n), metrics.uploaded_bytes.inc(size))
-    app.include_router(router)
-    app.include_router(model_router())
+    app.include_router(build_router())
     console.mount(app)
 
     @app.exception_handler(errors.DomainError)

@@ -17,7 +17,7 @@ from service.api import create_app
 from service.grpcapi import convert
 from service.grpcapi.client import FORMAT
 from service.grpcapi.pb import pb2
-from service.usecases import model_formats
+from service.usecases.outputs import model_formats
 
 pytestmark = pytest.mark.unit
 

@@ -13,7 +13,8 @@ from google.protobuf import struct_pb2, timestamp_pb2
 from geomatch import options
 from geomatch.export.formats import FORMATS, ExportFormat
 
-from ..usecases import ImageView, JobView, MatchRequest, PairMatches, ProjectView, model_formats
+from ..usecases.outputs import model_formats
+from ..usecases.views import ImageView, JobView, MatchRequest, PairMatches, ProjectView
 from .framing import CAPTURES
 from .pb import pb2
 
