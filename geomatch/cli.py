@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from . import options
+from .export.formats import FORMATS, choices_help
 from .options import EXIT_BAD_INPUT, EXIT_FAILED
 
 if TYPE_CHECKING:
@@ -39,9 +40,7 @@ def _add_verbose(p: argparse.ArgumentParser) -> None:
 
 
 def _matching_options(args: argparse.Namespace) -> dict[str, object]:
-    opts = options.given(args, options.MATCH_OPTIONS + options.OPTIMIZER_OPTIONS)
-    opts["resize"] = opts["resize"] or None
-    return opts
+    return options.resolve(options.given(args, options.MATCH_OPTIONS + options.OPTIMIZER_OPTIONS))
 
 
 def cmd_match(args: argparse.Namespace) -> int:
@@ -76,29 +75,18 @@ def _run_options(args: argparse.Namespace) -> RunOptions:
     from .pipeline import RunOptions
     from .sfm.pairs import read_pairs_file
 
-    opts = _matching_options(args)
-    matcher = {k: v for k, v in opts.items() if k not in ("method", "resize", "device")}
+    values = options.given(args, options.MATCH_OPTIONS + options.OPTIMIZER_OPTIONS + options.RUN_OPTIONS)
     pairs_list = None
-    pairs = args.pairs
-    if Path(pairs).is_file():
-        pairs_list, pairs = read_pairs_file(Path(pairs).read_text()), "exhaustive"
+    if Path(values["pairs"]).is_file():
+        pairs_list, values["pairs"] = read_pairs_file(Path(values["pairs"]).read_text()), "exhaustive"
     aerial_names = None
     if args.aerial_list is not None:
         aerial_names = [ln.strip() for ln in args.aerial_list.read_text().splitlines() if ln.strip()]
-    return RunOptions(
-        method=args.method,
-        resize=args.resize or None,
-        device=args.device,
-        pairs=pairs,
+    return RunOptions.of(
+        values,
         pairs_list=pairs_list,
         aerial_glob=args.aerial,
         aerial_names=aerial_names,
-        tiling=args.tiling,
-        snap_radius=args.snap_radius,
-        mapper=args.mapper,
-        min_pose_inliers=args.min_pose_inliers,
-        share_camera=False if args.camera == "per-image" else None,
-        matcher=matcher,
         verbose=args.verbose,
     )
 
@@ -265,7 +253,7 @@ def register(sub: Any) -> None:
 
     x = sub.add_parser("export", help="write a run's model for another tool (nerfstudio, hloc, OpenMVS ...)")
     x.add_argument("out", type=Path, help="the run's output folder (of geomatch run or demo)")
-    x.add_argument("--format", required=True, choices=options.EXPORT_FORMATS)
+    x.add_argument("--format", required=True, choices=tuple(FORMATS), help=choices_help())
     x.add_argument("--to", type=Path, default=None, help="folder to write (default OUT/export/FORMAT)")
     x.add_argument(
         "--images", type=Path, default=None, help="the run's images (default: the folder the run read)"

@@ -41,8 +41,11 @@ def run_demo(
     summary = run(
         scene / "images",
         out / "run",
-        RunOptions(
-            method=method, resize=resize, aerial_names=aerial, verbose=verbose, match_cache=match_cache
+        RunOptions.of(
+            {"method": method, "resize": resize},
+            aerial_names=aerial,
+            verbose=verbose,
+            match_cache=match_cache,
         ),
     )
     print("evaluating against the ground truth poses")

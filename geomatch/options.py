@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,8 +70,6 @@ DENSE_BACKBONES = ("disk", "aliked", "loftr", "lightglue", "disk-lightglue", "al
 MAPPERS = ("incremental", "global")
 TILING = ("auto", "on", "off")
 CAMERAS = ("auto", "per-image")
-# ``geomatch export --format`` (geomatch.export: one module each; docs/exports.md)
-EXPORT_FORMATS = ("nerfstudio", "colmap-text", "ply", "hloc", "openmvs")
 CAPTURES = ("aerial", "ground", "auto")  # how an uploaded image was taken (auto: EXIF/XMP decides)
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
 PAIR_SPEC_HELP = "exhaustive | sequential:K | retrieval:K | gps:K | a union such as gps:K+retrieval:K"
@@ -258,6 +256,20 @@ def add_arguments(parser: Any, names: Iterable[str], server: bool = False, **hel
         if server:
             text += f" (default: the server's, {o.default})"
         parser.add_argument(o.flag, help=text, **kw)
+
+
+def resolve(values: Mapping[str, Any], names: Iterable[str] = ()) -> dict[str, Any]:
+    """Option values as the library takes them, made here once for every surface (the CLI,
+    ``pipeline.RunOptions.of``, a worker's job options): the default of each of ``names`` that
+    ``values`` lacks; ``resize`` 0 as None, full size (the service stores and echoes 0 as the
+    client sent it); ``camera`` as ``share_camera`` (None: one camera per EXIF device, False: one
+    per image), the argument of ``ColmapDatabase.add_image``. Other keys pass as they are."""
+    out = {n: DEFAULTS[n] for n in names if n not in values} | dict(values)
+    if "resize" in out:
+        out["resize"] = out["resize"] or None
+    if "camera" in out:
+        out["share_camera"] = False if out.pop("camera") == "per-image" else None
+    return out
 
 
 def given(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Any]:

@@ -10,7 +10,10 @@ pairs.
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from collections.abc import Mapping
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,7 +24,8 @@ from . import steps
 from .geo import gps as gpsfix
 from .matching.matcher import Matcher, config_from_options
 from .metadata import read_metadata
-from .options import DEFAULTS, cache_budget, parse_plan
+from .options import DEFAULTS, cache_budget, parse_plan, resolve
+from .sfm import mapping
 from .sfm.colmapdb import ColmapDatabase
 from .steps import PipelineError as PipelineError  # a run's bad input; defined with the stages
 from .steps import list_images as list_images
@@ -57,6 +61,16 @@ class RunOptions:
     match_cache: str | None = None  # folder of raw pair matches shared by runs (benchmarks, variants)
     progress: bool = True
     verbose: bool = False  # COLMAP's own log (glog) on stderr; off: a progress bar per stage only
+
+    @classmethod
+    def of(cls, values: Mapping[str, Any], **fields: Any) -> RunOptions:
+        """From option values by name (``geomatch.options``: the CLI's flags, a job's options) as
+        ``options.resolve`` makes them (resize 0: full size, camera: share_camera); the names
+        that are no field here (the optimizer's, the backbones') go to ``matcher``."""
+        own = {f.name for f in dataclasses.fields(cls)}
+        resolved = resolve(values)
+        matcher = {k: v for k, v in resolved.items() if k not in own}
+        return cls(**{k: v for k, v in resolved.items() if k in own}, matcher=matcher, **fields)
 
 
 def pair_timing_summary(pair_seconds: dict[str, list[float]]) -> dict[str, float]:
@@ -117,23 +131,24 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         todo = steps.unmatched(db, ids, planned)
         bar = tqdm(todo, desc=f"matching ({opts.method})", unit="pair", disable=not opts.progress)
         for p in bar:
-            t0 = time.perf_counter()
-            m = steps.match(matcher, p, images[p.name0], images[p.name1], opts.match_cache, bool(aerial))
-            t1 = time.perf_counter()
-            w = steps.write(db, ids[p.name0], ids[p.name1], m, opts.snap_radius, opts.resize)
-            timings["matching"] += t1 - t0
-            pair_seconds["tiled" if p.tiled else "plain"].append(t1 - t0)
-            timings["writing"] += time.perf_counter() - t1
-            bar.set_postfix(matches=w.matches, inliers=w.inliers)
+            target = steps.PairTarget(lambda: nullcontext(db), ids[p.name0], ids[p.name1], opts.snap_radius)
+            r = steps.run_pair(
+                matcher, p, images[p.name0], images[p.name1], target, opts.match_cache, bool(aerial)
+            )
+            assert r.written is not None  # the run's own database takes every write
+            timings["matching"] += r.match_s
+            pair_seconds["tiled" if p.tiled else "plain"].append(r.match_s)
+            timings["writing"] += r.write_s
+            bar.set_postfix(matches=r.written.matches, inliers=r.written.inliers)
         db_stats = db.stats()
     t_map = time.perf_counter()
-    summary = steps.reconstruct(
+    summary = mapping.reconstruct(
         out / "database.db",
         image_dir,
         out,
         opts.mapper,
-        opts.min_pose_inliers,
         opts.min_model_size,
+        min_pose_inliers=opts.min_pose_inliers,
         verbose=opts.verbose,
         progress=opts.progress,
         loop_check=opts.loop_check,

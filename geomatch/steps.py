@@ -1,9 +1,11 @@
 """The pipeline's stages: the library's one pipeline API, as hloc's modules are.
 
-plan -> extract -> match one pair (:func:`match`) and write it (:func:`write`) -> reconstruct ->
-export, each a function with explicit inputs that returns a record. ``pipeline.run`` is a loop
-over them in one process; the worker steps (``workers.jobs``, ``workers.pairmatch``) call the same
-functions, one image or one pair per task, under their locks. The decisions every caller shares
+plan -> extract -> match one pair and write it (:func:`run_pair`: :func:`match`, :func:`write`)
+-> reconstruct (``geomatch.sfm.mapping.reconstruct``) -> export, each a function with explicit
+inputs that returns a record.
+``pipeline.run`` is a loop over them in one process; the worker steps (``workers.jobs``,
+``workers.pairmatch``) call the same functions, one image or one pair per task, under their
+locks. The decisions every caller shares
 are made here once: which images are aerial (:func:`captures`, :func:`aerial_set`), which pairs
 are tiled and in what order (:func:`plan`), which are matched already (:func:`unmatched`: a pair
 stored with zero matches is matched too), how a tiled pair is matched (:func:`match`) and the snap
@@ -25,8 +27,10 @@ import hashlib
 import json
 import os
 import tempfile
+import time
 import zipfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,7 +50,6 @@ from .matching.rotation import best_turn, points_back, quarter_turn
 from .matching.tiling import SELECT_MIN_PROBE, Crop, TiledMatches, five_crops, match_tiled, select_crops
 from .metadata import ImageMeta
 from .options import DEFAULTS, IMAGE_SUFFIXES
-from .sfm import mapping
 from .sfm import pairs as pairing
 from .sfm.colmapdb import ColmapDatabase, PairWrite
 from .sfm.pairs import Pair
@@ -540,42 +543,51 @@ def write(
     )
 
 
-# -- reconstruct and export ----------------------------------------------------------------------
-def reconstruct(
-    database: Path,
-    image_dir: Path,
-    out: Path,
-    mapper: str = DEFAULTS["mapper"],
-    min_pose_inliers: int = DEFAULTS["min_pose_inliers"],
-    min_model_size: int = 3,
-    verbose: bool = False,
-    progress: bool = False,
-    loop_check: bool = True,
-    gps: GpsFixes | None = None,
-    tree_check: bool = True,
-    track_refine: bool = True,
-) -> dict[str, Any]:
-    """Map the matched database; the models land in ``out/sparse`` (the largest first) with
-    ``out/points.ply``; returns the summary. ``loop_check`` / ``tree_check``: drop the pairs the
-    view graph's loops / its tree of strongest pairs reject before mapping (geomatch.sfm.viewgraph).
-    ``gps``: georeference to these fixes. ``track_refine``: align each track's points on the photos
-    before mapping (geomatch.sfm.trackrefine)."""
-    return mapping.reconstruct(
-        database,
-        image_dir,
-        out,
-        mapper,
-        min_model_size,
-        verbose=verbose,
-        progress=progress,
-        min_pose_inliers=min_pose_inliers,
-        loop_check=loop_check,
-        gps=gps,
-        tree_check=tree_check,
-        track_refine=track_refine,
-    )
+@dataclass(frozen=True)
+class PairTarget:
+    """Where a matched pair is written: ``open`` opens the COLMAP database for the write, under
+    whatever locks its caller holds, and yields None when the pair must not be written any more
+    (a worker's job cancelled while the pair was matched); the images' ids there; the snap radius
+    in network pixels."""
+
+    open: Callable[[], AbstractContextManager[ColmapDatabase | None]]
+    id0: int
+    id1: int
+    radius: float
 
 
+@dataclass
+class PairRun:
+    matches: PairMatches
+    written: PairWrite | None  # None: no target, or its ``open`` refused the write
+    match_s: float
+    write_s: float
+
+
+def run_pair(
+    matcher: Matcher,
+    pair: Pair,
+    image0: np.ndarray,
+    image1: np.ndarray,
+    target: PairTarget | None = None,
+    cache: str | Path | None = None,
+    aerial_project: bool = False,
+) -> PairRun:
+    """One planned pair matched (:func:`match`) and written into ``target`` (:func:`write`, at
+    the matcher's working size): the sequence of ``geomatch run``, a worker's pair step and the
+    service's two-image match (no target: nothing is kept)."""
+    t0 = time.perf_counter()
+    m = match(matcher, pair, image0, image1, cache, aerial_project)
+    t1 = time.perf_counter()
+    written = None
+    if target is not None:
+        with target.open() as db:
+            if db is not None:
+                written = write(db, target.id0, target.id1, m, target.radius, matcher.config.resize)
+    return PairRun(m, written, t1 - t0, time.perf_counter() - t1)
+
+
+# -- export ------------------------------------------------------------------------------------------
 def export(out: Path, summary: dict[str, Any], archive: bool = False) -> None:
     """``out/summary.json``; ``archive``: also ``out/model.zip`` (sparse/<i>/, COLMAP binary, and
     text for sparse/0; points.ply; summary.json)."""

@@ -11,7 +11,7 @@ import uuid
 from datetime import UTC, datetime
 from typing import Any, ClassVar
 
-from sqlalchemy import JSON, Boolean, DateTime, ForeignKey, Integer, String, Text, UniqueConstraint
+from sqlalchemy import JSON, Boolean, DateTime, ForeignKey, Integer, String, Text, UniqueConstraint, false
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
@@ -124,6 +124,9 @@ class JobPair(Base):
     name1: Mapped[str] = mapped_column(String(255))
     tiled: Mapped[bool] = mapped_column(Boolean, default=False)
     aerial_first: Mapped[bool] = mapped_column(Boolean, default=True)
+    # a side is aerial: matched at its best quarter turn (geomatch.matching.rotation); decided by
+    # the plan, with the pair (migrate.py fills it in for rows planned before it was stored)
+    rotate: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     done: Mapped[bool] = mapped_column(Boolean, default=False)
     matches: Mapped[int | None] = mapped_column(Integer, default=None)
     inliers: Mapped[int | None] = mapped_column(Integer, default=None)

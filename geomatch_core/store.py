@@ -18,6 +18,7 @@ from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from .errors import Unavailable
+from .migrate import add_missing_columns
 from .models import Base
 
 
@@ -44,11 +45,13 @@ class MetadataStore:
 
     def create_all(self) -> None:
         """Idempotent; an API and its workers starting together may race to create a table, and the
-        loser's second look finds it there."""
+        loser's second look finds it there. A database made before a column was added gets it
+        (``migrate``)."""
         try:
             Base.metadata.create_all(self.engine)
         except DBAPIError:
             Base.metadata.create_all(self.engine)
+        add_missing_columns(self.engine)
 
     @contextmanager
     def session(self) -> Iterator[Session]:

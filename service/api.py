@@ -19,7 +19,7 @@ from geomatch_core import errors
 
 from . import console
 from .metrics import Metrics
-from .routes import router
+from .routes import build_router
 from .usecases import Service
 
 log = logging.getLogger("geomatch.service")
@@ -72,7 +72,7 @@ def create_app(service: Service) -> FastAPI:
         metrics.uploaded_bytes.inc(size)
 
     service.on_upload = count_upload
-    app.include_router(router)
+    app.include_router(build_router())
     console.mount(app)
 
     @app.exception_handler(errors.DomainError)

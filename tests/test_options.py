@@ -100,11 +100,11 @@ def typing_args(annotation: object) -> tuple[object, ...]:
 
 
 def test_use_case_defaults_are_the_options() -> None:
-    from service import usecases
     from service.grpcapi import convert
+    from service.usecases import base, pairtools
 
-    assert {n: DEFAULTS[n] for n in PROJECT_OPTIONS} == usecases.DEFAULTS
-    assert usecases.PAIR_OPTIONS == PAIR_OPTIONS
+    assert {n: DEFAULTS[n] for n in PROJECT_OPTIONS} == base.DEFAULTS
+    assert pairtools.PAIR_OPTIONS == PAIR_OPTIONS
     assert tuple(convert.CONFIG_FIELDS) == PROJECT_OPTIONS
 
 
@@ -190,3 +190,26 @@ def test_checks(name: str, value: object, ok: bool) -> None:
     else:
         with pytest.raises(options.OptionError, match=name):
             options.check(name, value)
+
+
+# -- values as the library takes them -------------------------------------------------------------
+def test_resolve_is_the_one_place_of_full_size_and_camera() -> None:
+    assert options.resolve({"resize": 0, "camera": "per-image"}) == {"resize": None, "share_camera": False}
+    assert options.resolve({"resize": 320, "camera": "auto"}) == {"resize": 320, "share_camera": None}
+    assert options.resolve({}, ("resize", "camera", "tiling")) == {
+        "resize": DEFAULTS["resize"],
+        "share_camera": None,
+        "tiling": DEFAULTS["tiling"],
+    }
+    assert options.resolve({"resize": None}, ("resize",)) == {"resize": None}  # given stays given
+
+
+def test_run_options_of_option_values() -> None:
+    from geomatch.pipeline import RunOptions
+
+    run = RunOptions.of({"method": "geo", "resize": 0, "camera": "per-image", "tau": 5.0}, verbose=True)
+    assert (run.method, run.resize, run.share_camera, run.verbose) == ("geo", None, False, True)
+    assert run.matcher == {"tau": 5.0}  # not a field of RunOptions: the matcher's
+    args = _parse([*RUN, "--resize", "0", "--camera", "per-image", "--tau", "5"])
+    cli = RunOptions.of(options.given(args, RUN_NAMES))
+    assert (cli.resize, cli.share_camera, cli.matcher["tau"]) == (None, False, 5.0)

@@ -18,9 +18,12 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
-from sqlalchemy import select, update
+from sqlalchemy import exists, select, update
 
 from geomatch.options import DEFAULTS
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
@@ -51,7 +54,7 @@ def _plan(ctx: Context, job: Job) -> None:
     from geomatch.sfm.colmapdb import ColmapDatabase
 
     t0 = time.perf_counter()
-    opts, pid = job.options, job.project_id
+    opts, pid = runtime.job_options(job.options), job.project_id
     with ctx.store.session() as s:
         rows = s.execute(
             select(Image.name, Image.capture).where(Image.project_id == pid).order_by(Image.name)
@@ -65,20 +68,18 @@ def _plan(ctx: Context, job: Job) -> None:
             s.execute(
                 update(Image).where(Image.project_id == pid, Image.name == n).values(aerial=n in aerial)
             )
-    share_camera = False if opts.get("camera") == "per-image" else None
     spec = opts["pairs"] if isinstance(opts["pairs"], str) else DEFAULTS["pairs"]
     pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
     matcher = runtime.matcher(ctx, opts) if "retrieval" in spec and pairs_list is None else None
-    tiling = opts.get("tiling", DEFAULTS["tiling"])
     fixes = gps.fixes(names, metas)
     planned = steps.plan(
-        image_dir, names, aerial, spec, pairs_list, tiling, matcher, fixes=fixes, metas=metas
+        image_dir, names, aerial, spec, pairs_list, opts["tiling"], matcher, fixes=fixes, metas=metas
     )
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
             return
         with ColmapDatabase(ctx.storage.database_path(pid)) as db:
-            ids = steps.register(db, names, metas, share_camera)
+            ids = steps.register(db, names, metas, opts["share_camera"])
             todo = steps.unmatched(db, ids, planned)
         if fixes is not None:
             gps.write_pose_priors(ctx.storage.database_path(pid), ids, fixes)
@@ -88,7 +89,13 @@ def _plan(ctx: Context, job: Job) -> None:
             return
         s.add_all(
             JobPair(
-                job_id=job.id, idx=i, name0=p.name0, name1=p.name1, tiled=p.tiled, aerial_first=p.aerial_first
+                job_id=job.id,
+                idx=i,
+                name0=p.name0,
+                name1=p.name1,
+                tiled=p.tiled,
+                aerial_first=p.aerial_first,
+                rotate=p.rotate,
             )
             for i, p in enumerate(todo)
         )
@@ -136,7 +143,7 @@ def extract(ctx: Context, job_id: str, name: str, full: bool, crops: bool) -> st
     if job is None or job.state != "running":
         return "skipped"
     image = runtime.image(ctx, ctx.storage.image_path(job.project_id, name))
-    n = steps.extract(runtime.matcher(ctx, job.options), image, full, crops)
+    n = steps.extract(runtime.matcher(ctx, runtime.job_options(job.options)), image, full, crops)
     return f"{n} feature entries"
 
 
@@ -150,17 +157,14 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         return "skipped"
     with ctx.store.session() as s:
         p = s.get(JobPair, (job_id, idx))
-        # the plan step marked the aerial images: a pair with an aerial side is matched at its
-        # best quarter turn (geomatch.matching.rotation), and under ``auto`` a project with any aerial
-        # image matches every pair with ``geo``
-        aerial_names = set(
-            s.scalars(select(Image.name).where(Image.project_id == job.project_id, Image.aerial.is_(True)))
+        # the plan step marked the aerial images: under ``auto`` a project with any aerial image
+        # matches every pair with ``geo``
+        aerial_project = bool(
+            s.scalar(select(exists().where(Image.project_id == job.project_id, Image.aerial.is_(True))))
         )
-        airborne = p is not None and bool({p.name0, p.name1} & aerial_names)
-        aerial_project = bool(aerial_names)
     if p is None:
         return "skipped"
-    pid, opts = job.project_id, job.options
+    pid, opts = job.project_id, runtime.job_options(job.options)
     db_path = ctx.storage.database_path(pid)
     matches = inliers = 0
     if not p.done:
@@ -168,20 +172,16 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             id0, id1 = _image_id(db, p.name0), _image_id(db, p.name1)
             present = db.has_pair(id0, id1)  # redelivered after its write, or matched by another job
         if not present:
-            t0 = time.perf_counter()
             a = runtime.image(ctx, ctx.storage.image_path(pid, p.name0))
             b = runtime.image(ctx, ctx.storage.image_path(pid, p.name1))
-            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, rotate=airborne)
-            m = steps.match(runtime.matcher(ctx, opts), pair, a, b, aerial_project=aerial_project)
-            t1 = time.perf_counter()
-            resize = opts.get("resize") or None
-            radius = float(opts.get("snap_radius", DEFAULTS["snap_radius"]))
-            with ctx.locks.project(pid):
-                if not jobstate.is_active(ctx.store, job_id):  # cancelled while matching: write nothing
-                    return "cancelled"
-                ctx.storage.check_space(1 << 16)  # test hook (GEOMATCH_TEST_FILL_LIMIT); no-op otherwise
-                with ColmapDatabase(db_path) as db:
-                    w = steps.write(db, id0, id1, m, radius, resize)
+            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate)
+            target = steps.PairTarget(
+                lambda: _writable(ctx, job_id, pid, db_path), id0, id1, float(opts["snap_radius"])
+            )
+            r = steps.run_pair(runtime.matcher(ctx, opts), pair, a, b, target, aerial_project=aerial_project)
+            if r.written is None:
+                return "cancelled"
+            w = r.written
             matches, inliers = w.matches, w.inliers
             log.info(
                 "pair %s x %s: %d matches, %d inliers (%s), match %.2fs write %.2fs",
@@ -190,8 +190,8 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
                 w.matches,
                 w.inliers,
                 w.config or "present",
-                t1 - t0,
-                time.perf_counter() - t1,
+                r.match_s,
+                r.write_s,
                 extra={"job_id": job_id, "project_id": pid},
             )
     jobstate.mark_pair_done(ctx.store, job_id, idx, matches, inliers)
@@ -199,6 +199,21 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         log.info("match job succeeded", extra={"job_id": job_id, "project_id": pid})
         jobstate.release_followers(ctx.store, ctx.queue, job_id)
     return "done"
+
+
+@contextmanager
+def _writable(ctx: Context, job_id: str, pid: str, db_path: Path) -> Iterator[Any]:
+    """The project's COLMAP database under its writer lock, or None when the job was cancelled
+    while its pair was matched (nothing is written then)."""
+    from geomatch.sfm.colmapdb import ColmapDatabase
+
+    with ctx.locks.project(pid):
+        if not jobstate.is_active(ctx.store, job_id):
+            yield None
+            return
+        ctx.storage.check_space(1 << 16)  # test hook (GEOMATCH_TEST_FILL_LIMIT); no-op otherwise
+        with ColmapDatabase(db_path) as db:
+            yield db
 
 
 def _image_id(db: Any, name: str) -> int:
@@ -211,6 +226,7 @@ def _image_id(db: Any, name: str) -> int:
 def reconstruct(ctx: Context, job_id: str) -> str:
     from geomatch import steps
     from geomatch.geo import gps
+    from geomatch.sfm import mapping
     from geomatch.sfm.colmapdb import ColmapDatabase
 
     job = jobstate.claim(ctx.store, job_id)
@@ -229,11 +245,11 @@ def reconstruct(ctx: Context, job_id: str) -> str:
             snapshot_sqlite(db_path, snapshot)
         out = work / "model"
         images = ctx.storage.images_dir(pid)
-        summary = steps.reconstruct(
+        summary = mapping.reconstruct(
             snapshot,
             images,
             out,
-            job.options.get("mapper", DEFAULTS["mapper"]),
+            runtime.job_options(job.options)["mapper"],
             gps=gps.fixes_of_database(snapshot, images),
         )
         with ColmapDatabase(snapshot) as db:

@@ -19,8 +19,6 @@ import re
 import time
 from typing import Any
 
-from geomatch.options import DEFAULTS
-
 from . import runtime
 from .context import Context
 
@@ -65,12 +63,12 @@ def _match(
 
     t0 = time.perf_counter()
     check()
+    options = runtime.job_options(options)
     names = ["0", "1"]
     taken = dict(zip(names, captures, strict=True))
     metas = {n: read_metadata(folder / n) for n in names if taken[n] == "auto"}
     aerial = steps.aerial_set(taken, metas)
-    tiling = options.get("tiling", DEFAULTS["tiling"])
-    pair = steps.plan(folder, names, aerial, pairs_list=[names], tiling=tiling)[0]
+    pair = steps.plan(folder, names, aerial, pairs_list=[names], tiling=options["tiling"])[0]
     a, b = read_image(folder / "0"), read_image(folder / "1")  # not runtime.image: these are read once
     matcher = runtime.matcher(ctx, options)
     t1 = time.perf_counter()
@@ -82,7 +80,7 @@ def _match(
         timings[f"features{name}"] = time.perf_counter() - t1
         t1 = time.perf_counter()
     check()
-    m = steps.match(matcher, pair, a, b, aerial_project=bool(aerial))
+    m = steps.run_pair(matcher, pair, a, b, aerial_project=bool(aerial)).matches
     k0, k1, sc, F = m.keypoints0, m.keypoints1, m.scores, m.F
     timings["match"] = time.perf_counter() - t1
     out = folder / "result.npz"
@@ -95,7 +93,7 @@ def _match(
         F=np.asarray(F, np.float64).reshape(3, 3),
         size0=np.array([a.shape[1], a.shape[0]]),
         size1=np.array([b.shape[1], b.shape[0]]),
-        method=np.array(options.get("method", DEFAULTS["method"])),
+        method=np.array(options["method"]),
         tiled=np.array(pair.tiled),
     )
     tmp.replace(out)

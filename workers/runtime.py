@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,14 +22,20 @@ _local = threading.local()
 MAX_MATCHERS = 2  # distinct option sets kept per thread (each holds its own feature LRU)
 
 
-def matcher(ctx: Context, options: dict[str, Any]) -> Matcher:
-    from geomatch.options import DEFAULTS
+def job_options(stored: Mapping[str, Any]) -> dict[str, Any]:
+    """A job's stored options (or a pair's) as the library takes them, once per step: the
+    defaults of those missing, resize 0 as full size, camera as share_camera
+    (``geomatch.options.resolve``)."""
+    from geomatch.options import PROJECT_OPTIONS, resolve
+
+    return resolve(stored, PROJECT_OPTIONS)
+
+
+def matcher(ctx: Context, options: Mapping[str, Any]) -> Matcher:
+    """The thread's matcher for resolved ``options`` (:func:`job_options`)."""
     from geomatch.steps import FeatureStore, build_matcher
 
-    method, resize = (
-        options.get("method", DEFAULTS["method"]),
-        options.get("resize", DEFAULTS["resize"]) or None,
-    )
+    method, resize = options["method"], options["resize"]
     key = (method, resize, ctx.settings.device)
     cache: OrderedDict[tuple[Any, ...], Matcher] = _local.__dict__.setdefault("matchers", OrderedDict())
     if key in cache:

@@ -2,7 +2,8 @@
 
 A run folder (``geomatch run`` / ``geomatch demo``, or the service's model folder) holds the
 model in ``sparse/0`` and, beside it or elsewhere, the COLMAP database and the images. Each
-format is one module with one ``write(source, dest)``; this module finds the inputs, writes
+format is one module with one ``write(source, dest)`` and one row of ``formats.FORMATS`` (what it
+reads, its help, its media type and proto number); this module finds the inputs, writes
 into a temporary sibling of ``dest`` and renames it into place, so a reader never sees half an
 export, and zips an export for the service. Nothing here imports torch (the service's API
 process builds the exports it serves), which is why hloc reads the database with pycolmap
@@ -17,18 +18,21 @@ import shutil
 import tempfile
 import uuid
 import zipfile
-from collections.abc import Callable
 from pathlib import Path
 
-from ..options import EXPORT_FORMATS as FORMATS
+from .formats import DATABASE, FORMATS, IMAGES, ExportFormat
 from .source import ExportError, Source
 
-__all__ = ["FORMATS", "ExportError", "Source", "export", "export_zip", "model_dir", "open_run"]
-
-# what each format reads besides the model: the images (nerfstudio copies them, openmvs
-# undistorts them) or the database (hloc's keypoints and matches)
-NEEDS_IMAGES = frozenset({"nerfstudio", "openmvs"})
-NEEDS_DATABASE = frozenset({"hloc"})
+__all__ = [
+    "FORMATS",
+    "ExportError",
+    "ExportFormat",
+    "Source",
+    "export",
+    "export_zip",
+    "model_dir",
+    "open_run",
+]
 
 
 def model_dir(run: Path) -> Path:
@@ -58,40 +62,27 @@ def open_run(run: str | Path, images: str | Path | None = None, database: str | 
     )
 
 
-def _check(source: Source, fmt: str) -> None:
-    if fmt not in FORMATS:
+def _check(source: Source, fmt: str) -> ExportFormat:
+    row = FORMATS.get(fmt)
+    if row is None:
         raise ExportError(f"unknown export format {fmt!r}; choose from {', '.join(FORMATS)}")
-    if fmt in NEEDS_IMAGES and (source.images is None or not source.images.is_dir()):
+    if IMAGES in row.needs and (source.images is None or not source.images.is_dir()):
         where = f" ({source.images} is not a folder)" if source.images is not None else ""
         raise ExportError(f"the {fmt} export needs the run's images{where}: pass --images DIR")
-    if fmt in NEEDS_DATABASE and source.database is None:
+    if DATABASE in row.needs and source.database is None:
         raise ExportError(f"the {fmt} export needs the run's COLMAP database (database.db)")
-
-
-def _writer(fmt: str) -> Callable[[Source, Path], list[Path]]:
-    # imported on use: each format pulls only what it needs (h5py for hloc)
-    if fmt == "nerfstudio":
-        from . import nerfstudio as m
-    elif fmt == "colmap-text":
-        from . import colmap_text as m  # type: ignore[no-redef]  # one name, whichever format's module
-    elif fmt == "ply":
-        from . import ply as m  # type: ignore[no-redef]  # ditto
-    elif fmt == "hloc":
-        from . import hloc as m  # type: ignore[no-redef]  # ditto
-    else:
-        from . import openmvs as m  # type: ignore[no-redef]  # ditto
-    return m.write
+    return row
 
 
 def export(source: Source, fmt: str, dest: str | Path) -> list[Path]:
     """Write ``fmt`` into the folder ``dest`` (replaced whole); returns the files written there."""
-    _check(source, fmt)
+    write = _check(source, fmt).load()
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f".{dest.name}-{uuid.uuid4().hex[:8]}")
     tmp.mkdir()  # not mkdtemp: its mode 0700 would stay on the renamed folder
     try:
-        written = _writer(fmt)(source, tmp)
+        written = write(source, tmp)
         old = dest.with_name(f".old-{dest.name}-{uuid.uuid4().hex[:8]}")
         if dest.exists():
             os.replace(dest, old)

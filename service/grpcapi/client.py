@@ -25,18 +25,15 @@ import grpc
 import numpy as np
 from google.protobuf.json_format import MessageToDict
 
+from geomatch.export.formats import FORMATS
+
 from .pb import pb2, pb2_grpc
 
 CHUNK = 1 << 20  # the server's limit on a chunk
 CAPTURE = {"auto": pb2.CAPTURE_AUTO, "aerial": pb2.CAPTURE_AERIAL, "ground": pb2.CAPTURE_GROUND}
-FORMAT = {
-    "zip": pb2.MODEL_FORMAT_ZIP,
-    "ply": pb2.MODEL_FORMAT_PLY,
-    "json": pb2.MODEL_FORMAT_JSON,
-    "nerfstudio": pb2.MODEL_FORMAT_NERFSTUDIO,
-    "colmap-text": pb2.MODEL_FORMAT_COLMAP_TEXT,
-    "hloc": pb2.MODEL_FORMAT_HLOC,
-    "openmvs": pb2.MODEL_FORMAT_OPENMVS,
+# the model's formats by the names REST takes: the service's own files and the export table's rows
+FORMAT = {"zip": pb2.MODEL_FORMAT_ZIP, "json": pb2.MODEL_FORMAT_JSON} | {
+    f.name: f.proto for f in FORMATS.values()
 }
 TERMINAL = (pb2.JOB_STATE_SUCCEEDED, pb2.JOB_STATE_FAILED, pb2.JOB_STATE_CANCELLED)
 CHANNEL_OPTIONS = [
@@ -250,7 +247,7 @@ class GrpcClient:
         """The model file at ``dest`` (written whole or not at all, size and sha256 checked) and
         its ModelInfo (``info.summary`` has the statistics)."""
         stream = self.stub.GetModel(
-            pb2.GetModelRequest(project_id=project_id, format=FORMAT[fmt]),
+            pb2.GetModelRequest(project_id=project_id, format=pb2.ModelFormat.Name(FORMAT[fmt])),
             timeout=timeout,
             metadata=self.metadata,
         )

@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterable, Mapping
 from datetime import UTC, datetime
 from typing import Any
 
 from google.protobuf import struct_pb2, timestamp_pb2
 
 from geomatch import options
+from geomatch.export.formats import FORMATS, ExportFormat
 
-from ..usecases import MODEL_FORMATS as USECASE_MODEL_FORMATS
-from ..usecases import ImageView, JobView, MatchRequest, PairMatches, ProjectView
+from ..usecases.outputs import model_formats
+from ..usecases.views import ImageView, JobView, MatchRequest, PairMatches, ProjectView
 from .framing import CAPTURES
 from .pb import pb2
 
@@ -27,18 +29,38 @@ JOB_STATES = {
     "failed": pb2.JOB_STATE_FAILED,
     "cancelled": pb2.JOB_STATE_CANCELLED,
 }
-MODEL_FORMATS = {
-    pb2.MODEL_FORMAT_UNSPECIFIED: "zip",
-    pb2.MODEL_FORMAT_ZIP: "zip",
-    pb2.MODEL_FORMAT_PLY: "ply",
-    pb2.MODEL_FORMAT_JSON: "json",
-    pb2.MODEL_FORMAT_NERFSTUDIO: "nerfstudio",
-    pb2.MODEL_FORMAT_COLMAP_TEXT: "colmap-text",
-    pb2.MODEL_FORMAT_HLOC: "hloc",
-    pb2.MODEL_FORMAT_OPENMVS: "openmvs",
+# the service's own files of a model (geomatch.export.formats' rows name the others); unspecified
+# is the archive
+OWN_FORMATS = {"MODEL_FORMAT_UNSPECIFIED": "zip", "MODEL_FORMAT_ZIP": "zip", "MODEL_FORMAT_JSON": "json"}
+
+
+def enum_problems(formats: Iterable[ExportFormat], enum: Mapping[str, int]) -> list[str]:
+    """How the export table and the proto's ModelFormat (value name -> number) disagree: a row
+    whose MODEL_FORMAT_<NAME> is missing or numbered otherwise, a value that no row and none of
+    the service's own files names."""
+    rows = {f.proto_name: f for f in formats}
+    problems = [
+        f"{name} ({f.name}, {f.proto} in the export table) is not in the proto's ModelFormat"
+        if name not in enum
+        else f"{name} is {enum[name]} in the proto, {f.proto} in the export table ({f.name})"
+        for name, f in rows.items()
+        if enum.get(name) != f.proto
+    ]
+    problems += [
+        f"{name} of the proto's ModelFormat is no export format (geomatch.export.formats)"
+        for name in enum
+        if name not in rows and name not in OWN_FORMATS
+    ]
+    return problems
+
+
+_problems = enum_problems(FORMATS.values(), dict(pb2.ModelFormat.items()))
+assert not _problems, "; ".join(_problems)
+MODEL_FORMATS = {pb2.ModelFormat.Value(name): fmt for name, fmt in OWN_FORMATS.items()} | {
+    f.proto: f.name for f in FORMATS.values()
 }
 assert set(CAPTURES.values()) == set(CAPTURE_ENUM)
-assert set(MODEL_FORMATS.values()) == set(USECASE_MODEL_FORMATS)  # the REST formats but scene
+assert set(MODEL_FORMATS.values()) == set(model_formats())  # the REST formats but scene
 
 
 def optional_fields(msg: Any, names: tuple[str, ...]) -> dict[str, Any]:

@@ -16,7 +16,7 @@ from typing import Any
 
 from geomatch_core.errors import BadFile, InvalidRequest, TooLarge
 
-from ..usecases import Upload
+from ..usecases.views import Upload
 from .status import Malformed
 
 MAX_CHUNK = 1 << 20  # 1 MiB, the limit on a chunk (and on what GetModel sends)

@@ -17,7 +17,8 @@ import grpc
 
 from geomatch_core.errors import InvalidRequest, Unavailable
 
-from ..usecases import Service, Upload
+from ..usecases import Service
+from ..usecases.views import Upload
 from . import convert
 from .framing import MAX_CHUNK, Messages, images
 from .limits import STREAMS, IdleStreams, StreamSlots

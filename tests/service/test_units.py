@@ -181,12 +181,15 @@ def test_service_modules_do_not_import_torch() -> None:
         "service.api, geomatch_app.bootstrap, geomatch_app.cli, service.cli, "
         "workers.celery_queue, workers.local, workers.tasks, workers.jobs, workers.steps"
     )
-    # the option vocabulary, the command's parser and the SQLite snapshot (standard library only)
-    # are all the API reads of the library
+    # the option vocabulary, the export table, the command's parser and the SQLite snapshot
+    # (standard library only) are all the API reads of the library
     loaded = loaded_after(modules, ("torch", "geomatch", "cv2"))
     assert loaded == [
         "geomatch",
         "geomatch.cli",
+        "geomatch.export",
+        "geomatch.export.formats",
+        "geomatch.export.source",
         "geomatch.options",
         "geomatch.sfm",
         "geomatch.sfm.sqlitecopy",

@@ -1,0 +1,71 @@
+"""The metadata tables' columns added since tables were first created, brought to a database made
+before them: ``create_all`` creates missing tables only, never a missing column.
+
+Each entry is a column of ``models`` (added with its server default) and the statement that gives
+the rows written before it their value. Small on purpose: an additive column is all the schema has
+needed; a change that rewrites a table needs Alembic.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import cast
+
+from sqlalchemy import Column, Executable, inspect, select, text, update
+from sqlalchemy.engine import Connection, Engine
+from sqlalchemy.exc import DBAPIError
+
+from .models import Image, Job, JobPair
+
+
+def _rotate_backfill() -> Executable:
+    """A pair not done yet turns when a side is aerial, as the plan decides (steps.plan)."""
+    aerial_side = (
+        select(Image.id)
+        .join(Job, Job.project_id == Image.project_id)
+        .where(
+            Job.id == JobPair.job_id,
+            Image.aerial.is_(True),
+            Image.name.in_([JobPair.name0, JobPair.name1]),
+        )
+        .exists()
+    )
+    return update(JobPair).where(JobPair.done.is_(False), aerial_side).values(rotate=True)
+
+
+# the table's columns are typed loosely by SQLAlchemy's declarative stubs
+ADDED: tuple[tuple[Column[object], Callable[[], Executable] | None], ...] = (
+    (cast("Column[object]", JobPair.__table__.c.rotate), _rotate_backfill),
+)
+
+
+def add_missing_columns(engine: Engine) -> list[str]:
+    """Add the columns of :data:`ADDED` that the database lacks, then fill them; returns the
+    ``table.column`` names added. An API and its workers starting together may race: the loser
+    finds the column there on its second look."""
+    try:
+        return _add(engine)
+    except DBAPIError:
+        return _add(engine)
+
+
+def _add(engine: Engine) -> list[str]:
+    added = []
+    with engine.begin() as conn:
+        for column, backfill in ADDED:
+            if _has(conn, column):
+                continue
+            table = column.table.name
+            kind = column.type.compile(dialect=engine.dialect)
+            default = column.server_default.arg.compile(dialect=engine.dialect)  # type: ignore[union-attr]
+            conn.execute(
+                text(f"ALTER TABLE {table} ADD COLUMN {column.name} {kind} NOT NULL DEFAULT {default}")
+            )
+            if backfill is not None:
+                conn.execute(backfill())
+            added.append(f"{table}.{column.name}")
+    return added
+
+
+def _has(conn: Connection, column: Column[object]) -> bool:
+    return column.name in {c["name"] for c in inspect(conn).get_columns(column.table.name)}

@@ -1,0 +1,88 @@
+"""Jobs: /v1/projects/{id}/match and /reconstruct start them; /v1/jobs/{id} reads, cancels and
+(/events) streams one."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+
+from fastapi import APIRouter
+from fastapi.responses import StreamingResponse
+from starlette.concurrency import run_in_threadpool
+
+from geomatch_core.errors import NotFound
+
+from ..schemas import JobAccepted, JobOut, MatchIn, Progress, ReconstructIn
+from ..usecases.jobs import JobWatch
+from ..usecases.views import JobView, MatchRequest
+from .deps import Svc, Tenant
+
+router = APIRouter(tags=["jobs"])
+EVENTS_POLL_S = 0.5
+
+
+def job_out(j: JobView) -> JobOut:
+    fields = {k: getattr(j, k) for k in JobOut.model_fields if k != "progress"}
+    return JobOut(progress=Progress(done=j.done, total=j.total), **fields)
+
+
+@router.post("/projects/{project_id}/match", status_code=202, response_model=JobAccepted)
+def match(project_id: str, body: MatchIn, svc: Svc, tenant_id: Tenant) -> JobAccepted:
+    req = MatchRequest(**body.model_dump())
+    job, follower = svc.start_match(tenant_id, project_id, req)
+    return JobAccepted(job_id=job.id, reconstruct_job_id=follower.id if follower else None)
+
+
+@router.post("/projects/{project_id}/reconstruct", status_code=202, response_model=JobAccepted)
+def reconstruct(
+    project_id: str, svc: Svc, tenant_id: Tenant, body: ReconstructIn | None = None
+) -> JobAccepted:
+    job = svc.start_reconstruct(tenant_id, project_id, body.mapper if body else None)
+    return JobAccepted(job_id=job.id)
+
+
+@router.get("/jobs/{job_id}", response_model=JobOut)
+def get_job(job_id: str, svc: Svc, tenant_id: Tenant) -> JobOut:
+    return job_out(svc.get_job(tenant_id, job_id))
+
+
+@router.delete("/jobs/{job_id}", response_model=JobOut)
+def cancel_job(job_id: str, svc: Svc, tenant_id: Tenant) -> JobOut:
+    return job_out(svc.cancel_job(tenant_id, job_id))
+
+
+@router.get(
+    "/jobs/{job_id}/events",
+    response_class=StreamingResponse,
+    responses={
+        200: {"content": {"text/event-stream": {}}, "description": "`event: job` per change, until it ends"}
+    },
+)
+async def job_events(job_id: str, svc: Svc, tenant_id: Tenant) -> StreamingResponse:
+    """Async on purpose: a watcher holds no worker thread while it waits, only for each poll."""
+    await run_in_threadpool(svc.get_job, tenant_id, job_id)  # 404 before the stream starts
+    watch = JobWatch(svc, tenant_id, job_id)
+
+    async def stream() -> AsyncIterator[str]:
+        yield "retry: 2000\n\n"
+        n = 0
+        while not watch.finished:
+            try:
+                emit, job = await run_in_threadpool(watch.poll)
+            except NotFound as e:  # deleted while watched
+                yield f"event: error\ndata: {json.dumps({'detail': e.message})}\n\n"
+                return
+            if emit and job is None:
+                yield ": keep-alive\n\n"
+            elif emit and job is not None:
+                yield f"id: {n}\nevent: job\ndata: {job_out(job).model_dump_json()}\n\n"
+                n += 1
+            if not watch.finished:
+                await asyncio.sleep(EVENTS_POLL_S)
+
+    return StreamingResponse(
+        stream(),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+    )

@@ -1,0 +1,47 @@
+"""The application layer: every operation the API offers, free of any transport.
+
+Routers (REST and gRPC) translate requests into these calls and the typed errors of
+``geomatch_core.errors`` into statuses. A use case validates everything before it stores or
+enqueues anything, so a rejected request leaves no trace. One module per concern (projects,
+images, jobs, outputs, pair tools; ``views`` what they take and give, ``base`` what they share);
+:class:`Service` is all of them over one set of parts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .. import auth
+from .images import ImageUseCases
+from .jobs import JobUseCases
+from .outputs import OutputUseCases
+from .pairtools import PairToolUseCases
+from .projects import ProjectUseCases
+
+
+@dataclass
+class Readiness:
+    ok: bool
+    checks: dict[str, str] = field(default_factory=dict)
+
+
+class Service(ProjectUseCases, ImageUseCases, JobUseCases, OutputUseCases, PairToolUseCases):
+    def authenticate(self, key: str | None) -> str:
+        """The tenant id of an API key (Unauthenticated otherwise)."""
+        return auth.authenticate(self.store, key)
+
+    def readiness(self) -> Readiness:
+        r = Readiness(ok=True)
+        for name, check in (
+            ("database", self.store.ping),
+            ("queue", self.queue.ping),
+            ("storage", self.storage.check_writable),
+        ):
+            try:
+                check()
+                r.checks[name] = "ok"
+            except Exception as e:
+                r.ok = False
+                r.checks[name] = f"error: {e}"
+        r.checks["mode"] = "embedded" if self.settings.embedded else "redis"
+        return r

@@ -1,0 +1,110 @@
+"""What every use case shares: the service's parts, the tenant's project, the option checks and
+the staging of an uploaded file (uploads and the two-image match pass the same checks)."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from sqlalchemy.orm import Session
+
+from geomatch.options import PROJECT_OPTIONS, defaults
+from geomatch_core.config import Settings
+from geomatch_core.errors import InvalidRequest, NotFound, TooLarge
+from geomatch_core.locks import LockFactory
+from geomatch_core.models import Project
+from geomatch_core.queue import JobQueue
+from geomatch_core.storage import Storage
+from geomatch_core.store import MetadataStore
+
+from ..validation import ImageInfo, check_image, check_option
+
+# a project's configuration and a match job's options: geomatch.options holds them, with defaults
+DEFAULTS: dict[str, Any] = defaults(PROJECT_OPTIONS)
+_CHUNK = 1 << 20
+
+
+@dataclass
+class Staged:
+    """An uploaded file written to a temporary file and checked, not yet in the project."""
+
+    name: str
+    path: Path
+    sha256: str
+    size: int
+    info: ImageInfo
+    capture: str | None = None
+
+
+def check_config(config: dict[str, Any]) -> dict[str, Any]:
+    """Validated project config / match options; raises InvalidRequest naming the bad key."""
+    unknown = sorted(set(config) - set(DEFAULTS))
+    if unknown:
+        raise InvalidRequest(f"unknown option(s) {', '.join(unknown)}; known: {', '.join(DEFAULTS)}")
+    out: dict[str, Any] = {}
+    for k, v in config.items():
+        if v is None:
+            continue
+        out[k] = v if k == "pairs" and isinstance(v, list) else check_option(k, v)
+    return out
+
+
+def choice(key: str, value: Any, allowed: Sequence[str]) -> str:
+    if value not in allowed:
+        raise InvalidRequest(f"{key} must be one of {', '.join(allowed)}, not {value!r}")
+    return str(value)
+
+
+class UseCases:
+    """The parts every use case works with; ``Service`` is the use cases of every concern."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        store: MetadataStore,
+        storage: Storage,
+        queue: JobQueue,
+        locks: LockFactory,
+    ) -> None:
+        self.settings = settings
+        self.store = store
+        self.storage = storage
+        self.queue = queue
+        self.locks = locks
+        self.on_upload: Callable[[int, int], object] | None = None  # (new images, bytes): metrics
+
+    def _project(self, s: Session, tenant_id: str, project_id: str) -> Project:
+        p = s.get(Project, project_id)
+        if p is None or p.tenant_id != tenant_id:
+            raise NotFound(f"project {project_id} not found")
+        return p
+
+    def _owned(self, tenant_id: str, project_id: str) -> None:
+        """NotFound unless the tenant has this project."""
+        with self.store.session() as s:
+            self._project(s, tenant_id, project_id)
+
+    def _stage(self, name: str, stream: BinaryIO) -> Staged:
+        fd, tmp = self.storage.temp_file()
+        h, size = hashlib.sha256(), 0
+        try:
+            with os.fdopen(fd, "wb") as f:
+                while chunk := stream.read(_CHUNK):
+                    size += len(chunk)
+                    if size > self.settings.max_upload_bytes:
+                        raise TooLarge(
+                            f"{name}: larger than the upload limit of "
+                            f"{self.settings.max_upload_bytes // (1024 * 1024)} MiB"
+                        )
+                    h.update(chunk)
+                    self.storage.check_space(len(chunk))
+                    f.write(chunk)
+            info = check_image(tmp, name, self.settings.max_pixels)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return Staged(name, tmp, h.hexdigest(), size, info)

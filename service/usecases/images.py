@@ -1,0 +1,155 @@
+"""Images: uploads (all files of a request or none), listing, the stored bytes."""
+
+from __future__ import annotations
+
+import errno
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError, OperationalError
+from sqlalchemy.orm import Session
+
+from geomatch.options import CAPTURES
+from geomatch_core.errors import BadFile, Conflict, InsufficientStorage, InvalidRequest, NotFound
+from geomatch_core.models import Image
+
+from ..validation import check_name
+from .base import Staged, UseCases, choice
+from .views import ImageView, Upload, image_view
+
+# how a stored image is served back (the validated format, never the client's claim)
+IMAGE_MEDIA = {
+    "jpeg": "image/jpeg",
+    "png": "image/png",
+    "tiff": "image/tiff",
+    "bmp": "image/bmp",
+    "webp": "image/webp",
+}
+_FULL = (
+    "the storage is full (no space left on device): nothing of this upload was kept; "
+    "retry when space is freed"
+)
+
+
+class ImageUseCases(UseCases):
+    def upload_images(
+        self, tenant_id: str, project_id: str, uploads: Iterable[Upload], capture: str = "auto"
+    ) -> list[ImageView]:
+        """All files or none: every file is validated before the first one is stored. ``uploads``
+        may be a stream (gRPC): each file is read to its end before the next is asked for."""
+        capture = choice("capture", capture, CAPTURES)
+        if not uploads:
+            raise InvalidRequest("no files: send one or more multipart fields named 'files'")
+        with self.store.session() as s:
+            self._project(s, tenant_id, project_id)
+        staged: list[Staged] = []
+        moved: list[Path] = []
+        try:
+            seen: set[str] = set()
+            for up in uploads:
+                name = check_name(up.name)
+                if name in seen:
+                    raise BadFile(f"{name}: sent twice in one request")
+                seen.add(name)
+                file_capture = None if up.capture is None else choice("capture", up.capture, CAPTURES)
+                staged.append(self._stage(name, up.stream))
+                staged[-1].capture = file_capture
+            if not staged:
+                raise InvalidRequest("no images were sent")
+            try:
+                with self.store.session() as s:
+                    self._project(s, tenant_id, project_id)
+                    views = self._register(s, project_id, staged, capture, moved)
+            except IntegrityError:  # a concurrent upload took a name or the bytes first
+                raise Conflict(
+                    "another upload of the same name or bytes was committed concurrently; retry"
+                ) from None
+            except OperationalError as e:  # SQLite's SQLITE_FULL: the metadata store's disk is full
+                if "disk is full" in str(e.orig):
+                    raise InsufficientStorage(_FULL) from None
+                raise
+        except OSError as e:
+            for path in moved:
+                path.unlink(missing_ok=True)
+            if e.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise InsufficientStorage(_FULL) from None
+            raise
+        except BaseException:
+            for path in moved:
+                path.unlink(missing_ok=True)
+            raise
+        finally:
+            for st in staged:
+                st.path.unlink(missing_ok=True)
+        new = [v for v in views if v.created]
+        if self.on_upload is not None and new:
+            self.on_upload(len(new), sum(v.size_bytes for v in new))
+        return views
+
+    def _register(
+        self, s: Session, project_id: str, staged: list[Staged], capture: str, moved: list[Path]
+    ) -> list[ImageView]:
+        shas = [st.sha256 for st in staged]
+        names = [st.name for st in staged]
+        by_sha = {
+            i.sha256: i
+            for i in s.scalars(select(Image).where(Image.project_id == project_id, Image.sha256.in_(shas)))
+        }
+        by_name = {
+            i.name: i
+            for i in s.scalars(select(Image).where(Image.project_id == project_id, Image.name.in_(names)))
+        }
+        views: list[ImageView] = []
+        new: list[tuple[Staged, Image]] = []
+        for st in staged:
+            same = by_sha.get(st.sha256)
+            if same is not None:  # the same bytes again: idempotent, whatever the name
+                views.append(image_view(same, created=False))
+                continue
+            if st.name in by_name:
+                raise Conflict(
+                    f"{st.name}: an image of this name with other content is already in the project"
+                )
+            img = Image(
+                project_id=project_id,
+                name=st.name,
+                sha256=st.sha256,
+                width=st.info.width,
+                height=st.info.height,
+                size_bytes=st.size,
+                format=st.info.format,
+                capture=st.capture or capture,
+            )
+            by_sha[st.sha256] = img
+            new.append((st, img))
+            views.append(image_view(img, created=True))
+        s.add_all([img for _, img in new])
+        s.flush()
+        images_dir = self.storage.images_dir(project_id)
+        images_dir.mkdir(parents=True, exist_ok=True)
+        for st, img in new:
+            dest = images_dir / img.name
+            os.replace(st.path, dest)
+            moved.append(dest)
+        return [image_view(by_sha[v.sha256], created=v.created) for v in views]
+
+    def image_file(self, tenant_id: str, project_id: str, name: str) -> tuple[Path, str]:
+        """An uploaded image's bytes and media type, for a browser to show it (thumbnails)."""
+        with self.store.session() as s:
+            self._project(s, tenant_id, project_id)
+            img = s.scalar(select(Image).where(Image.project_id == project_id, Image.name == name))
+            if img is None:
+                raise NotFound(f"image {name!r} not found in project {project_id}")
+            fmt = img.format
+        path = self.storage.image_path(project_id, name)
+        if not path.is_file():
+            raise NotFound(f"image {name!r} not found in project {project_id}")
+        return path, IMAGE_MEDIA.get(fmt, "application/octet-stream")
+
+    def list_images(self, tenant_id: str, project_id: str) -> list[ImageView]:
+        with self.store.session() as s:
+            self._project(s, tenant_id, project_id)
+            rows = s.scalars(select(Image).where(Image.project_id == project_id).order_by(Image.name)).all()
+            return [image_view(i) for i in rows]

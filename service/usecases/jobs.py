@@ -1,0 +1,136 @@
+"""Jobs: start a match (and the reconstruction it may chain) or a reconstruction, read, cancel
+and watch a job."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from geomatch.options import PROJECT_OPTIONS
+from geomatch_core import jobstate
+from geomatch_core.errors import Conflict, InvalidRequest, NotFound, Unavailable
+from geomatch_core.models import Image, Job
+from geomatch_core.queue import ENTRY_STEP
+
+from ..validation import check_option, check_pair_list
+from .base import DEFAULTS, UseCases, check_config
+from .views import JobView, MatchRequest, job_view
+
+
+class JobUseCases(UseCases):
+    def start_match(
+        self, tenant_id: str, project_id: str, req: MatchRequest
+    ) -> tuple[JobView, JobView | None]:
+        with self.store.session() as s:
+            p = self._project(s, tenant_id, project_id)
+            names = set(s.scalars(select(Image.name).where(Image.project_id == project_id)))
+            if len(names) < 2:
+                raise InvalidRequest(f"the project has {len(names)} image(s); matching needs at least 2")
+            given = {k: getattr(req, k) for k in PROJECT_OPTIONS}
+            opts = {**DEFAULTS, **check_config(dict(p.config)), **check_config(given)}
+            if isinstance(opts["pairs"], list):
+                opts["pairs"] = check_pair_list(opts["pairs"], names)
+            mapper = opts.pop("mapper")
+            job = Job(project_id=project_id, tenant_id=tenant_id, kind="match", options=opts)
+            s.add(job)
+            s.flush()
+            follower = _reconstruct_job(s, project_id, tenant_id, mapper, job.id) if req.reconstruct else None
+            views = job_view(job), job_view(follower) if follower else None
+        self._enqueue(views[0])
+        return views
+
+    def start_reconstruct(self, tenant_id: str, project_id: str, mapper: str | None = None) -> JobView:
+        with self.store.session() as s:
+            p = self._project(s, tenant_id, project_id)
+            mapper = check_option("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"])
+            matched = s.scalar(
+                select(func.count())
+                .select_from(Job)
+                .where(Job.project_id == project_id, Job.kind == "match", Job.state == "succeeded")
+            )
+            if not matched:
+                raise Conflict(
+                    "nothing to reconstruct yet: no match job of this project has succeeded "
+                    '(POST .../match first, or with "reconstruct": true to chain both)'
+                )
+            view = job_view(_reconstruct_job(s, project_id, tenant_id, mapper))
+        self._enqueue(view)
+        return view
+
+    def _enqueue(self, job: JobView) -> None:
+        try:
+            self.queue.enqueue(ENTRY_STEP[job.kind], job.id)
+        except Exception as e:
+            jobstate.fail(self.store, job.id, f"could not queue the job: {e}")
+            raise Unavailable(f"the job queue is not reachable ({e}); the job was not started") from None
+
+    def get_job(self, tenant_id: str, job_id: str) -> JobView:
+        with self.store.session() as s:
+            job = s.get(Job, job_id)
+            if job is None or job.tenant_id != tenant_id:
+                raise NotFound(f"job {job_id} not found")
+            return job_view(job)
+
+    def cancel_job(self, tenant_id: str, job_id: str) -> JobView:
+        """Idempotent: a finished job is returned as it is."""
+        self.get_job(tenant_id, job_id)
+        if jobstate.cancel(self.store, job_id, "cancelled by the client"):
+            jobstate.release_followers(self.store, self.queue, job_id)
+        return self.get_job(tenant_id, job_id)
+
+    def watch_job(
+        self, tenant_id: str, job_id: str, interval_s: float = 0.5, heartbeat_s: float = 15.0
+    ) -> Iterator[JobView | None]:
+        """The job each time its state or progress changes, until it ends; None as a keep-alive."""
+        watch = JobWatch(self, tenant_id, job_id, heartbeat_s)
+        while not watch.finished:
+            emit, job = watch.poll()
+            if emit:
+                yield job
+            if not watch.finished:
+                time.sleep(interval_s)
+
+
+class JobWatch:
+    """Change detection over a job, one poll at a time, so that a caller may wait between polls
+    however it likes (a thread sleeping in ``watch_job``, an event loop in the SSE route)."""
+
+    def __init__(self, service: JobUseCases, tenant_id: str, job_id: str, heartbeat_s: float = 15.0) -> None:
+        self.service, self.tenant_id, self.job_id, self.heartbeat_s = service, tenant_id, job_id, heartbeat_s
+        self.finished = False
+        self._last: tuple[Any, ...] | None = None
+        self._quiet_since = time.monotonic()
+
+    def poll(self) -> tuple[bool, JobView | None]:
+        """(True, job) when it changed, (True, None) when a keep-alive is due, else (False, None)."""
+        job = self.service.get_job(self.tenant_id, self.job_id)
+        key = (job.state, job.done, job.total, job.error)
+        now = time.monotonic()
+        if key != self._last:
+            self._last, self._quiet_since = key, now
+            self.finished = job.terminal
+            return True, job
+        if now - self._quiet_since > self.heartbeat_s:
+            self._quiet_since = now
+            return True, None
+        return False, None
+
+
+def _reconstruct_job(
+    s: Session, project_id: str, tenant_id: str, mapper: str, after: str | None = None
+) -> Job:
+    job = Job(
+        project_id=project_id,
+        tenant_id=tenant_id,
+        kind="reconstruct",
+        options={"mapper": mapper},
+        total=1,
+        after_job_id=after,
+    )
+    s.add(job)
+    s.flush()
+    return job

@@ -1,0 +1,62 @@
+"""A metadata database made before a column was added gets it, with the value its old rows would
+have had, when the service or a worker starts (``MetadataStore.create_all``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from sqlalchemy import select, text
+
+from geomatch_core.migrate import add_missing_columns
+from geomatch_core.models import Image, Job, JobPair, Project, Tenant
+from geomatch_core.store import MetadataStore
+
+pytestmark = pytest.mark.unit
+
+
+def test_job_pairs_get_rotate_from_the_aerial_images(tmp_path: Path) -> None:
+    store = MetadataStore(f"sqlite:///{tmp_path / 'meta.sqlite'}")
+    store.create_all()
+    with store.engine.begin() as c:  # the table as a release before the column made it
+        c.execute(text("ALTER TABLE job_pairs DROP COLUMN rotate"))
+    with store.session() as s:
+        tenant = Tenant(name="t")
+        s.add(tenant)
+        s.flush()
+        project = Project(tenant_id=tenant.id, name="p")
+        s.add(project)
+        s.flush()
+        s.add_all(
+            Image(
+                project_id=project.id,
+                name=name,
+                sha256=name,
+                width=8,
+                height=8,
+                size_bytes=1,
+                format="png",
+                capture="auto",
+                aerial=name == "air",
+            )
+            for name in ("air", "g1", "g2")
+        )
+        job = Job(project_id=project.id, tenant_id=tenant.id, kind="match")
+        s.add(job)
+        s.flush()
+        job_id = job.id
+    with store.engine.begin() as c:
+        for idx, (a, b, done) in enumerate((("g1", "air", 0), ("g1", "g2", 0), ("air", "g2", 1))):
+            c.execute(
+                text(
+                    "INSERT INTO job_pairs (job_id, idx, name0, name1, tiled, aerial_first, done) "
+                    "VALUES (:j, :i, :a, :b, 0, 1, :d)"
+                ),
+                {"j": job_id, "i": idx, "a": a, "b": b, "d": done},
+            )
+    store.create_all()
+    with store.session() as s:
+        rotate = dict(s.execute(select(JobPair.idx, JobPair.rotate).order_by(JobPair.idx)).all())
+    assert rotate == {0: True, 1: False, 2: False}  # a pair done already is never matched again
+    assert add_missing_columns(store.engine) == []  # there now: nothing to add
+    store.dispose()
