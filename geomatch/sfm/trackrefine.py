@@ -129,7 +129,20 @@ def _by_pair(tracks: Tracks, todo: np.ndarray) -> Iterator[tuple[int, int, np.nd
 
 def refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | None = None) -> dict[str, Any]:
     """Move the keypoints of ``database`` (in place) onto their tracks' references; returns counts
-    for the summary."""
+    for the summary.
+
+    One torch thread: the alignment is many small batches of element-wise work, for which a
+    second OpenMP thread gains little and, beside other busy processes, made it 30 times slower
+    (fountain-P11's 5800 observations, on a loaded 2-core machine: 4 s on one thread, 129 s on two)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _refine_tracks(database, image_dir, opts)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | None) -> dict[str, Any]:
     opts = opts or TrackRefineOptions()
     t0 = time.perf_counter()
     lsm = SubpixelOptions(
