@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from geomatch.eval.homography import apply_h
-from geomatch.imageio import prepare
 from geomatch.features.subpixel import SubpixelOptions, neighbour_affine, refine_points
+from geomatch.imageio import prepare
 from geomatch.synth.photos import warped_pair
 
 pytestmark = pytest.mark.unit

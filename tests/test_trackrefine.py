@@ -12,7 +12,7 @@ import pytest
 from geomatch.eval.homography import apply_h
 from geomatch.metadata import read_metadata
 from geomatch.sfm.colmapdb import COLMAP_OFFSET, ColmapDatabase
-from geomatch.sfm.trackrefine import Tracks, TrackRefineOptions, references, refine_tracks, tasks
+from geomatch.sfm.trackrefine import TrackRefineOptions, Tracks, references, refine_tracks, tasks
 from geomatch.synth.photos import warped_pair
 
 pytestmark = pytest.mark.unit
