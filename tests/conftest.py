@@ -1,10 +1,15 @@
 from __future__ import annotations
 
+from collections.abc import Iterator
+from pathlib import Path
+
 import pytest
 import torch
 
 from geomatch import Matcher, MatcherConfig
 from geomatch.synth.photos import WarpedPair, warped_pair
+
+from .small_scene import GPS_NOISE_M, RUN_OPTIONS, SEED, WITH_GPS
 
 torch.set_num_threads(2)
 
@@ -34,3 +39,33 @@ def matcher() -> Matcher:
 @pytest.fixture(scope="session")
 def astronaut_pair() -> WarpedPair:
     return warped_pair("astronaut", seed=1, strength=0.15)
+
+
+@pytest.fixture(scope="session")
+def small_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """tests/small_scene.py's scene, rendered once (images/, gt/, aerial.txt)."""
+    from geomatch.synth.aerial import write_scene
+
+    d = tmp_path_factory.mktemp("small-scene")
+    write_scene(d, 2, 4, seed=SEED, gps_noise=GPS_NOISE_M, gps_names=WITH_GPS)
+    return d
+
+
+def _listing(folder: Path) -> dict[str, tuple[int, int]]:
+    return {str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.rglob("*")}
+
+
+@pytest.fixture(scope="session")
+def small_run(small_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """One ``geomatch run`` of the small scene for the whole session (matching it takes minutes):
+    read it, never write into it; a test that re-runs, evaluates or exports into a run folder
+    works on a copy (tests/small_scene.py's ``copy_of_run``). That nothing wrote into it is
+    checked when the session ends."""
+    from geomatch.cli import main
+
+    out = tmp_path_factory.mktemp("small-run")
+    args = ["run", str(small_scene / "images"), "--out", str(out)]
+    assert main([*args, "--aerial-list", str(small_scene / "aerial.txt"), *RUN_OPTIONS]) == 0
+    before = _listing(out)
+    yield out
+    assert _listing(out) == before, "a test wrote into the shared run; it should work on a copy_of_run()"

@@ -1,8 +1,9 @@
 """``geomatch export``: every format written from a real run and read back by its consumer's
 library (pycolmap, h5py) or by a reader that follows the consumer's published format.
 
-The run is the end-to-end scene (2 aerial + 4 ground) as the gRPC end-to-end test runs it (sparse
-method, 480 px, 9 pairs), once per module.
+The run is the session's one run of the small scene (tests/small_scene.py, tests/conftest.py's
+``small_run``: 2 aerial + 4 ground, 640 px, georeferenced), copied once here since the exports
+are written into the run's folder.
 """
 
 from __future__ import annotations
@@ -18,28 +19,17 @@ import pytest
 from geomatch.cli import main
 from geomatch.export import FORMATS
 from geomatch.sfm.colmapdb import COLMAP_OFFSET  # the database side of the convention
-from geomatch.synth.aerial import write_scene
 
 from .loaded_modules import loaded_after
-from .small_scene import PAIRS
+from .small_scene import copy_of_run
 
-SEED = 1
-# the gRPC end-to-end run's choice (tests/service/test_grpc.py, measured there to register every
-# image): the sparse method at 480 px on tests/small_scene.py's pairs; the exports need a model,
-# not the paper's matcher
 # nerfstudio's world from COLMAP's, as its colmap_to_json writes it: (x, y, z) -> (x, z, -y)
 NERFSTUDIO_APPLIED = [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0]]
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    scene = tmp_path_factory.mktemp("scene")
-    write_scene(scene, 2, 4, seed=SEED)
-    (scene / "pairs.txt").write_text("".join(f"{a} {b}\n" for a, b in PAIRS))
-    out = tmp_path_factory.mktemp("run")
-    args = ["run", str(scene / "images"), "--out", str(out), "--aerial-list", str(scene / "aerial.txt")]
-    assert main([*args, "--method", "sparse", "--resize", "480", "--pairs", str(scene / "pairs.txt")]) == 0
-    return out
+def run_dir(small_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return copy_of_run(small_run, tmp_path_factory.mktemp("export") / "run")
 
 
 @pytest.fixture(scope="module")
@@ -265,7 +255,8 @@ def test_hloc_files_reproduce_the_databases_verified_matches(exported, run_dir: 
                 assert feats[name]["scores"].shape == (len(kp),)
                 cam = db.read_camera(db.read_image(image_id).camera_id)
                 assert list(feats[name]["image_size"][()]) == [cam.width, cam.height]
-            assert len(matches) == len(pair_ids) == len(PAIRS)
+            summary = json.loads((run_dir / "summary.json").read_text())
+            assert len(matches) == len(pair_ids) == summary["pairs"]
             total = 0
             for pair_id, tvg in zip(pair_ids, geometries, strict=True):
                 a, b = pycolmap.pair_id_to_image_pair(pair_id)

@@ -425,18 +425,11 @@ def test_pose_priors_are_written_and_replaced(tmp_path: Path) -> None:
 
 
 # -- end to end: half the images without GPS --------------------------------------------------
-E2E_SEED = 1
-WITH_GPS = {"aerial_00.png", "ground_00.png", "ground_02.png"}
-
-
+# the session's one run of the small scene (tests/small_scene.py: fixes in three of six images,
+# 640 px, gps:2), read only
 @pytest.fixture(scope="module")
-def gps_run(tmp_path_factory):
-    scene = tmp_path_factory.mktemp("gps_scene")
-    write_scene(scene, 2, 4, seed=E2E_SEED, gps_noise=0.5, gps_names=WITH_GPS)
-    out = tmp_path_factory.mktemp("gps_run")
-    args = ["run", str(scene / "images"), "--out", str(out), "--aerial-list", str(scene / "aerial.txt")]
-    assert main([*args, "--resize", "480", "--pairs", "gps:2"]) == 0
-    return scene, out
+def gps_run(small_scene: Path, small_run: Path) -> tuple[Path, Path]:
+    return small_scene, small_run
 
 
 @pytest.mark.pipeline

@@ -1,36 +1,33 @@
 """End to end, as a user runs it: render a small air-to-ground scene, ``geomatch run``, ``geomatch eval``.
 
 Real networks, real pycolmap; the scene is small (2 aerial + 4 ground, 640x480) so CI stays fast,
-but every aerial x ground pair is tiled exactly as in a full run.
+but every aerial x ground pair is tiled exactly as in a full run. The run is the session's one run
+of that scene (tests/small_scene.py, tests/conftest.py's ``small_run``), copied once here: the
+evaluation writes into the folder and the re-run maps it again.
 """
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pycolmap
 import pytest
 
 from geomatch.cli import main
-from geomatch.synth.aerial import write_scene
 
-E2E_SEED = 1
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    d = tmp_path_factory.mktemp("scene")
-    write_scene(d, 2, 4, seed=E2E_SEED)
-    return d
+from .small_scene import RUN_OPTIONS, copy_of_run
 
 
 @pytest.fixture(scope="module")
-def run_dir(scene, tmp_path_factory):
-    out = tmp_path_factory.mktemp("run")
-    rc = main(["run", str(scene / "images"), "--out", str(out), "--aerial-list", str(scene / "aerial.txt")])
-    assert rc == 0
-    return out
+def scene(small_scene: Path) -> Path:
+    return small_scene
+
+
+@pytest.fixture(scope="module")
+def run_dir(small_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return copy_of_run(small_run, tmp_path_factory.mktemp("e2e") / "run")
 
 
 @pytest.mark.pipeline
@@ -85,12 +82,8 @@ def test_rerun_resumes_without_matching_again(run_dir, scene) -> None:
         before_pairs = before.num_matched_image_pairs()
     finally:
         before.close()
-    assert (
-        main(
-            ["run", str(scene / "images"), "--out", str(run_dir), "--aerial-list", str(scene / "aerial.txt")]
-        )
-        == 0
-    )
+    args = ["run", str(scene / "images"), "--out", str(run_dir), "--aerial-list", str(scene / "aerial.txt")]
+    assert main([*args, *RUN_OPTIONS]) == 0
     s = json.loads((run_dir / "summary.json").read_text())
     assert s["pairs_matched_now"] == 0
     after = pycolmap.Database.open(str(run_dir / "database.db"))
