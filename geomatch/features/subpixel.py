@@ -28,7 +28,9 @@ class SubpixelOptions:
     radius: int = 10  # patch half-size, px at network input (21 x 21 samples)
     sigma: float = 0.7  # Gaussian pre-smoothing, px
     iterations: int = 15
-    tolerance: float = 1e-3  # px: Gauss-Newton stops once no point of a batch moves more
+    # px: a point stops iterating once it moves less (or has left max_shift); 0: every point runs
+    # all iterations, as the matcher's refinement was tuned
+    tolerance: float = 0.0
     max_shift: float = 3.0  # px a point may move; farther means it converged elsewhere
     min_ncc: float = 0.8
     neighbour_radius: float = 40.0  # px scale of the neighbours' weights for the initial affine
@@ -161,9 +163,9 @@ def _gauss_newton(
     bias = torch.zeros(n, device=pa.device)
     eye8 = torch.eye(8, device=pa.device)
     solved = torch.ones(n, dtype=torch.bool, device=pa.device)
-    # a point stops iterating once its step is below ``tolerance`` (or it has left ``max_shift``,
-    # which rejects it): most converge in a few steps, and computing only the moving ones halves
-    # the work
+    # with a ``tolerance``, a point stops iterating once its step is below it (or it has left
+    # ``max_shift``, which rejects it): most converge in a few steps, and computing only the moving
+    # ones halves the work
     act = torch.arange(n, device=pa.device)
     gx_, gy_ = grid[:, 0], grid[:, 1]
     for _ in range(opts.iterations):
@@ -187,9 +189,10 @@ def _gauss_newton(
         lin[act] = la - step[:, 2:6].reshape(-1, 2, 2)
         gain[act] = ga_ - step[:, 6]
         bias[act] = ba - step[:, 7]
-        moving = step[:, :2].abs().max(1).values >= opts.tolerance
-        near = (t[act] - pb[act]).norm(dim=1) <= opts.max_shift  # farther is rejected anyway
-        act = act[ok_step & moving & near]
+        if opts.tolerance > 0:
+            moving = step[:, :2].abs().max(1).values >= opts.tolerance
+            near = (t[act] - pb[act]).norm(dim=1) <= opts.max_shift  # farther is rejected anyway
+            act = act[ok_step & moving & near]
     pts = t[:, None] + torch.einsum("nij,pj->npi", lin, grid)
     (val,), inside = _sample(maps_b[:1], pts)
     vc = val - val.mean(1, keepdim=True)

@@ -151,6 +151,7 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
         max_shift=opts.max_shift,
         min_ncc=opts.min_ncc,
         neighbour_radius=opts.neighbour_radius,
+        tolerance=1e-3,
     )
     db = pycolmap.Database.open(str(database))
     try:
