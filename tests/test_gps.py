@@ -471,8 +471,9 @@ def test_model_is_in_enu_metres(gps_run) -> None:
     # origin or transform is metres to tens of metres off): the rest is the fixes' noise and the
     # run's own shape. Spread over tests/small_scene.py's 9 mappings: per camera 0.054-0.076 m
     # from the perfect model, the largest error 1.52-1.62 m (the perfect model's 1.58 m), the
-    # scale error 0.00008-0.0010 from the perfect model's; bounds at twice the worst (1.5 times
-    # for the largest error, which is mostly the fixes' own)
+    # scale error 0.00008-0.0010 from the perfect model's. The spread is one machine's (its
+    # matches mapped again with keypoints jittered), not another machine's matching: bounds at five
+    # times the worst (1.5 times for the largest error, which is mostly the fixes' own)
     for n, err in e["per_image_m"].items():
-        assert abs(err - bound["per_image_m"][n]) < 0.15, (n, e, bound)
-    assert e["max_m"] < 2.4 and abs(e["scale_error"] - bound["scale_error"]) < 0.002, (e, bound)
+        assert abs(err - bound["per_image_m"][n]) < 0.4, (n, e, bound)
+    assert e["max_m"] < 2.4 and abs(e["scale_error"] - bound["scale_error"]) < 0.005, (e, bound)
