@@ -183,12 +183,19 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
         new_xy = {i: v.clone() for i, v in xy.items()}
         e = tracks.edges
         ea, eb = tracks.image_of(e[:, 0]), tracks.image_of(e[:, 1])
+        # each image pair's edges, lower image id first (read_tracks writes them so): found once,
+        # not by a pass over all edges per pair
+        width = int(eb.max(initial=0)) + 1
+        key = ea.astype(np.int64) * width + eb
+        order = np.argsort(key, kind="stable")
+        keys, first = np.unique(key[order], return_index=True)
+        blocks = dict(zip(keys.tolist(), np.split(order, first[1:]) if len(order) else [], strict=True))
         for ia, ib, pair_tasks in _by_pair(tracks, todo):
             # the pair's verified matches, oriented reference image -> other, start each warp
-            fwd = (ea == ia) & (eb == ib)
-            bwd = (ea == ib) & (eb == ia)
-            na = np.concatenate([e[fwd, 0], e[bwd, 1]]) - start[ia]
-            nb = np.concatenate([e[fwd, 1], e[bwd, 0]]) - start[ib]
+            pair_edges = e[blocks[min(ia, ib) * width + max(ia, ib)]]
+            ends = (0, 1) if ia < ib else (1, 0)
+            na = pair_edges[:, ends[0]] - start[ia]
+            nb = pair_edges[:, ends[1]] - start[ib]
             pa = xy[ia][pair_tasks[:, 0] - start[ia]]
             pb = xy[ib][pair_tasks[:, 1] - start[ib]]
             out, ok = refine_on_maps(photo(ia)[0], photo(ib), pa, pb, lsm, around=(xy[ia][na], xy[ib][nb]))
