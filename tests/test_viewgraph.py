@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from geomatch.sfm.viewgraph import (
     inconsistent_pairs,
+    judge,
     loop_error,
     rotation_angle,
     spanning_tree,
@@ -181,3 +182,46 @@ def test_the_loop_check_never_drops_a_pair_of_the_spanning_tree() -> None:
     # all but one: image 0 keeps two pairs
     tree_dropped = [e for e, _, _ in tree_inconsistent_pairs(edges, support)]
     assert len(tree_dropped) == 3 and set(tree_dropped) <= set(wrong)
+
+
+def _turn(deg: float, axis: str = "x") -> np.ndarray:
+    return Rotation.from_euler(axis, deg, degrees=True).as_matrix()
+
+
+def test_a_tree_pair_trusts_the_triangles_of_strong_pairs_over_those_of_weak_ones() -> None:
+    """Tree pair (0, 1) admits its right rotation and one 30 deg off. The right one closes a
+    triangle with two strong right pairs (through 2, 2 deg of noise); the wrong one closes a
+    triangle, exactly, with a weak wrong pair (through 3). Counted alike the wrong one wins on
+    closing error and turns image 1, so its right 400-inlier pair goes (as a ground pair's
+    homography did on the service tests' aerial scene); counted by their pairs' inliers the right
+    one wins and only the weak wrong pair goes."""
+    _, edges, _ = _graph(4, seed=3, noise_deg=0.0)
+    right = edges[(0, 1)][0]
+    wrong = _turn(30) @ right
+    edges[(0, 1)] = [wrong, right]
+    edges[(1, 2)] = [_turn(2, "z") @ edges[(1, 2)][0]]
+    edges[(1, 3)] = [edges[(0, 3)][0] @ wrong.T]  # closes 0-1-3 with the wrong rotation
+    support = {(0, 1): 1000, (0, 2): 400, (1, 2): 400, (0, 3): 50, (1, 3): 50, (2, 3): 300}
+    dropped = tree_inconsistent_pairs(edges, support)
+    assert [e for e, _, _ in dropped] == [(1, 3)]
+    assert dropped[0][1] == pytest.approx(30, abs=1)
+
+
+def test_the_loop_check_does_not_count_loops_through_pairs_the_tree_dropped() -> None:
+    """Images 4 and 5 are matched right to each other and to two images each, and wrongly (as if
+    turned, so the wrong pairs agree with each other) to the two others, as an aerial image with
+    its ground views on a repeated site. Every loop through the right pair (4, 5) runs through one
+    wrong pair: counting them it has all its loops broken and goes, with the pairs the tree check
+    dropped left out it is in no loop and stays."""
+    world, edges, _ = _graph(6, seed=7)
+    support = {e: 800 for e in edges} | {(4, 5): 900}
+    wrong = [(2, 4), (3, 4), (0, 5), (1, 5)]
+    for a, b in wrong:
+        turned = _turn(120, "y") @ world[b]
+        edges[(a, b)] = [turned @ world[a].T]
+        support[(a, b)] = 40
+    tree_drop, loop_drop, _ = judge(edges, support)
+    assert {e for e, _, _ in tree_drop} == set(wrong)
+    assert loop_drop == []
+    with_them = inconsistent_pairs(edges, support=support, keep={(0, 1), (0, 2), (0, 3), (0, 4), (2, 5)})
+    assert (4, 5) in {e for e, _, _ in with_them[0]}, "the scene no longer shows the trap"

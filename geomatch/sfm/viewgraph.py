@@ -226,7 +226,7 @@ def tree_inconsistent_pairs(
     nbrs = _neighbours(edges)
     tree: dict[int, list[tuple[int, np.ndarray]]] = {}
     for a, b in spanning_tree(edges, support):
-        R = _voted_candidate(a, b, rot, nbrs)
+        R = _voted_candidate(a, b, rot, nbrs, support)
         tree.setdefault(a, []).append((b, R))
         tree.setdefault(b, []).append((a, R.T))
     absolute: dict[int, np.ndarray] = {}
@@ -282,14 +282,21 @@ def _neighbours(pairs: Iterable[tuple[int, int]]) -> dict[int, set[int]]:
 
 
 def _voted_candidate(
-    a: int, b: int, rot: Callable[[int, int], list[np.ndarray]], nbrs: Mapping[int, set[int]]
+    a: int,
+    b: int,
+    rot: Callable[[int, int], list[np.ndarray]],
+    nbrs: Mapping[int, set[int]],
+    support: Mapping[tuple[int, int], int],
 ) -> np.ndarray:
-    """The candidate rotation of tree pair (a, b) that closes the most triangles with the pairs
-    around it, the least total closing error among those. A flat or distant scene's pair admits
-    several rotations (essential matrix, COLMAP's pose, homography decompositions), and so do its
-    neighbours, so wrong candidates can close as many triangles as the right one (on a ring of
-    look-alike facades the essential matrix and a homography, both 38 deg off, tied with COLMAP's
-    right pose); they close them less tightly. A wrong pick would turn every image behind it."""
+    """The candidate rotation of tree pair (a, b) whose closed triangles carry the most support,
+    the least closing error among ties. A flat or distant scene's pair admits several rotations
+    (essential matrix, COLMAP's pose, homography decompositions), and so do its neighbours, so
+    wrong candidates can close as many triangles as the right one (on a ring of look-alike facades
+    the essential matrix and a homography, both 38 deg off, tied with COLMAP's right pose); they
+    close them less tightly. A triangle counts with the inliers of its weaker other pair: on the
+    service tests' aerial scene (480 px) a ground pair's 46 deg homography closed a triangle with
+    two wrong 54- and 57-inlier pairs, and its right pose one with two right 323- and 446-inlier
+    pairs; counted alike, the error tie-break chose the wrong one and turned every image behind it."""
     cands = rot(a, b)
     if len(cands) == 1:
         return cands[0]
@@ -297,11 +304,16 @@ def _voted_candidate(
     error = [0.0] * len(cands)
     for k in nbrs[a] & nbrs[b]:
         ak, bk = rot(a, k), rot(b, k)
+        weight = min(support.get(_key(a, k), 0), support.get(_key(b, k), 0))
         for i, c in enumerate(cands):
             e = loop_error([c], bk, ak)
-            votes[i] += e <= LOOP_DEG
+            votes[i] += weight * (e <= LOOP_DEG)
             error[i] += min(e, 4 * LOOP_DEG)
     return cands[min(range(len(cands)), key=lambda i: (-votes[i], error[i], i))]
+
+
+def _key(a: int, b: int) -> tuple[int, int]:
+    return (a, b) if a < b else (b, a)
 
 
 def _weakest_in_broken(
@@ -349,6 +361,42 @@ def _rotations(
     return out, inliers
 
 
+def judge(
+    rotations: Mapping[tuple[int, int], list[np.ndarray]],
+    inliers: Mapping[tuple[int, int], int],
+    loop_deg: float = LOOP_DEG,
+    loops: bool = True,
+    tree: bool = True,
+) -> tuple[list[tuple[tuple[int, int], float, int]], list[tuple[tuple[int, int], int, int]], int]:
+    """The pairs the tree check drops (pair, degrees, hops), then those the loop check drops
+    (pair, broken loops, loops), and the number of loops it saw. The loop check runs on the pairs
+    the tree check kept: a pair it dropped is wrong, and the loops it closes with right pairs
+    would count against them (on the service tests' aerial scene a right 376-inlier aerial x
+    ground pair had two loops, both through dropped pairs, and went, leaving its aerial image
+    unregistered; on castle-P19 five right pairs with 120-376 inliers went that way, against one
+    wrong 63-inlier pair kept). It never drops a pair of the spanning tree: where repeated
+    structure makes many pairs wrong (76 of 171 on a 19-photo courtyard), the loops through right
+    neighbour pairs break too, and the loop check alone dropped such a pair with 722 inliers,
+    which left seven cameras attached by a wrong pair only. An image keeps ``MIN_PAIRS`` pairs
+    over both checks."""
+    pairs_of = Counter(i for pair in rotations for i in pair)
+    tree_drop = tree_inconsistent_pairs(rotations, inliers) if tree else []
+    gone = {pair for pair, _, _ in tree_drop}
+    pairs_of.subtract(i for pair in gone for i in pair)
+    loop_drop: list[tuple[tuple[int, int], int, int]] = []
+    seen = 0
+    if loops:
+        keep = set(spanning_tree(rotations, inliers)) if tree else set()
+        kept = {e: r for e, r in rotations.items() if e not in gone}
+        drop, seen = inconsistent_pairs(kept, loop_deg, inliers, keep)
+        for (a, b), bad, n in drop:
+            if min(pairs_of[a], pairs_of[b]) <= MIN_PAIRS:
+                continue
+            loop_drop.append(((a, b), bad, n))
+            pairs_of.subtract((a, b))
+    return tree_drop, loop_drop, seen
+
+
 def filter_database(
     database: str,
     min_inliers: int = MIN_INLIERS,
@@ -356,38 +404,21 @@ def filter_database(
     loops: bool = True,
     tree: bool = True,
 ) -> ViewGraphReport:
-    """Mark the pairs the tree check (``tree``) or the loop check (``loops``) reject as DEGENERATE
-    (no inliers) in ``database``, which must be the mapper's private copy: the project's database
-    keeps every verified pair, so a later reconstruct with more images judges them again. The loop
-    check never drops a pair of the spanning tree: where repeated structure makes many pairs wrong
-    (76 of 171 on a 19-photo courtyard), the loops through right neighbour pairs break too, and
-    the loop check alone dropped such a pair with 722 inliers, which left seven cameras attached
-    by a wrong pair only. An image keeps ``MIN_PAIRS`` pairs over both checks."""
+    """Mark the pairs :func:`judge` drops as DEGENERATE (no inliers) in ``database``, which must
+    be the mapper's private copy: the project's database keeps every verified pair, so a later
+    reconstruct with more images judges them again."""
     db = pycolmap.Database.open(database)
     try:
         rotations, inliers = _rotations(db, min_inliers)
         names = {im.image_id: im.name for im in db.read_all_images()}
-        report = ViewGraphReport(pairs=len(rotations))
-        pairs_of = Counter(i for pair in rotations for i in pair)
-        gone: set[tuple[int, int]] = set()
-        if tree:
-            for (a, b), deg, hops in tree_inconsistent_pairs(rotations, inliers):
-                _degenerate(db, a, b)
-                report.tree_dropped.append((names[a], names[b], deg, hops))
-                gone.add((a, b))
-                pairs_of.subtract((a, b))
-        if loops:
-            # on the whole graph (a wrong pair the tree check dropped still breaks the loops it
-            # closes with other wrong pairs), but the tree's pairs are never dropped: where many
-            # pairs are wrong, the loops through right neighbour pairs break too
-            keep = set(spanning_tree(rotations, inliers)) if tree else set()
-            drop, report.loops = inconsistent_pairs(rotations, loop_deg, inliers, keep)
-            for (a, b), bad, n in drop:
-                if (a, b) in gone or min(pairs_of[a], pairs_of[b]) <= MIN_PAIRS:
-                    continue
-                _degenerate(db, a, b)
-                report.dropped.append((names[a], names[b], bad, n))
-                pairs_of.subtract((a, b))
+        tree_drop, loop_drop, seen = judge(rotations, inliers, loop_deg, loops, tree)
+        report = ViewGraphReport(pairs=len(rotations), loops=seen)
+        for (a, b), deg, hops in tree_drop:
+            _degenerate(db, a, b)
+            report.tree_dropped.append((names[a], names[b], deg, hops))
+        for (a, b), bad, n in loop_drop:
+            _degenerate(db, a, b)
+            report.dropped.append((names[a], names[b], bad, n))
     finally:
         db.close()
     return report
