@@ -207,12 +207,12 @@ def test_a_tree_pair_trusts_the_triangles_of_strong_pairs_over_those_of_weak_one
     assert dropped[0][1] == pytest.approx(30, abs=1)
 
 
-def test_the_loop_check_does_not_count_loops_through_pairs_the_tree_dropped() -> None:
+def test_a_strong_right_pair_survives_loops_through_weaker_pairs_the_tree_dropped() -> None:
     """Images 4 and 5 are matched right to each other and to two images each, and wrongly (as if
     turned, so the wrong pairs agree with each other) to the two others, as an aerial image with
     its ground views on a repeated site. Every loop through the right pair (4, 5) runs through one
-    wrong pair: counting them it has all its loops broken and goes, with the pairs the tree check
-    dropped left out it is in no loop and stays."""
+    wrong pair: counting them it has all its loops broken and goes; the loop check counts a loop
+    through a pair the tree check dropped only against weaker pairs, so it stays."""
     world, edges, _ = _graph(6, seed=7)
     support = {e: 800 for e in edges} | {(4, 5): 900}
     wrong = [(2, 4), (3, 4), (0, 5), (1, 5)]
@@ -225,3 +225,17 @@ def test_the_loop_check_does_not_count_loops_through_pairs_the_tree_dropped() ->
     assert loop_drop == []
     with_them = inconsistent_pairs(edges, support=support, keep={(0, 1), (0, 2), (0, 3), (0, 4), (2, 5)})
     assert (4, 5) in {e for e, _, _ in with_them[0]}, "the scene no longer shows the trap"
+
+
+def test_loops_through_judged_pairs_count_only_against_weaker_pairs() -> None:
+    """Pair (0, 1) is off by 40 deg and both its loops run through pairs an earlier check judged
+    wrong (100 inliers each). Weaker than them (20 inliers, as a look-alike pair on the twin ring)
+    it goes; stronger (500, as a right aerial x ground pair beside weak wrong ones) those loops
+    say nothing about it and it stays."""
+    _, edges, _ = _graph(4, seed=11)
+    edges[(0, 1)] = [_turn(40) @ edges[(0, 1)][0]]
+    judged = {(0, 2), (0, 3)}
+    for own, expect in ((20, [(0, 1)]), (500, [])):
+        support = {e: 300 for e in edges} | dict.fromkeys(judged, 100) | {(0, 1): own}
+        dropped = inconsistent_pairs(edges, support=support, keep=judged, judged=judged)[0]
+        assert [e for e, _, _ in dropped] == expect, own
