@@ -44,6 +44,10 @@ OPTIONS = [
     ("grpc.keepalive_timeout_ms", 10_000),
     ("grpc.http2.max_pings_without_data", 0),
     ("grpc.keepalive_permit_without_calls", 1),
+    # accept the clients' 30 s pings while a stream carries no data: by default the server wants
+    # 5 min between them and, after two earlier ones, ends the connection with "too_many_pings",
+    # which killed WatchJob streams whenever one pair took over a minute (a loaded CPU, full size)
+    ("grpc.http2.min_recv_ping_interval_without_data_ms", 20_000),
 ]
 
 
