@@ -374,7 +374,7 @@ def _rotations(
         a, b = pycolmap.pair_id_to_image_pair(pid)
         rs = candidate_rotations(cameras[images[a].camera_id], cameras[images[b].camera_id], kp(a), kp(b), g)
         if rs:
-            key = (a, b) if a < b else (b, a)
+            key = _key(a, b)
             out[key] = rs if a < b else [R.T for R in rs]
             inliers[key] = len(g.inlier_matches)
     return out, inliers
