@@ -134,7 +134,7 @@ def sift_reference(images: Path) -> Path:
     which run is closer. Each build's own distance to the consensus goes to spread.json."""
     import pycolmap
 
-    from geomatch.eval.metrics import _centre, _poses, camera_errors
+    from geomatch.eval.metrics import camera_errors
 
     ref = OUT / f"{images.name}_reference"
     model = ref / "model"
@@ -142,7 +142,14 @@ def sift_reference(images: Path) -> Path:
         return model
     models = [sift_build(images, ref / f"build{s}", s) for s in range(REFERENCE_BUILDS)]
     recs = [pycolmap.Reconstruction(str(m)) for m in models]
-    builds = [{n: (R, _centre(R, t)) for n, (R, t) in _poses(r).items()} for r in recs]
+    builds = [
+        {
+            im.name: (im.cam_from_world().rotation.matrix(), im.projection_center())
+            for im in r.images.values()
+            if im.has_pose
+        }
+        for r in recs
+    ]
     mean = consensus(builds)
     out = pycolmap.Reconstruction(recs[0])
     for im in out.images.values():
