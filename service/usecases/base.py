@@ -5,16 +5,18 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from geomatch.options import PROJECT_OPTIONS, defaults
 from geomatch_core.config import Settings
-from geomatch_core.errors import InvalidRequest, NotFound, TooLarge
+from geomatch_core.errors import Conflict, InvalidRequest, NotFound, TooLarge
 from geomatch_core.locks import LockFactory
 from geomatch_core.models import Project
 from geomatch_core.queue import JobQueue
@@ -87,6 +89,23 @@ class UseCases:
         """NotFound unless the tenant has this project."""
         with self.store.session() as s:
             self._project(s, tenant_id, project_id)
+
+    @contextmanager
+    def _unless_deleted(self, tenant_id: str, project_id: str) -> Iterator[None]:
+        """A write to a project that a concurrent delete removes under it: NotFound.
+
+        The project is checked when the write starts, but nothing holds it until the write commits
+        (SQLite has no row locks, and a lock on PostgreSQL's row would make every delete wait for
+        uploads), so the delete may win in between. The write then trips on what the delete took
+        away: the foreign key of the row it inserts (IntegrityError), the images it counted (none
+        left: InvalidRequest), the succeeded match it needs (Conflict) or the folder it moves files
+        into (OSError). If the project is gone by then, that is the answer; otherwise the error was
+        the write's own and goes out as it is."""
+        try:
+            yield
+        except (IntegrityError, InvalidRequest, Conflict, OSError):
+            self._owned(tenant_id, project_id)
+            raise
 
     def _stage(self, name: str, stream: BinaryIO) -> Staged:
         fd, tmp = self.storage.temp_file()

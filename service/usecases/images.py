@@ -42,6 +42,16 @@ class ImageUseCases(UseCases):
         capture = choice("capture", capture, CAPTURES)
         if not uploads:
             raise InvalidRequest("no files: send one or more multipart fields named 'files'")
+        with self._unless_deleted(tenant_id, project_id):
+            views = self._store(tenant_id, project_id, uploads, capture)
+        new = [v for v in views if v.created]
+        if self.on_upload is not None and new:
+            self.on_upload(len(new), sum(v.size_bytes for v in new))
+        return views
+
+    def _store(
+        self, tenant_id: str, project_id: str, uploads: Iterable[Upload], capture: str
+    ) -> list[ImageView]:
         with self.store.session() as s:
             self._project(s, tenant_id, project_id)
         staged: list[Staged] = []
@@ -62,7 +72,9 @@ class ImageUseCases(UseCases):
                 with self.store.session() as s:
                     self._project(s, tenant_id, project_id)
                     views = self._register(s, project_id, staged, capture, moved)
-            except IntegrityError:  # a concurrent upload took a name or the bytes first
+            # a concurrent upload took a name or the bytes first (or a delete took the project:
+            # upload_images answers NotFound for that)
+            except IntegrityError:
                 raise Conflict(
                     "another upload of the same name or bytes was committed concurrently; retry"
                 ) from None
@@ -83,9 +95,6 @@ class ImageUseCases(UseCases):
         finally:
             for st in staged:
                 st.path.unlink(missing_ok=True)
-        new = [v for v in views if v.created]
-        if self.on_upload is not None and new:
-            self.on_upload(len(new), sum(v.size_bytes for v in new))
         return views
 
     def _register(

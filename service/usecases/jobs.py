@@ -25,7 +25,7 @@ class JobUseCases(UseCases):
     def start_match(
         self, tenant_id: str, project_id: str, req: MatchRequest
     ) -> tuple[JobView, JobView | None]:
-        with self.store.session() as s:
+        with self._unless_deleted(tenant_id, project_id), self.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             names = set(s.scalars(select(Image.name).where(Image.project_id == project_id)))
             if len(names) < 2:
@@ -44,7 +44,7 @@ class JobUseCases(UseCases):
         return views
 
     def start_reconstruct(self, tenant_id: str, project_id: str, mapper: str | None = None) -> JobView:
-        with self.store.session() as s:
+        with self._unless_deleted(tenant_id, project_id), self.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             mapper = check_option("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"])
             matched = s.scalar(
