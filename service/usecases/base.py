@@ -23,6 +23,7 @@ from geomatch_core.queue import JobQueue
 from geomatch_core.storage import Storage
 from geomatch_core.store import MetadataStore
 
+from ..ids import known_id
 from ..validation import ImageInfo, check_image, check_option
 
 # a project's configuration and a match job's options: geomatch.options holds them, with defaults
@@ -80,7 +81,8 @@ class UseCases:
         self.on_upload: Callable[[int, int], object] | None = None  # (new images, bytes): metrics
 
     def _project(self, s: Session, tenant_id: str, project_id: str) -> Project:
-        p = s.get(Project, project_id)
+        """The tenant's project: every use case that takes a project id looks it up here."""
+        p = s.get(Project, known_id("project", project_id))
         if p is None or p.tenant_id != tenant_id:
             raise NotFound(f"project {project_id} not found")
         return p

@@ -15,6 +15,7 @@ from geomatch.options import CAPTURES
 from geomatch_core.errors import BadFile, Conflict, InsufficientStorage, InvalidRequest, NotFound
 from geomatch_core.models import Image
 
+from ..ids import known_name
 from ..validation import check_name
 from .base import Staged, UseCases, choice
 from .views import ImageView, Upload, image_view
@@ -148,6 +149,7 @@ class ImageUseCases(UseCases):
         """An uploaded image's bytes and media type, for a browser to show it (thumbnails)."""
         with self.store.session() as s:
             self._project(s, tenant_id, project_id)
+            name = known_name(project_id, name)
             img = s.scalar(select(Image).where(Image.project_id == project_id, Image.name == name))
             if img is None:
                 raise NotFound(f"image {name!r} not found in project {project_id}")

@@ -16,6 +16,7 @@ from geomatch_core.errors import Conflict, InvalidRequest, NotFound, Unavailable
 from geomatch_core.models import Image, Job
 from geomatch_core.queue import ENTRY_STEP
 
+from ..ids import known_id
 from ..validation import check_option, check_pair_list
 from .base import DEFAULTS, UseCases, check_config
 from .views import JobView, MatchRequest, job_view
@@ -69,8 +70,9 @@ class JobUseCases(UseCases):
             raise Unavailable(f"the job queue is not reachable ({e}); the job was not started") from None
 
     def get_job(self, tenant_id: str, job_id: str) -> JobView:
+        """Every use case that takes a job id (cancel, watch) looks it up here."""
         with self.store.session() as s:
-            job = s.get(Job, job_id)
+            job = s.get(Job, known_id("job", job_id))
             if job is None or job.tenant_id != tenant_id:
                 raise NotFound(f"job {job_id} not found")
             return job_view(job)

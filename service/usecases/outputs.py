@@ -19,6 +19,7 @@ from geomatch_core.errors import InvalidRequest, NotFound, Unavailable
 from geomatch_core.models import Image
 from geomatch_core.queue import RENDER_PAIR
 
+from ..ids import known_name
 from ..modelscene import read_scene
 from ..pairlist import PairView, read_pairs
 from .base import UseCases
@@ -137,6 +138,7 @@ class OutputUseCases(UseCases):
     def matches_picture(self, tenant_id: str, project_id: str, name0: str, name1: str) -> Path:
         with self.store.session() as s:
             self._project(s, tenant_id, project_id)
+            name0, name1 = known_name(project_id, name0), known_name(project_id, name1)
             known = set(
                 s.scalars(
                     select(Image.name).where(Image.project_id == project_id, Image.name.in_([name0, name1]))

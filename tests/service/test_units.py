@@ -20,10 +20,10 @@ from geomatch import steps
 from geomatch.sfm.pairs import PairSpecError, parse_plan
 from geomatch.synth.photos import WarpedPair
 from geomatch_core import jobstate
-from geomatch_core.errors import BadFile, InvalidRequest
-from geomatch_core.models import Job, JobPair, Project, Tenant
+from geomatch_core.errors import BadFile, InvalidRequest, NotFound
+from geomatch_core.models import Job, JobPair, Project, Tenant, new_id
 from geomatch_core.store import MetadataStore
-from service import validation
+from service import ids, validation
 
 from ..loaded_modules import loaded_after
 
@@ -113,6 +113,22 @@ def png(ihdr: bytes, raw: bytes) -> bytes:
 
     idat = chunk(b"IDAT", zlib.compress(raw))
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + idat + chunk(b"IEND", b"")
+
+
+@pytest.mark.unit
+def test_ids_the_service_makes_are_known_and_no_other_shape_is() -> None:
+    made = new_id()
+    assert ids.known_id("project", made) == made
+    for bad in ["", "\x00", made[:-1] + "\x00", made.upper(), made + "0", made[:-1], "../" + made[3:]]:
+        with pytest.raises(NotFound, match=r"^job "):
+            ids.known_id("job", bad)
+    with pytest.raises(NotFound) as e:
+        ids.known_id("project", "\x00" * 10_000)
+    assert len(e.value.message) < 120 and "\\x00" in e.value.message  # escaped, cut short
+    assert ids.known_name(made, "a.png") == "a.png"
+    for bad in ["a\x00.png", "../a.png", "x" * 201, ""]:
+        with pytest.raises(NotFound, match="not found in project"):
+            ids.known_name(made, bad)
 
 
 @pytest.mark.unit
