@@ -18,6 +18,7 @@ from starlette.routing import compile_path
 from geomatch_core import errors
 
 from . import console
+from .headers import SecurityHeaders
 from .metrics import Metrics
 from .routes import build_router
 from .usecases import Service
@@ -66,6 +67,7 @@ def create_app(service: Service) -> FastAPI:
     app.state.service = service
     metrics = Metrics(service.store)
     app.middleware("http")(metrics.middleware)
+    app.add_middleware(SecurityHeaders)
 
     def count_upload(n: int, size: int) -> None:
         metrics.uploaded_images.inc(n)
