@@ -31,6 +31,9 @@ class Settings:
     max_pixels: int = 89_478_485
     visibility_timeout_s: int = 3600  # GEOMATCH_VISIBILITY_TIMEOUT: redelivery of a dead worker's task
     lock_timeout_s: int = 120  # GEOMATCH_LOCK_TIMEOUT: a dead writer's lock expires after this
+    # GEOMATCH_WORKER_LEASE: a worker not heard from for this long is dead: the steps it held go
+    # back to the queue, and /readyz stops counting it
+    worker_lease_s: int = 30
     device: str = "auto"  # GEOMATCH_DEVICE: where workers run the networks
     feature_cache_mb: int = 20_000  # GEOMATCH_FEATURE_CACHE_MB: on-disk feature cache cap (0: off)
     # GEOMATCH_CACHE_MB: in-memory caches of one worker thread (features, anchors), all matchers
@@ -58,6 +61,7 @@ class Settings:
             max_pixels=_int("GEOMATCH_MAX_PIXELS", 89_478_485),
             visibility_timeout_s=_int("GEOMATCH_VISIBILITY_TIMEOUT", 3600),
             lock_timeout_s=_int("GEOMATCH_LOCK_TIMEOUT", 120),
+            worker_lease_s=max(3, _int("GEOMATCH_WORKER_LEASE", 30)),
             device=os.environ.get("GEOMATCH_DEVICE", "auto"),
             feature_cache_mb=_int("GEOMATCH_FEATURE_CACHE_MB", 20_000),
             cache_mb=max(64, _int("GEOMATCH_CACHE_MB", 1536)),
