@@ -129,7 +129,13 @@ def create_app(service: Service) -> FastAPI:
         "/readyz",
         tags=["health"],
         response_model=Readiness,
-        responses={503: {"model": Readiness, "description": "the store, the queue or the storage fails"}},
+        responses={
+            503: {
+                "model": Readiness,
+                "description": "the store, the queue or the storage fails, or (queue mode) no worker "
+                "was heard from within GEOMATCH_WORKER_LEASE",
+            }
+        },
     )
     def readyz() -> JSONResponse:
         r = service.readiness()
