@@ -317,7 +317,7 @@ def test_health_metrics_and_docs(deployment: Deployment) -> None:
     ready = c.get("/readyz").json()
     assert ready == {
         "ready": True,
-        "checks": {"database": "ok", "queue": "ok", "storage": "ok", "mode": "redis"},
+        "checks": {"database": "ok", "queue": "ok", "storage": "ok", "mode": "redis", "workers": "ok"},
     }
     metrics = c.get("/metrics").text
     assert 'geomatch_http_requests_total{method="GET",route="/healthz",status="200"}' in metrics
