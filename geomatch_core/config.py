@@ -18,6 +18,16 @@ def _int(name: str, default: int) -> int:
         raise ValueError(f"{name}={raw!r}: expected an integer") from None
 
 
+def _float(name: str, default: float) -> float:
+    raw = os.environ.get(name, "").strip()
+    if not raw:
+        return default
+    try:
+        return float(raw)
+    except ValueError:
+        raise ValueError(f"{name}={raw!r}: expected a number") from None
+
+
 @dataclass(frozen=True)
 class Settings:
     home: Path  # GEOMATCH_HOME: every file of the service lives under it
@@ -43,6 +53,21 @@ class Settings:
     render_timeout_s: int = 120  # GEOMATCH_RENDER_TIMEOUT: how long a matches.png request waits
     grpc_tenant_streams: int = 16  # GEOMATCH_GRPC_TENANT_STREAMS: streaming calls one tenant may hold open
     grpc_stream_idle_s: int = 120  # GEOMATCH_GRPC_STREAM_IDLE: a request stream quiet this long is cut
+    # GEOMATCH_MAX_REQUEST_MB: a whole upload request (every file of it, multipart or gRPC stream)
+    max_request_bytes: int = 1024 * 1024 * 1024
+    max_json_bytes: int = 4 * 1024 * 1024  # GEOMATCH_MAX_JSON_MB: any other request body
+    # per tenant; 0 turns a quota off. GEOMATCH_QUOTA_PROJECTS, _IMAGES, _MB (stored image bytes)
+    quota_projects: int = 1000
+    quota_images: int = 100_000
+    quota_bytes: int = 1024 * 1024 * 1024 * 1024
+    # GEOMATCH_RATE_LIMIT: requests per second one tenant may make (REST and gRPC together, per
+    # API process), GEOMATCH_RATE_BURST: how many it may make at once above that; 0 turns it off
+    rate_per_s: float = 50.0
+    rate_burst: int = 500
+    # GEOMATCH_HEAVY_SLOTS: API-side heavy calls (match pictures, exports, database snapshots, the
+    # viewer's scene) running at once in all, GEOMATCH_HEAVY_TENANT_SLOTS: of one tenant
+    heavy_slots: int = 8
+    heavy_tenant_slots: int = 2
 
     @property
     def embedded(self) -> bool:
@@ -69,4 +94,13 @@ class Settings:
             render_timeout_s=_int("GEOMATCH_RENDER_TIMEOUT", 120),
             grpc_tenant_streams=max(1, _int("GEOMATCH_GRPC_TENANT_STREAMS", 16)),
             grpc_stream_idle_s=max(1, _int("GEOMATCH_GRPC_STREAM_IDLE", 120)),
+            max_request_bytes=max(1, _int("GEOMATCH_MAX_REQUEST_MB", 1024)) * 1024 * 1024,
+            max_json_bytes=max(1, _int("GEOMATCH_MAX_JSON_MB", 4)) * 1024 * 1024,
+            quota_projects=max(0, _int("GEOMATCH_QUOTA_PROJECTS", 1000)),
+            quota_images=max(0, _int("GEOMATCH_QUOTA_IMAGES", 100_000)),
+            quota_bytes=max(0, _int("GEOMATCH_QUOTA_MB", 1024 * 1024)) * 1024 * 1024,
+            rate_per_s=max(0.0, _float("GEOMATCH_RATE_LIMIT", 50.0)),
+            rate_burst=max(1, _int("GEOMATCH_RATE_BURST", 500)),
+            heavy_slots=max(1, _int("GEOMATCH_HEAVY_SLOTS", 8)),
+            heavy_tenant_slots=max(1, _int("GEOMATCH_HEAVY_TENANT_SLOTS", 2)),
         )

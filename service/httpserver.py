@@ -14,6 +14,11 @@ uvicorn takes a protocol class (``Config(http=...)``; ``--http service.httpserve
 on its command line). The class leans on uvicorn's H11Protocol beyond its documented surface
 (``send_400_response``, ``conn``, ``transport``): there is no setting for either fault;
 ``tests/service/test_http_surface.py`` fails if a uvicorn release changes them.
+
+The same lingering close ends a request whose answer went out before its body was read
+(``service/bodylimits.py``: a 401 or 413 against an upload still streaming). uvicorn would read and
+discard the rest to keep the connection, a gigabyte if the client sends one; this protocol reads
+at most ``LINGER_BYTES`` more and closes.
 """
 
 from __future__ import annotations
@@ -56,6 +61,19 @@ class H11Protocol(_UvicornH11):
         )
         for event in (head, h11.Data(data=_TOO_LARGE), h11.EndOfMessage()):
             self.transport.write(self.conn.send(event) or b"")
+        self._linger_then_close()
+
+    def on_response_complete(self) -> None:
+        """An answer sent while the client is still sending its body (h11: SEND_BODY) ends the
+        connection, after a lingering close, instead of reading the rest of the body."""
+        if self.conn.their_state is not h11.SEND_BODY or self.transport.is_closing():
+            super().on_response_complete()
+            return
+        self.server_state.total_requests += 1
+        self.flow.resume_reading()  # paused while the app did not read: the rest is discarded
+        self._linger_then_close()
+
+    def _linger_then_close(self) -> None:
         self._discarded = 0
         if self.transport.can_write_eof():
             self.transport.write_eof()

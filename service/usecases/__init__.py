@@ -32,8 +32,11 @@ class Readiness:
 
 class Service(ProjectUseCases, ImageUseCases, JobUseCases, OutputUseCases, PairToolUseCases):
     def authenticate(self, key: str | None) -> str:
-        """The tenant id of an API key (Unauthenticated otherwise)."""
-        return auth.authenticate(self.store, key)
+        """The tenant id of an API key (Unauthenticated otherwise), one request of its rate
+        (RateLimited past it): every REST request and gRPC call is authenticated once, here."""
+        tenant_id = auth.authenticate(self.store, key)
+        self.rate.take(tenant_id)
+        return tenant_id
 
     def readiness(self) -> Readiness:
         r = Readiness(ok=True)

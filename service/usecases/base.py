@@ -24,6 +24,8 @@ from geomatch_core.storage import Storage
 from geomatch_core.store import MetadataStore
 
 from ..ids import known_id
+from ..ratelimit import RateLimiter
+from ..slots import FairSlots
 from ..validation import ImageInfo, check_image, check_option
 
 # a project's configuration and a match job's options: geomatch.options holds them, with defaults
@@ -79,6 +81,10 @@ class UseCases:
         self.queue = queue
         self.locks = locks
         self.on_upload: Callable[[int, int], object] | None = None  # (new images, bytes): metrics
+        self.rate = RateLimiter(settings.rate_per_s, settings.rate_burst)
+        # the work the API does itself, in the caller's thread (pictures it waits for, exports,
+        # snapshots): bounded, so that one tenant's calls cannot hold every thread of the server
+        self.heavy = FairSlots("heavy calls", settings.heavy_slots, settings.heavy_tenant_slots)
 
     def _project(self, s: Session, tenant_id: str, project_id: str) -> Project:
         """The tenant's project: every use case that takes a project id looks it up here."""
