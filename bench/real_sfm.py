@@ -6,10 +6,11 @@
 
 Scenes: the Strecha scenes of ``../shared/data/real/strecha/`` (tuning split: fountain-P11,
 Herz-Jesus-P8, castle-P19; test split: entry-P10) and sacre_coeur (10 photos without surveyed
-cameras: its reference is COLMAP SIFT at full size with DSP-SIFT and affine shapes, so on that scene
-the peer is judged against a close relative of itself and its errors there are a floor, not a
-measurement). Each run is a fresh process (``geomatch run`` through ``geomatch.pipeline.run``, or
-``bench/peer_colmap.py``) so that its wall time and peak RSS are its own; runs of one scene follow
+cameras: its reference is the consensus of three COLMAP builds at full size with DSP-SIFT and affine
+shapes, so on that scene the peer is judged against a close relative of itself and its errors there
+are a floor, not a measurement; ``--repeats`` shows the runs' own spread). Each run is a fresh
+process (``geomatch run`` through ``geomatch.pipeline.run``, or ``bench/peer_colmap.py``) so that
+its wall time and peak RSS are its own; runs of one scene follow
 each other on the same machine, so ratios against the peer's row of that scene are side by side.
 
 A variant is ``METHOD [key=value ...]``: keys of ``RunOptions`` (``pairs=retrieval:8``,
@@ -34,6 +35,8 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data" / "real"
@@ -61,20 +64,23 @@ def scene_paths(scene: str) -> tuple[Path, Path]:
     return base / "images", base / "gt"
 
 
-def sift_reference(images: Path) -> Path:
-    """COLMAP at full size with the stronger SIFT variant (DSP, affine shapes, guided matching):
-    the reference of a scene that has no surveyed cameras."""
+# one build is one draw of COLMAP's RANSAC and mapping: builds with mapper seeds 0 and 1 put
+# sacre_coeur's cameras 0.004 reference units apart (median; 0.035 max, scene extent 10)
+REFERENCE_BUILDS = 3
+
+
+def sift_build(images: Path, out: Path, seed: int) -> Path:
+    """COLMAP at full size with the stronger SIFT variant (DSP, affine shapes, guided matching)."""
     import pycolmap
 
     from geomatch.sfm.colmapdb import seeded_verification
     from geomatch.sfm.colmaplog import colmap_log
 
-    ref = OUT / f"{images.name}_reference"
-    model = ref / "model"
+    model = out / "model"
     if (model / "images.bin").exists():
         return model
-    ref.mkdir(parents=True, exist_ok=True)
-    db = ref / "database.db"
+    out.mkdir(parents=True, exist_ok=True)
+    db = out / "database.db"
     db.unlink(missing_ok=True)
     ex = pycolmap.FeatureExtractionOptions()
     ex.sift.max_num_features = 16384
@@ -82,16 +88,79 @@ def sift_reference(images: Path) -> Path:
     ex.sift.domain_size_pooling = True
     mo = pycolmap.FeatureMatchingOptions()
     mo.guided_matching = True
-    # seeded like the runs it judges: a rebuilt reference moved camera errors by a factor of two
     mapping = pycolmap.IncrementalPipelineOptions()
-    mapping.random_seed = 0
+    mapping.random_seed = seed
     with colmap_log(False):
         pycolmap.extract_features(db, images, extraction_options=ex)
         pycolmap.match_exhaustive(db, matching_options=mo, verification_options=seeded_verification())
-        recs = pycolmap.incremental_mapping(db, images, ref / "sparse", mapping)
+        recs = pycolmap.incremental_mapping(db, images, out / "sparse", mapping)
     best = max(recs.values(), key=lambda r: r.num_reg_images())
     model.mkdir(exist_ok=True)
     best.write_binary(str(model))
+    return model
+
+
+def mean_rotation(rs: np.ndarray) -> np.ndarray:
+    """The rotation nearest (chordal) to the mean of a stack of rotations (N, 3, 3)."""
+    u, _, vt = np.linalg.svd(rs.sum(0))
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
+Poses = dict[str, tuple[np.ndarray, np.ndarray]]  # image name -> (cam_from_world rotation, centre)
+
+
+def consensus(builds: list[Poses]) -> Poses:
+    """Mean camera (cam_from_world rotation, centre) of the cameras every build registered, each
+    build first aligned to the running mean by a similarity (frame and scale of the first build)."""
+    from geomatch.geo.similarity import umeyama
+
+    names = sorted(set.intersection(*(set(b) for b in builds)))
+    mean = {n: builds[0][n] for n in names}
+    for _ in range(3):
+        aligned = []
+        for b in builds:
+            sim = umeyama(np.array([b[n][1] for n in names]), np.array([mean[n][1] for n in names]))
+            aligned.append({n: (b[n][0] @ sim.R.T, sim.apply(b[n][1][None])[0]) for n in names})
+        mean = {
+            n: (mean_rotation(np.array([a[n][0] for a in aligned])), np.mean([a[n][1] for a in aligned], 0))
+            for n in names
+        }
+    return mean
+
+
+def sift_reference(images: Path) -> Path:
+    """The reference of a scene that has no surveyed cameras: the consensus of REFERENCE_BUILDS
+    COLMAP DSP-SIFT builds (mapper seeds 0, 1, ...), so that no single build's placement decides
+    which run is closer. Each build's own distance to the consensus goes to spread.json."""
+    import pycolmap
+
+    from geomatch.eval.metrics import _centre, _poses, camera_errors
+
+    ref = OUT / f"{images.name}_reference"
+    model = ref / "model"
+    if (model / "images.bin").exists():
+        return model
+    models = [sift_build(images, ref / f"build{s}", s) for s in range(REFERENCE_BUILDS)]
+    recs = [pycolmap.Reconstruction(str(m)) for m in models]
+    builds = [{n: (R, _centre(R, t)) for n, (R, t) in _poses(r).items()} for r in recs]
+    mean = consensus(builds)
+    out = pycolmap.Reconstruction(recs[0])
+    for im in out.images.values():
+        if im.name in mean:
+            R, c = mean[im.name]
+            out.frames[im.frame_id].set_cam_from_world(
+                im.camera_id, pycolmap.Rigid3d(pycolmap.Rotation3d(R), (-R @ c).reshape(3, 1))
+            )
+        else:
+            out.deregister_frame(im.frame_id)
+    model.mkdir(parents=True, exist_ok=True)
+    out.write_binary(str(model))
+    spread = []
+    for s, r in enumerate(recs):
+        errs = camera_errors(r, out, 3.0, float("inf")) or {}
+        pos = sorted(p for _, p in errs.values())
+        spread.append({"build": s, "median": float(np.median(pos)), "max": float(pos[-1])})
+    (ref / "spread.json").write_text(json.dumps(spread, indent=2) + "\n")
     return model
 
 
@@ -187,6 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variants", default="default", help="';'-separated METHOD [key=value ...]")
     ap.add_argument("--no-peer", action="store_true", help="skip COLMAP SIFT (no ratio column)")
     ap.add_argument("--match-cache", default=None, help="raw pair matches shared by runs (variants)")
+    ap.add_argument("--repeats", type=int, default=1, help="run the peer and each variant N times")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--one", nargs=3, metavar=("IMAGES", "OUT", "VARIANT"), help=argparse.SUPPRESS)
@@ -206,26 +276,31 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict[str, Any]] = []
     for scene in scenes:
         images, gt = scene_paths(scene)
-        peer_wall = None
-        if not args.no_peer:
-            out = args.out / scene / PEER
-            wall, rss, rc = timed([sys.executable, "bench/peer_colmap.py", str(images), str(out)])
-            if rc == 0:
-                peer_wall = wall
-                rows.append(row(scene, "COLMAP SIFT (peer)", judge(out, gt), wall, rss, peer_wall))
+        for k in range(args.repeats):
+            # repeats show the runs' own spread: matching and COLMAP's threaded mapping are not
+            # reproducible to the millimetre
+            tag = f" #{k + 1}" if args.repeats > 1 else ""
+            base = args.out / scene / (f"repeat{k + 1}" if args.repeats > 1 else "")
+            peer_wall = None
+            if not args.no_peer:
+                out = base / PEER
+                wall, rss, rc = timed([sys.executable, "bench/peer_colmap.py", str(images), str(out)])
+                if rc == 0:
+                    peer_wall = wall
+                    rows.append(row(scene, f"COLMAP SIFT (peer){tag}", judge(out, gt), wall, rss, peer_wall))
+                    print_rows(rows[-1:])
+            for spec in variants:
+                out = base / spec.replace(" ", "_").replace("/", "-")
+                cmd = [sys.executable, "bench/real_sfm.py", "--one", str(images), str(out), spec]
+                if args.match_cache:
+                    cmd += ["--match-cache", args.match_cache]
+                wall, rss, rc = timed(cmd)
+                if rc:
+                    print(f"{scene} {spec}: failed (exit {rc})", file=sys.stderr)
+                    continue
+                rows.append(row(scene, spec + tag, judge(out, gt), wall, rss, peer_wall))
                 print_rows(rows[-1:])
-        for spec in variants:
-            out = args.out / scene / spec.replace(" ", "_").replace("/", "-")
-            cmd = [sys.executable, "bench/real_sfm.py", "--one", str(images), str(out), spec]
-            if args.match_cache:
-                cmd += ["--match-cache", args.match_cache]
-            wall, rss, rc = timed(cmd)
-            if rc:
-                print(f"{scene} {spec}: failed (exit {rc})", file=sys.stderr)
-                continue
-            rows.append(row(scene, spec, judge(out, gt), wall, rss, peer_wall))
-            print_rows(rows[-1:])
-        sys.stdout.flush()
+            sys.stdout.flush()
     print()
     print_rows(rows)
     if args.json:
