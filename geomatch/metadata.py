@@ -4,12 +4,20 @@ The focal length becomes COLMAP's prior (``has_prior_focal_length``); make/model
 images into one shared camera per device; relative altitude or gimbal pitch says whether an
 image is aerial, which decides tiling; the GPS fix (EXIF GPSInfo, DJI XMP AbsoluteAltitude)
 becomes a position prior and puts the model in a real-world frame (geo/gps.py, geo/georef.py).
+
+Every number is read field by field, and one that is malformed (a rational 0/0, text that is not
+a number) or absurd (infinite, a latitude past the pole, an altitude in space) is dropped alone,
+with a warning naming the image and the field: the rest of the file still counts, and a job never
+fails on what a camera wrote (an altitude of 0/0 read as NaN once failed a whole reconstruct in
+the georeferencing's SVD).
 """
 
 from __future__ import annotations
 
+import logging
+import math
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,6 +27,7 @@ from PIL import Image
 
 from .imageio import ImageReadError
 
+log = logging.getLogger(__name__)
 AERIAL_MIN_ALTITUDE_M = 10.0  # relative altitude (above take-off) from which a photo is aerial
 AERIAL_MAX_PITCH_DEG = -30.0  # gimbal pitch at or below this (looking down) marks a photo aerial
 
@@ -30,6 +39,16 @@ _FP_XRES, _FP_UNIT = 0xA20E, 0xA210
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # FocalPlaneResolutionUnit -> mm per unit
 _GPS_IFD = 0x8825
 _GPS_LAT_REF, _GPS_LAT, _GPS_LON_REF, _GPS_LON, _GPS_ALT_REF, _GPS_ALT = 1, 2, 3, 4, 5, 6
+
+# What a value can be and still describe a photograph: beyond these it is a writer's bug, never
+# a place or an attitude. Altitudes span the deepest ocean trench to the edge of space (metres);
+# a height above take-off ten kilometres either way; DJI writes angles in (-180, 180], and some
+# writers give a yaw in [0, 360).
+ALTITUDE_RANGE_M = (-11_000.0, 100_000.0)
+RELATIVE_ALTITUDE_RANGE_M = (-10_000.0, 10_000.0)
+PITCH_RANGE_DEG = ROLL_RANGE_DEG = (-180.0, 180.0)
+YAW_RANGE_DEG = (-360.0, 360.0)
+MAX_FOCAL_PER_SIDE = 1000.0  # a focal length over 1000 long sides is a 0.06 degree field of view
 
 
 @dataclass(frozen=True)
@@ -116,13 +135,11 @@ def up_in_camera(meta: ImageMeta) -> np.ndarray | None:
     return gimbal_rotation(p, 0.0, meta.gimbal_roll_deg or 0.0)[:, 2]
 
 
-def _xmp_value(xmp: str, key: str) -> float | None:
-    # attribute form (drone-dji:Key="1.0") and element form (<drone-dji:Key>1.0</drone-dji:Key>)
-    m = re.search(rf'{key}\s*=\s*"([-+0-9.eE]+)"', xmp) or re.search(rf"{key}>\s*([-+0-9.eE]+)\s*<", xmp)
-    try:
-        return float(m.group(1)) if m else None
-    except ValueError:
-        return None
+def _xmp_value(xmp: str, key: str) -> str | None:
+    """The text of ``key`` (attribute form ``drone-dji:Key="1.0"`` or element form
+    ``<drone-dji:Key>1.0</drone-dji:Key>``); None when absent. _number turns it into a number."""
+    m = re.search(rf'{key}\s*=\s*"([^"]*)"', xmp) or re.search(rf"{key}>\s*([^<]*?)\s*<", xmp)
+    return m.group(1).strip() if m else None
 
 
 def _xmp_text(im: Image.Image) -> str:
@@ -133,8 +150,29 @@ def _xmp_text(im: Image.Image) -> str:
     return ""
 
 
+def _number(
+    image: str, field: str, read: Callable[[], float | None], low: float, high: float
+) -> float | None:
+    """One metadata value in [low, high], or None: when the file does not hold it (``read``
+    answers None) and, with a warning naming the image and field, when it is malformed
+    (``read`` raises) or absurd (not finite, out of range)."""
+    try:
+        value = read()
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError, IndexError) as e:
+        log.warning("%s: %s ignored: not a number (%s)", image, field, e)
+        return None
+    if value is None:
+        return None
+    if not (math.isfinite(value) and low <= value <= high):
+        log.warning("%s: %s ignored: %r is not a number in [%g, %g]", image, field, value, low, high)
+        return None
+    return value
+
+
 def read_metadata(path: str | Path) -> ImageMeta:
-    """Raises ImageReadError for a file that is not an image; odd metadata is simply absent."""
+    """Raises ImageReadError for a file that is not an image; odd metadata is simply absent
+    (malformed or absurd fields with a warning, _number)."""
+    name = Path(path).name
     try:
         im = Image.open(path)
     except (OSError, ValueError) as e:
@@ -145,55 +183,66 @@ def read_metadata(path: str | Path) -> ImageMeta:
         sub = exif.get_ifd(_EXIF_IFD) if exif else {}
         make = str(exif.get(_MAKE, "")).strip("\x00 ") if exif else ""
         model = str(exif.get(_MODEL, "")).strip("\x00 ") if exif else ""
-        focal = _focal_px(sub, w, h)
+        focal = _number(
+            name, "EXIF focal length", lambda: _focal_px(sub, w, h), 1e-9, MAX_FOCAL_PER_SIDE * max(w, h)
+        )
         xmp = _xmp_text(im)
-        lat, lon, gps_alt = _gps(exif.get_ifd(_GPS_IFD) if exif else {})
-    alt = _xmp_value(xmp, "RelativeAltitude") if xmp else None
-    pitch = _xmp_value(xmp, "GimbalPitchDegree") if xmp else None
-    abs_alt = _xmp_value(xmp, "AbsoluteAltitude") if xmp else None
-    yaw = _xmp_value(xmp, "GimbalYawDegree") if xmp else None
-    roll = _xmp_value(xmp, "GimbalRollDegree") if xmp else None
-    if lat is None or lon is None:
-        lat = lon = None
+        lat, lon, gps_alt = _gps(name, exif.get_ifd(_GPS_IFD) if exif else {})
+
+    def dji(key: str, low_high: tuple[float, float]) -> float | None:
+        raw = _xmp_value(xmp, key) if xmp else None
+        return _number(name, f"XMP {key}", lambda: None if raw is None else float(raw), *low_high)
+
+    alt = dji("RelativeAltitude", RELATIVE_ALTITUDE_RANGE_M)
+    pitch = dji("GimbalPitchDegree", PITCH_RANGE_DEG)
+    abs_alt = dji("AbsoluteAltitude", ALTITUDE_RANGE_M)
+    yaw = dji("GimbalYawDegree", YAW_RANGE_DEG)
+    roll = dji("GimbalRollDegree", ROLL_RANGE_DEG)
     return ImageMeta(
         w, h, make, model, focal, alt, pitch, lat, lon, abs_alt if abs_alt is not None else gps_alt, yaw, roll
     )
 
 
 # EXIF values are Any: whatever the file holds (ints, rationals, bytes, tuples of them); float()
-# inside a try decides whether one is a number
+# decides whether one is a number, and _number catches what it raises
 
 
-def _dms(value: Any, ref: object, negative: str) -> float | None:
-    try:
-        d, m, sec = (float(v) for v in value)
-    except (TypeError, ValueError, ZeroDivisionError):
-        return None
+def _dms(value: Any, ref: object, negative: str) -> float:
+    """Degrees of an EXIF (degrees, minutes, seconds) triple; raises ValueError on a malformed
+    one (minutes or seconds past 60, a rational 0/0 that Pillow reads as NaN)."""
+    d, m, sec = (float(v) for v in value)
+    if not all(math.isfinite(v) for v in (d, m, sec)) or not (0 <= m <= 60 and 0 <= sec <= 60):
+        raise ValueError(f"{d!r} deg {m!r} min {sec!r} s")
     deg = d + m / 60.0 + sec / 3600.0
     if isinstance(ref, bytes):
         ref = ref.decode("ascii", "replace")
     return -deg if str(ref).strip("\x00 ").upper() == negative else deg
 
 
-def _gps(gps: Mapping[int, Any]) -> tuple[float | None, float | None, float | None]:
+def _altitude(value: Any, ref: object) -> float:
+    alt = float(value)
+    below = ref in (1, b"\x01") or (isinstance(ref, bytes) and ref[:1] == b"\x01")
+    return -alt if below else alt
+
+
+def _gps(image: str, gps: Mapping[int, Any]) -> tuple[float | None, float | None, float | None]:
     """Latitude, longitude (degrees) and altitude (metres) of an EXIF GPSInfo IFD; a field that
-    is missing or malformed is None (a camera without a fix writes zeros or nothing)."""
+    is missing is None, and so is one that is malformed or absurd (with a warning, _number). A
+    camera without a fix writes zeros or nothing; a fix needs both its latitude and longitude."""
     if not gps or _GPS_LAT not in gps or _GPS_LON not in gps:
         return None, None, None
-    lat = _dms(gps[_GPS_LAT], gps.get(_GPS_LAT_REF, "N"), "S")
-    lon = _dms(gps[_GPS_LON], gps.get(_GPS_LON_REF, "E"), "W")
-    if lat is None or lon is None or not (-90 <= lat <= 90 and -180 <= lon <= 180):
+    lat = _number(
+        image, "EXIF GPSLatitude", lambda: _dms(gps[_GPS_LAT], gps.get(_GPS_LAT_REF, "N"), "S"), -90, 90
+    )
+    lon = _number(
+        image, "EXIF GPSLongitude", lambda: _dms(gps[_GPS_LON], gps.get(_GPS_LON_REF, "E"), "W"), -180, 180
+    )
+    if lat is None or lon is None:
         return None, None, None
-    alt = None
-    try:
-        if _GPS_ALT in gps:
-            alt = float(gps[_GPS_ALT])
-            ref = gps.get(_GPS_ALT_REF, 0)
-            below = ref in (1, b"\x01") or (isinstance(ref, bytes) and ref[:1] == b"\x01")
-            alt = -alt if below else alt
-    except (TypeError, ValueError, ZeroDivisionError):
-        alt = None
-    return lat, lon, alt
+    read_alt = (
+        (lambda: _altitude(gps[_GPS_ALT], gps.get(_GPS_ALT_REF, 0))) if _GPS_ALT in gps else (lambda: None)
+    )
+    return lat, lon, _number(image, "EXIF GPSAltitude", read_alt, *ALTITUDE_RANGE_M)
 
 
 def gps_exif(exif: Image.Exif, lat: float, lon: float, alt: float) -> Image.Exif:
@@ -217,17 +266,17 @@ def gps_exif(exif: Image.Exif, lat: float, lon: float, alt: float) -> Image.Exif
 
 
 def _focal_px(sub: Mapping[int, Any], width: int, height: int) -> float | None:
-    try:
-        if _FOCAL in sub and _FP_XRES in sub:
-            mm_per_unit = _UNIT_MM.get(int(sub.get(_FP_UNIT, 2)))
-            f_mm, px_per_unit = float(sub[_FOCAL]), float(sub[_FP_XRES])
-            if mm_per_unit and f_mm > 0 and px_per_unit > 0:
-                return f_mm * px_per_unit / mm_per_unit
-        if _FOCAL35 in sub and float(sub[_FOCAL35]) > 0:
-            # 35 mm equivalent: the long side of the 36 x 24 mm frame is the long side of the image
-            return float(sub[_FOCAL35]) / 36.0 * max(width, height)
-    except (TypeError, ValueError, ZeroDivisionError):
-        return None
+    """Pixels, from the focal length and the focal plane's resolution, else from the 35 mm
+    equivalent; None when neither is stated (a zero is how many cameras say "unknown").
+    Raises on malformed values (_number reports them)."""
+    if _FOCAL in sub and _FP_XRES in sub:
+        mm_per_unit = _UNIT_MM.get(int(sub.get(_FP_UNIT, 2)))
+        f_mm, px_per_unit = float(sub[_FOCAL]), float(sub[_FP_XRES])
+        if mm_per_unit and f_mm != 0 and px_per_unit != 0:
+            return f_mm * px_per_unit / mm_per_unit
+    if _FOCAL35 in sub and float(sub[_FOCAL35]) != 0:
+        # 35 mm equivalent: the long side of the 36 x 24 mm frame is the long side of the image
+        return float(sub[_FOCAL35]) / 36.0 * max(width, height)
     return None
 
 

@@ -87,6 +87,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from geomatch_core.config import Settings
     from service import logs
     from service.api import create_app
+    from service.httpserver import H11Protocol
 
     from .bootstrap import build_service, close_service
 
@@ -105,8 +106,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
         keys_hint="; keys with `geomatch keys create TENANT`",
         curl_base=base,
     )
+    # no `server: uvicorn` banner: it tells a scanner which parser's bugs to try, and no client needs
+    # it; the protocol answers a head over h11's limit with a 431 the client can read (httpserver.py)
     server = uvicorn.Server(
-        uvicorn.Config(create_app(service), host=args.host, port=args.port, log_level="warning")
+        uvicorn.Config(
+            create_app(service),
+            host=args.host,
+            port=args.port,
+            log_level="warning",
+            server_header=False,
+            http=H11Protocol,
+        )
     )
     try:
         server.run()

@@ -18,6 +18,16 @@ def _int(name: str, default: int) -> int:
         raise ValueError(f"{name}={raw!r}: expected an integer") from None
 
 
+def _float(name: str, default: float) -> float:
+    raw = os.environ.get(name, "").strip()
+    if not raw:
+        return default
+    try:
+        return float(raw)
+    except ValueError:
+        raise ValueError(f"{name}={raw!r}: expected a number") from None
+
+
 @dataclass(frozen=True)
 class Settings:
     home: Path  # GEOMATCH_HOME: every file of the service lives under it
@@ -31,6 +41,9 @@ class Settings:
     max_pixels: int = 89_478_485
     visibility_timeout_s: int = 3600  # GEOMATCH_VISIBILITY_TIMEOUT: redelivery of a dead worker's task
     lock_timeout_s: int = 120  # GEOMATCH_LOCK_TIMEOUT: a dead writer's lock expires after this
+    # GEOMATCH_WORKER_LEASE: a worker not heard from for this long is dead: the steps it held go
+    # back to the queue, and /readyz stops counting it
+    worker_lease_s: int = 30
     device: str = "auto"  # GEOMATCH_DEVICE: where workers run the networks
     feature_cache_mb: int = 20_000  # GEOMATCH_FEATURE_CACHE_MB: on-disk feature cache cap (0: off)
     # GEOMATCH_CACHE_MB: in-memory caches of one worker thread (features, anchors), all matchers
@@ -40,6 +53,21 @@ class Settings:
     render_timeout_s: int = 120  # GEOMATCH_RENDER_TIMEOUT: how long a matches.png request waits
     grpc_tenant_streams: int = 16  # GEOMATCH_GRPC_TENANT_STREAMS: streaming calls one tenant may hold open
     grpc_stream_idle_s: int = 120  # GEOMATCH_GRPC_STREAM_IDLE: a request stream quiet this long is cut
+    # GEOMATCH_MAX_REQUEST_MB: a whole upload request (every file of it, multipart or gRPC stream)
+    max_request_bytes: int = 1024 * 1024 * 1024
+    max_json_bytes: int = 4 * 1024 * 1024  # GEOMATCH_MAX_JSON_MB: any other request body
+    # per tenant; 0 turns a quota off. GEOMATCH_QUOTA_PROJECTS, _IMAGES, _MB (stored image bytes)
+    quota_projects: int = 1000
+    quota_images: int = 100_000
+    quota_bytes: int = 1024 * 1024 * 1024 * 1024
+    # GEOMATCH_RATE_LIMIT: requests per second one tenant may make (REST and gRPC together, per
+    # API process), GEOMATCH_RATE_BURST: how many it may make at once above that; 0 turns it off
+    rate_per_s: float = 50.0
+    rate_burst: int = 500
+    # GEOMATCH_HEAVY_SLOTS: API-side heavy calls (match pictures, exports, database snapshots, the
+    # viewer's scene) running at once in all, GEOMATCH_HEAVY_TENANT_SLOTS: of one tenant
+    heavy_slots: int = 8
+    heavy_tenant_slots: int = 2
 
     @property
     def embedded(self) -> bool:
@@ -58,6 +86,7 @@ class Settings:
             max_pixels=_int("GEOMATCH_MAX_PIXELS", 89_478_485),
             visibility_timeout_s=_int("GEOMATCH_VISIBILITY_TIMEOUT", 3600),
             lock_timeout_s=_int("GEOMATCH_LOCK_TIMEOUT", 120),
+            worker_lease_s=max(3, _int("GEOMATCH_WORKER_LEASE", 30)),
             device=os.environ.get("GEOMATCH_DEVICE", "auto"),
             feature_cache_mb=_int("GEOMATCH_FEATURE_CACHE_MB", 20_000),
             cache_mb=max(64, _int("GEOMATCH_CACHE_MB", 1536)),
@@ -65,4 +94,13 @@ class Settings:
             render_timeout_s=_int("GEOMATCH_RENDER_TIMEOUT", 120),
             grpc_tenant_streams=max(1, _int("GEOMATCH_GRPC_TENANT_STREAMS", 16)),
             grpc_stream_idle_s=max(1, _int("GEOMATCH_GRPC_STREAM_IDLE", 120)),
+            max_request_bytes=max(1, _int("GEOMATCH_MAX_REQUEST_MB", 1024)) * 1024 * 1024,
+            max_json_bytes=max(1, _int("GEOMATCH_MAX_JSON_MB", 4)) * 1024 * 1024,
+            quota_projects=max(0, _int("GEOMATCH_QUOTA_PROJECTS", 1000)),
+            quota_images=max(0, _int("GEOMATCH_QUOTA_IMAGES", 100_000)),
+            quota_bytes=max(0, _int("GEOMATCH_QUOTA_MB", 1024 * 1024)) * 1024 * 1024,
+            rate_per_s=max(0.0, _float("GEOMATCH_RATE_LIMIT", 50.0)),
+            rate_burst=max(1, _int("GEOMATCH_RATE_BURST", 500)),
+            heavy_slots=max(1, _int("GEOMATCH_HEAVY_SLOTS", 8)),
+            heavy_tenant_slots=max(1, _int("GEOMATCH_HEAVY_TENANT_SLOTS", 2)),
         )

@@ -44,6 +44,19 @@ class Overloaded(DomainError):
     """Too many calls of one kind open at once (a tenant's streams): retry when one has ended."""
 
 
+class RateLimited(Overloaded):
+    """The tenant made more calls than its rate allows: retry after ``retry_after_s``."""
+
+    def __init__(self, message: str, retry_after_s: int) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
+class QuotaExceeded(DomainError):
+    """The call would take the tenant past a quota (projects, images, stored bytes): nothing was
+    kept; deleting what the tenant no longer needs makes room."""
+
+
 class Conflict(DomainError):
     """The request contradicts the project's current state."""
 

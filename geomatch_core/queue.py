@@ -29,4 +29,8 @@ class JobQueue(Protocol):
     def ping(self) -> None:
         """Raise if the queue cannot accept work."""
 
+    def workers_alive(self) -> int | None:
+        """How many worker processes were heard from within their lease; None where the queue
+        runs the work itself (embedded), so there is no worker to miss."""
+
     def close(self) -> None: ...

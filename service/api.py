@@ -18,24 +18,14 @@ from starlette.routing import compile_path
 from geomatch_core import errors
 
 from . import console
+from .bodylimits import BodyLimits
+from .headers import SecurityHeaders
+from .httperrors import error_headers, status_of
 from .metrics import Metrics
 from .routes import build_router
 from .usecases import Service
 
 log = logging.getLogger("geomatch.service")
-
-STATUS: dict[type[errors.DomainError], int] = {
-    errors.BadFile: 400,
-    errors.Unauthenticated: 401,
-    errors.NotFound: 404,
-    errors.Conflict: 409,
-    errors.TooLarge: 413,
-    errors.UnsupportedFormat: 415,
-    errors.InvalidRequest: 422,
-    errors.Overloaded: 429,
-    errors.Unavailable: 503,
-    errors.InsufficientStorage: 507,
-}
 
 
 def printable(text: str) -> str:
@@ -49,13 +39,6 @@ class Readiness(BaseModel):
     checks: dict[str, str]
 
 
-def status_of(exc: errors.DomainError) -> int:
-    for cls in type(exc).__mro__:
-        if cls in STATUS:
-            return STATUS[cls]
-    return 400
-
-
 def create_app(service: Service) -> FastAPI:
     app = FastAPI(
         title="geomatch",
@@ -66,6 +49,8 @@ def create_app(service: Service) -> FastAPI:
     app.state.service = service
     metrics = Metrics(service.store)
     app.middleware("http")(metrics.middleware)
+    app.add_middleware(BodyLimits, service=service)  # outside the app: before any body is read
+    app.add_middleware(SecurityHeaders)
 
     def count_upload(n: int, size: int) -> None:
         metrics.uploaded_images.inc(n)
@@ -77,9 +62,9 @@ def create_app(service: Service) -> FastAPI:
 
     @app.exception_handler(errors.DomainError)
     async def domain_error(request: Request, exc: errors.DomainError) -> JSONResponse:
-        status = status_of(exc)
-        headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
-        return JSONResponse({"detail": printable(exc.message)}, status_code=status, headers=headers)
+        return JSONResponse(
+            {"detail": printable(exc.message)}, status_code=status_of(exc), headers=error_headers(exc)
+        )
 
     @app.exception_handler(RequestValidationError)
     async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -127,7 +112,13 @@ def create_app(service: Service) -> FastAPI:
         "/readyz",
         tags=["health"],
         response_model=Readiness,
-        responses={503: {"model": Readiness, "description": "the store, the queue or the storage fails"}},
+        responses={
+            503: {
+                "model": Readiness,
+                "description": "the store, the queue or the storage fails, or (queue mode) no worker "
+                "was heard from within GEOMATCH_WORKER_LEASE",
+            }
+        },
     )
     def readyz() -> JSONResponse:
         r = service.readiness()

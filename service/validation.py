@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from PIL import Image
+from PIL import Image, ImageFile
 
 from geomatch import options
 from geomatch_core.errors import BadFile, DecompressionBomb, InvalidRequest, TooLarge, UnsupportedFormat
@@ -151,7 +151,7 @@ class _Corrupt(ValueError):
     pass
 
 
-def _check_data(im: Image.Image, path: Path, fmt: str) -> None:
+def _check_data(im: ImageFile.ImageFile, path: Path, fmt: str) -> None:
     """Truncated or corrupt data fails here (an exception naming why), in bounded memory."""
     w, h = im.size
     if fmt == "PNG":
@@ -168,8 +168,60 @@ def _check_data(im: Image.Image, path: Path, fmt: str) -> None:
             im.draft(im.mode, (w // scale, h // scale))
         im.load()
         return
+    if fmt == "BMP":
+        _check_bmp(im, path)
+    elif fmt == "TIFF":
+        _check_tiff(im, path)
     if w * h * 4 <= DECODE_BUDGET:
         im.load()
+
+
+def _check_bmp(im: ImageFile.ImageFile, path: Path) -> None:
+    """The data a BMP's header promises is in the file. An uncompressed BMP's rows are fixed
+    in size (Pillow's tile has the offset and the row stride), so a cut file shows without
+    decoding; one over DECODE_BUDGET was otherwise accepted on its header alone, and its match
+    job failed. An RLE BMP states the size of its encoded data in the header (biSizeImage, which
+    the format requires for compressed data)."""
+    size = path.stat().st_size
+    h = im.size[1]
+    for tile in im.tile:
+        if tile.codec_name == "raw" and isinstance(tile.args, tuple):  # (rawmode, stride, direction)
+            need = tile.offset + int(tile.args[1]) * h
+        else:  # bmp_rle: the encoded data's size, from the BITMAPINFOHEADER
+            with path.open("rb") as f:
+                head = f.read(38)
+            if len(head) < 38:
+                raise _Corrupt("truncated file")
+            data_size = struct.unpack_from("<I", head, 34)[0]
+            if data_size == 0 and im.size[0] * h * 4 > DECODE_BUDGET:
+                raise _Corrupt("a compressed BMP too large to decode here, without its data size")
+            need = tile.offset + data_size
+        if need > size:
+            raise _Corrupt(f"truncated file: {size} bytes, the header promises {need}")
+
+
+# TIFF tags: where each strip (or tile) of the first image starts and how many bytes it has
+_STRIP_OFFSETS, _STRIP_BYTES, _TILE_OFFSETS, _TILE_BYTES = 273, 279, 324, 325
+
+
+def _check_tiff(im: Image.Image, path: Path) -> None:
+    """Every strip or tile of the image the pipeline reads (the first) lies within the file: an
+    uncompressed TIFF over DECODE_BUDGET was otherwise accepted on its header alone, however
+    little of its data it carried."""
+    size = path.stat().st_size
+    tags = getattr(im, "tag_v2", {})
+    tiled = _TILE_OFFSETS in tags
+    offsets = tags.get(_TILE_OFFSETS if tiled else _STRIP_OFFSETS)
+    counts = tags.get(_TILE_BYTES if tiled else _STRIP_BYTES)
+    if offsets is None or counts is None:
+        return  # Pillow computes what is missing; the decode within the budget is the check
+    offsets = offsets if isinstance(offsets, tuple) else (offsets,)
+    counts = counts if isinstance(counts, tuple) else (counts,)
+    if len(offsets) != len(counts):
+        raise _Corrupt(f"{len(offsets)} strip offsets but {len(counts)} strip sizes")
+    need = max((int(o) + int(c) for o, c in zip(offsets, counts, strict=True)), default=0)
+    if need > size:
+        raise _Corrupt(f"truncated file: {size} bytes, the strips reach byte {need}")
 
 
 def _check_png(f: IO[bytes], width: int, height: int) -> None:

@@ -4,18 +4,30 @@ run of a small synthetic scene (half of it without GPS) that comes out in ENU me
 from __future__ import annotations
 
 import json
+import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 import pytest
 from PIL import Image
+from PIL.ExifTags import GPS
+from PIL.TiffImagePlugin import IFDRational
 from scipy.spatial.transform import Rotation
 
 from geomatch.cli import main
 from geomatch.geo import gps
 from geomatch.geo.geodesy import EnuFrame
-from geomatch.geo.georef import Alignment, align, errors_against, model_up, robust_similarity, umeyama
+from geomatch.geo.georef import (
+    Alignment,
+    align,
+    errors_against,
+    fit_with_heights,
+    model_up,
+    robust_similarity,
+    umeyama,
+)
 from geomatch.geo.similarity import umeyama_upright, upright_with_heights
 from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata, up_in_camera
 from geomatch.options import check, parse_plan
@@ -67,6 +79,68 @@ def test_no_gps_and_dji_absolute_altitude(tmp_path: Path) -> None:
     m = read_metadata(tmp_path / "dji.png")
     assert m.altitude_m == pytest.approx(512.3) and m.relative_altitude_m == pytest.approx(80.1)
     assert m.gimbal_yaw_deg == pytest.approx(-92.5)
+
+
+def _jpeg(path: Path, exif: Image.Exif, xmp: str = "") -> Path:
+    Image.fromarray(np.full((16, 16, 3), 128, np.uint8)).save(
+        path, exif=exif.tobytes(), **({"xmp": xmp.encode()} if xmp else {})
+    )
+    return path
+
+
+def _dji(**values: str) -> str:
+    attrs = " ".join(f'drone-dji:{k}="{v}"' for k, v in values.items())
+    return f'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:Description {attrs}/></x:xmpmeta>'
+
+
+@pytest.mark.unit
+def test_malformed_or_absurd_metadata_is_dropped_field_by_field(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """What a camera wrote wrong costs that field alone, with a warning naming the image and the
+    field: a GPSAltitude of 0/0 (which Pillow reads as NaN) once reached the georeferencing and
+    failed the reconstruct job with an SVD error."""
+    caplog.set_level(logging.WARNING, logger="geomatch.metadata")
+
+    def gps_with(**fields: object) -> Image.Exif:
+        exif = gps_exif(exif_for("g", "cam", 4.0, 100.0), 47.0, 8.0, 500.0)
+        exif.get_ifd(0x8825).update({int(GPS[k]): v for k, v in fields.items()})
+        return exif
+
+    def warned(image: str, field: str) -> bool:
+        return any(image in r.getMessage() and field in r.getMessage() for r in caplog.records)
+
+    m = read_metadata(_jpeg(tmp_path / "alt00.jpg", gps_with(GPSAltitude=IFDRational(0, 0))))
+    assert (m.latitude, m.longitude, m.altitude_m) == (pytest.approx(47.0), pytest.approx(8.0), None)
+    assert warned("alt00.jpg", "EXIF GPSAltitude")
+    m = read_metadata(
+        _jpeg(tmp_path / "xmp.jpg", gps_with(), _dji(AbsoluteAltitude="1e999", RelativeAltitude="+80.1"))
+    )
+    assert m.altitude_m == pytest.approx(500.0) and m.relative_altitude_m == pytest.approx(80.1)  # EXIF's
+    assert warned("xmp.jpg", "XMP AbsoluteAltitude")
+    m = read_metadata(_jpeg(tmp_path / "huge.jpg", gps_with(GPSAltitude=1e7)))
+    assert m.has_gps and m.altitude_m is None and warned("huge.jpg", "EXIF GPSAltitude")
+    for name, fields, field in [
+        ("minutes00.jpg", {"GPSLatitude": (47.0, IFDRational(0, 0), 0.0)}, "EXIF GPSLatitude"),
+        ("pole.jpg", {"GPSLatitude": (95.0, 0.0, 0.0)}, "EXIF GPSLatitude"),
+        ("lon.jpg", {"GPSLongitude": (8.0, 75.0, 0.0)}, "EXIF GPSLongitude"),
+        ("pair.jpg", {"GPSLongitude": (8.0, 1.0)}, "EXIF GPSLongitude"),
+    ]:
+        m = read_metadata(_jpeg(tmp_path / name, gps_with(**fields)))
+        assert not m.has_gps and m.altitude_m is None and m.focal_px == pytest.approx(400.0), name
+        assert warned(name, field), (name, [r.getMessage() for r in caplog.records])
+    angles = _dji(
+        GimbalPitchDegree="-1e400", GimbalYawDegree="east", GimbalRollDegree="720", RelativeAltitude="nan"
+    )
+    m = read_metadata(_jpeg(tmp_path / "gimbal.jpg", Image.Exif(), angles))
+    assert (m.gimbal_pitch_deg, m.gimbal_yaw_deg, m.gimbal_roll_deg, m.relative_altitude_m) == (None,) * 4
+    for field in ("GimbalPitchDegree", "GimbalYawDegree", "GimbalRollDegree", "RelativeAltitude"):
+        assert warned("gimbal.jpg", f"XMP {field}"), field
+    focal = exif_for("g", "cam", 4.0, 100.0)
+    focal.get_ifd(0x8769)[0x920A] = IFDRational(1, 0)
+    m = read_metadata(_jpeg(tmp_path / "focal.jpg", focal))
+    assert m.focal_px is None and warned("focal.jpg", "EXIF focal length")
+    assert all(str(tmp_path) not in r.getMessage() for r in caplog.records)  # the name, not the path
 
 
 @pytest.mark.unit
@@ -224,6 +298,56 @@ def test_gravity_from_the_gimbals_makes_georeferencing_better(tmp_path: Path) ->
             assert a is not None and a.up_images == (8 if up else 0)
             out.append(errors_against(r, truth)["mean_m"])
     assert np.mean(upright) < 0.9 * np.mean(free), (np.mean(upright), np.mean(free))
+
+
+@pytest.mark.unit
+def test_georeferencing_leaves_out_what_is_not_finite(tmp_path: Path) -> None:
+    """Defence behind read_metadata: metadata from elsewhere may carry NaN or infinity, and one
+    NaN altitude made every fix NaN (through the median of the altitudes) and the SVD raise.
+    Such values count as absent, correspondences that are not finite are never sampled, and
+    the fits answer "no fit" instead of raising."""
+    _, gauge, ups, truth = _perfect_model(tmp_path, 0)
+    names = sorted(truth)
+    geodetic = {n: [float(v) for v in GPS_ORIGIN.to_geodetic(truth[n])] for n in names}
+    metas = {
+        n: ImageMeta(640, 480, latitude=la, longitude=lo, altitude_m=al)
+        for n, (la, lo, al) in geodetic.items()
+    }
+    nan_alt, inf_lat, inf_alt = names[0], names[1], names[2]
+    metas[nan_alt] = replace(metas[nan_alt], altitude_m=float("nan"))
+    metas[inf_lat] = replace(metas[inf_lat], latitude=float("inf"))
+    metas[inf_alt] = replace(metas[inf_alt], altitude_m=float("-inf"), relative_altitude_m=float("nan"))
+    fx = gps.fixes(names, metas)
+    assert fx is not None and inf_lat not in fx.enu and len(fx.enu) == len(names) - 1
+    assert all(np.isfinite(p).all() for p in fx.enu.values()) and fx.has_altitude and not fx.heights
+    rec = pycolmap.Reconstruction(str(tmp_path))
+    rec.transform(gauge)
+    ups[sorted(ups)[0]] = np.full(3, np.nan)  # a gimbal's up, and a height, that are not finite
+    heights = {n: float(truth[n][2]) for n in sorted(ups)} | {nan_alt: float("nan")}
+    a = align(rec, fx.enu, up_cam=ups, heights=heights)
+    assert a is not None and a.inliers.sum() >= len(names) - 3
+    assert a.up_images == len(ups) - 1 and a.heights is not None and a.heights.images == len(ups) - 1
+    err = errors_against(rec, {n: fx.frame.from_ecef(GPS_ORIGIN.to_ecef(truth[n])) for n in names})
+    assert err["median_m"] < 0.01, err  # the fix without a finite altitude sits at the median one
+
+    # the fits themselves, given NaN and infinity directly
+    rng = np.random.default_rng(2)
+    src = rng.normal(0, 5, (12, 3))
+    dst = 2.0 * src + 1.0
+    dst[3] = np.nan
+    dst[7, 2] = np.inf
+    r = robust_similarity(src, dst)
+    assert r is not None and r.sim.scale == pytest.approx(2.0) and not r.inliers[[3, 7]].any()
+    assert r.inliers.sum() == 10
+    assert robust_similarity(src[[0, 1, 3]], dst[[0, 1, 3]]) is None  # two finite pairs are not enough
+    assert np.isnan(umeyama(src, dst).scale)
+    assert np.isnan(umeyama_upright(src, dst, np.array([0.0, 0.0, 1.0]), 0.4).scale)
+    up = np.array([0.0, 0.0, 1.0])
+    heights = dst[:6, 2].copy()
+    heights[3] = np.nan
+    good = np.isfinite(dst).all(1)
+    fit = fit_with_heights(src[good], dst[good], up, umeyama(src[good], dst[good]), src[:6], heights)
+    assert fit is not None and fit[1].images == 5 and fit[0].scale == pytest.approx(2.0)
 
 
 @pytest.mark.unit

@@ -4,7 +4,9 @@
   worker killed mid-step (SIGKILL, OOM, a lost node) leaves its message to be delivered again.
   On Redis an unacknowledged message returns after ``visibility_timeout`` (GEOMATCH_VISIBILITY_TIMEOUT),
   which must exceed the longest step (workers sweep for such messages every few seconds); a child
-  process dying under a live worker is requeued at once.
+  process dying under a live worker is requeued at once. A whole worker gone is found sooner by
+  its lapsed lease (``workers.lifeline``: its steps are back in the queue within
+  GEOMATCH_WORKER_LEASE); the visibility timeout is the backstop.
 - ``worker_prefetch_multiplier=1``: a worker holds one message beyond the one it runs, so a long
   pair does not starve other workers.
 - Every key (queues, unacked sets, results) starts with GEOMATCH_REDIS_PREFIX, so deployments,

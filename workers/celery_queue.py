@@ -14,6 +14,7 @@ from geomatch_core.config import Settings
 from geomatch_core.queue import RENDER_PAIR
 
 from .celery_app import interactive_queue, make_app
+from .liveness import Registry
 
 
 class CeleryQueue:
@@ -22,6 +23,7 @@ class CeleryQueue:
         self.app = app or make_app(settings)
         assert settings.redis_url is not None
         self._redis = redis.Redis.from_url(settings.redis_url, socket_timeout=5, socket_connect_timeout=5)
+        self._workers = Registry(self._redis, settings.redis_prefix, settings.worker_lease_s)
 
     def enqueue(self, step: str, *args: Any) -> None:
         queue = interactive_queue(self.settings) if step == RENDER_PAIR else self.settings.queue
@@ -38,6 +40,9 @@ class CeleryQueue:
 
     def ping(self) -> None:
         self._redis.ping()
+
+    def workers_alive(self) -> int:
+        return len(self._workers.alive())
 
     def close(self) -> None:
         self._redis.close()

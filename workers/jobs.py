@@ -31,7 +31,7 @@ from geomatch_core import jobstate
 from geomatch_core.models import Image, Job, JobPair
 from geomatch_core.queue import EXTRACT, MATCH_PAIR, RENDER_PAIR
 
-from . import runtime
+from . import redact, runtime
 from .context import Context, PermanentError
 
 log = logging.getLogger("geomatch.workers")
@@ -322,6 +322,19 @@ def on_failure(ctx: Context, step: str, args: tuple[Any, ...], exc: BaseExceptio
     job_id = str(args[0])
     where = f"pair {args[1]}" if step == MATCH_PAIR and len(args) > 1 else step.split(".")[-1]
     reason = str(exc) if isinstance(exc, PermanentError) else f"{type(exc).__name__}: {exc}"
+    # the one place a job's error is written from a worker: clients read it, so no server paths
+    reason = redact.without_paths(reason, ctx.storage.root, _project_dir(ctx, job_id))
     if jobstate.fail(ctx.store, job_id, f"{where}: {reason}"):
         log.error("job failed in %s: %s", where, exc, extra={"job_id": job_id})
         jobstate.release_followers(ctx.store, ctx.queue, job_id)
+
+
+def _project_dir(ctx: Context, job_id: str) -> Path | None:
+    """The failed job's project folder, for its error's relative names; None when the store
+    cannot say (the root's prefix still goes)."""
+    try:
+        job = jobstate.get(ctx.store, job_id)
+    except Exception as e:  # the store may be what failed the step: the error is still recorded
+        log.warning("no project folder for job %s's error (%s)", job_id, e)
+        return None
+    return ctx.storage.project_dir(job.project_id) if job is not None else None

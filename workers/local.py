@@ -70,6 +70,9 @@ class LocalQueue:
         if self._closed.is_set():
             raise RuntimeError("the embedded job runner is shut down")
 
+    def workers_alive(self) -> int | None:
+        return None  # the API process runs the steps: no worker to miss
+
     def resume(self) -> int:
         """Queue again the jobs a previous run of this process left unfinished."""
         store = self.ctx.store

@@ -19,7 +19,7 @@ import re
 import time
 from typing import Any
 
-from . import runtime
+from . import redact, runtime
 from .context import Context
 
 log = logging.getLogger("geomatch.workers")
@@ -45,7 +45,7 @@ def match_two(
         return {"error": "the images are gone (the caller gave up)"}
     except Exception as e:  # answered, not raised: the caller maps it, nothing is retried
         log.exception("match_two %s failed", work)
-        return {"error": f"{type(e).__name__}: {e}"}
+        return {"error": redact.without_paths(f"{type(e).__name__}: {e}", ctx.storage.root)}
 
 
 def _match(

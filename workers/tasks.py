@@ -21,7 +21,7 @@ from geomatch_core.locks import RedisLocks
 from geomatch_core.storage import Storage
 from geomatch_core.store import MetadataStore
 
-from . import jobs, recovery
+from . import jobs, lifeline, recovery
 from .celery_queue import CeleryQueue
 from .context import Context, PermanentError, is_permanent
 from .steps import ANSWERED, ONE_SHOT, STEPS
@@ -85,6 +85,7 @@ def register(app: Celery) -> None:
         app.task(name=name, base=StepTask, bind=True, ignore_result=name not in ANSWERED)(run)
 
     app.steps["consumer"].add(_recovery_step(app))
+    lifeline.install(app, Settings.from_env())
 
 
 def _recovery_step(app: Celery) -> type:

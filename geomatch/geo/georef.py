@@ -15,6 +15,7 @@ cannot (fit_with_heights).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -26,6 +27,8 @@ import pycolmap
 from .geodesy import EnuFrame
 from .gps import GpsFixes
 from .similarity import Similarity, umeyama, umeyama_upright, upright_with_heights
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -91,24 +94,28 @@ def robust_similarity(
         return umeyama_upright(a, b, up, 1.0 / GNSS_VERTICAL_FACTOR**2)
 
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    n = len(src)
+    # a correspondence that is not finite is never sampled nor an inlier (its residual is NaN,
+    # which no threshold passes): one NaN fix once made the SVD raise and failed the job
+    usable = np.flatnonzero(np.isfinite(src).all(1) & np.isfinite(dst).all(1))
+    n = len(usable)
     if n < 3:
         return None
     rng = np.random.default_rng(seed)
     best: np.ndarray | None = None
     best_cost = np.inf
-    samples = [np.arange(3)] if n == 3 else (rng.choice(n, 3, replace=False) for _ in range(iterations))
+    samples = [usable] if n == 3 else (rng.choice(usable, 3, replace=False) for _ in range(iterations))
+    spread = max(float(np.ptp(src[usable])), 1e-12)
     for idx in samples:
         a = src[idx]
         # a (near-)collinear sample leaves the rotation about its line free
-        if np.linalg.norm(np.cross(a[1] - a[0], a[2] - a[0])) < 1e-9 * max(np.ptp(src), 1e-12) ** 2:
+        if np.linalg.norm(np.cross(a[1] - a[0], a[2] - a[0])) < 1e-9 * spread**2:
             continue
         sim = fit(a, dst[idx])
         if not np.isfinite(sim.scale) or sim.scale <= 0:
             continue
         r = np.linalg.norm(sim.apply(src) - dst, axis=1)
         inl = r < threshold
-        cost = np.minimum(r, threshold).sum()  # MSAC: the inliers' fit counts, not only their number
+        cost = np.minimum(r[usable], threshold).sum()  # MSAC: the inliers' fit counts, not only their number
         if inl.sum() >= 3 and cost < best_cost:
             best, best_cost = inl, cost
     if best is None:
@@ -141,7 +148,9 @@ def fit_with_heights(
     iterated), and a height further than the gate from the others (a second flight with its own
     take-off, a stale reading) is dropped. ``start``: the GNSS-only fit, which picks the first
     heights to keep. None when fewer than MIN_HEIGHTS agree."""
-    heights = np.asarray(heights, np.float64)
+    heights, height_src = np.asarray(heights, np.float64), np.asarray(height_src, np.float64)
+    finite = np.isfinite(heights) & np.isfinite(height_src).all(1)  # least squares cannot take NaN
+    heights, height_src = heights[finite], height_src[finite]
     n, vw = len(src), 1.0 / GNSS_VERTICAL_FACTOR**2
 
     def predicted(sim: Similarity) -> np.ndarray:
@@ -181,11 +190,12 @@ def model_up(rec: pycolmap.Reconstruction, up_cam: Mapping[str, np.ndarray]) -> 
     up is in the camera: each image's up carried into the model by its rotation, averaged over
     those within 3 degrees of the consensus. None unless two or more agree: one gimbal alone is
     not trusted to tilt a whole model."""
-    ups = [
+    carried = (
         np.asarray(im.cam_from_world().rotation.matrix()).T @ up_cam[im.name]
         for im in rec.images.values()
         if im.has_pose and im.name in up_cam
-    ]
+    )
+    ups = [u for u in carried if np.isfinite(u).all()]
     if len(ups) < 2:
         return None
     U = np.stack(ups)
@@ -215,11 +225,43 @@ def align(
     with 2 m / 3 m GNSS noise the mean centre error drops from 1.31 to 1.05 m (docs/pipeline.md).
     With gravity and ``heights`` (image name -> barometric height above take-off,
     gps.GpsFixes.heights) of MIN_HEIGHTS or more registered images, those refine the fit
-    (fit_with_heights), the GNSS inliers staying as RANSAC chose them."""
+    (fit_with_heights), the GNSS inliers staying as RANSAC chose them.
+
+    Fixes, ups and heights that are not finite are left out, and a fit that fails anyway (an
+    error of the linear algebra, a similarity that is not finite) leaves ``rec`` as it was, with
+    a warning: a model that cannot be georeferenced is still a model, where an SVD error on one
+    NaN altitude once failed the whole reconstruct job."""
     centres = camera_centres(rec)
-    names = sorted(n for n in centres if n in enu)
+    names = sorted(n for n in centres if n in enu and np.isfinite(enu[n]).all())
     if len(names) < 3:
         return None
+    try:
+        result = _fit(centres, names, enu, threshold, rec, up_cam, heights)
+    except np.linalg.LinAlgError as e:
+        log.warning("georeferencing skipped: the fit failed (%s)", e)
+        return None
+    if result is None:
+        return None
+    sim = result.sim
+    if not (
+        np.isfinite(sim.scale) and sim.scale > 0 and np.isfinite(sim.R).all() and np.isfinite(sim.t).all()
+    ):
+        log.warning("georeferencing skipped: the fit is not finite (scale %r)", sim.scale)
+        return None
+    rec.transform(sim.to_pycolmap())
+    return result
+
+
+def _fit(
+    centres: Mapping[str, np.ndarray],
+    names: list[str],
+    enu: Mapping[str, np.ndarray],
+    threshold: float,
+    rec: pycolmap.Reconstruction,
+    up_cam: Mapping[str, np.ndarray] | None,
+    heights: Mapping[str, float] | None,
+) -> Alignment | None:
+    """align's estimate over the registered images ``names`` that have a finite fix."""
     src = np.stack([centres[n] for n in names])
     dst = np.stack([np.asarray(enu[n], np.float64) for n in names])
     gravity = model_up(rec, up_cam) if up_cam else None
@@ -229,7 +271,7 @@ def align(
     if gravity is not None:
         result = replace(result, up_images=gravity[1])
         known = heights or {}
-        named = sorted(n for n in centres if n in known)
+        named = sorted(n for n in centres if n in known and np.isfinite(known[n]))
         if len(named) >= MIN_HEIGHTS:
             inl = result.inliers
             refined = fit_with_heights(
@@ -244,7 +286,6 @@ def align(
                 sim, use = refined
                 r = np.linalg.norm(sim.apply(src) - dst, axis=1)
                 result = replace(result, sim=sim, residuals=r, heights=use)
-    rec.transform(result.sim.to_pycolmap())
     return result
 
 

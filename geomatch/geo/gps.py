@@ -9,6 +9,7 @@ height (``has_altitude`` false), which georef.py reports.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,22 +34,36 @@ class GpsFixes:
     heights: dict[str, float] = field(default_factory=dict)
 
 
+def _finite(value: float | None) -> float | None:
+    return value if value is not None and math.isfinite(value) else None
+
+
 def fixes(names: Sequence[str], metas: Mapping[str, ImageMeta]) -> GpsFixes | None:
-    """The images' fixes in the ENU frame of the first one; None when no image has GPS."""
-    located = {n: ll for n in sorted(names) if (ll := metas[n].lat_lon) is not None}
+    """The images' fixes in the ENU frame of the first one; None when no image has GPS. A value
+    that is not finite counts as absent: read_metadata already drops those, but an ImageMeta may
+    come from elsewhere, and one NaN here made every fix NaN (the median) and the georeferencing's
+    SVD fail."""
+    located = {
+        n: (lat, lon)
+        for n in sorted(names)
+        if (ll := metas[n].lat_lon) is not None
+        and (lat := _finite(ll[0])) is not None
+        and (lon := _finite(ll[1])) is not None
+    }
     if not located:
         return None
-    alts = [a for n in located if (a := metas[n].altitude_m) is not None]
+    alt_of = {n: _finite(metas[n].altitude_m) for n in located}
+    alts = [a for a in alt_of.values() if a is not None]
     fallback = float(np.median(alts)) if alts else 0.0
     name0, (lat0, lon0) = next(iter(located.items()))
-    alt0 = metas[name0].altitude_m
+    alt0 = alt_of[name0]
     frame = EnuFrame(float(lat0), float(lon0), float(alt0 if alt0 is not None else fallback))
     enu = {}
     for n, (lat, lon) in located.items():
-        alt = metas[n].altitude_m
+        alt = alt_of[n]
         enu[n] = frame.from_geodetic(lat, lon, alt if alt is not None else fallback)
-    up = {n: u for n in names if (u := up_in_camera(metas[n])) is not None}
-    heights = {n: h for n in names if (h := metas[n].relative_altitude_m) is not None}
+    up = {n: u for n in names if (u := up_in_camera(metas[n])) is not None and np.isfinite(u).all()}
+    heights = {n: h for n in names if (h := _finite(metas[n].relative_altitude_m)) is not None}
     return GpsFixes(frame, enu, bool(alts), up, heights)
 
 

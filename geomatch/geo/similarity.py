@@ -30,18 +30,29 @@ class Similarity:
         return pycolmap.Sim3d(self.scale, pycolmap.Rotation3d(self.R), self.t.reshape(3, 1))
 
 
+def _no_fit() -> Similarity:
+    """What the fits answer when there is none to give: a NaN scale, which every caller checks."""
+    return Similarity(float("nan"), np.eye(3), np.zeros(3))
+
+
 def umeyama(src: np.ndarray, dst: np.ndarray) -> Similarity:
     """Least-squares similarity taking ``src`` (N, 3) to ``dst`` (N >= 3); a degenerate
-    ``src`` (all points equal) gives a NaN scale, which the callers skip. Collinear sets give
+    ``src`` (all points equal) gives a NaN scale, which the callers skip, and so do points that
+    are not finite. Collinear sets give
     a valid fit whose rotation about the line is arbitrary: callers that sample triples
     reject those first."""
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    if not (np.isfinite(src).all() and np.isfinite(dst).all()):
+        return _no_fit()  # LAPACK's SVD does not converge on NaN or infinity: it raises
     mu_s, mu_d = src.mean(0), dst.mean(0)
     a, b = src - mu_s, dst - mu_d
     var = (a**2).sum() / len(src)
     if not var > 0:
-        return Similarity(float("nan"), np.eye(3), np.zeros(3))
-    u, d, vt = np.linalg.svd(b.T @ a / len(src))
+        return _no_fit()
+    try:
+        u, d, vt = np.linalg.svd(b.T @ a / len(src))
+    except np.linalg.LinAlgError:
+        return _no_fit()
     s = np.ones(3)
     if np.linalg.det(u) * np.linalg.det(vt) < 0:
         s[2] = -1.0
@@ -57,6 +68,8 @@ def umeyama_upright(src: np.ndarray, dst: np.ndarray, up: np.ndarray, vertical_w
     against horizontal ones. Closed form: the best turn does not depend on the scale (2D
     Procrustes), and the weighted cost is then a quadratic in the scale."""
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    if not (np.isfinite(src).all() and np.isfinite(dst).all() and np.isfinite(up).all()):
+        return _no_fit()
     Ru, Rz = _upright_rotations(src, dst, up)
     A = src @ Ru.T
     A -= A.mean(0)
@@ -64,7 +77,7 @@ def umeyama_upright(src: np.ndarray, dst: np.ndarray, up: np.ndarray, vertical_w
     rotated = A @ Rz.T
     denom = (A[:, :2] ** 2).sum() + vertical_weight * (A[:, 2] ** 2).sum()
     if not denom > 0:
-        return Similarity(float("nan"), np.eye(3), np.zeros(3))
+        return _no_fit()
     scale = float(((rotated[:, :2] * B[:, :2]).sum() + vertical_weight * (A[:, 2] * B[:, 2]).sum()) / denom)
     R = Rz @ Ru
     return Similarity(scale, R, dst.mean(0) - scale * R @ src.mean(0))

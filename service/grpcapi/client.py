@@ -160,7 +160,14 @@ class GrpcClient:
         return self._call("GetProject", pb2.GetProjectRequest(project_id=project_id))
 
     def list_projects(self) -> list[Any]:
-        return list(self._call("ListProjects", pb2.ListProjectsRequest()).projects)
+        """Every project of the key's tenant, page after page."""
+        out: list[Any] = []
+        token = ""
+        while True:
+            r = self._call("ListProjects", pb2.ListProjectsRequest(page_token=token))
+            out += r.projects
+            if not (token := r.next_page_token):
+                return out
 
     def delete_project(self, project_id: str) -> None:
         self._call("DeleteProject", pb2.DeleteProjectRequest(project_id=project_id))
@@ -182,7 +189,14 @@ class GrpcClient:
         return list(reply.images)
 
     def list_images(self, project_id: str) -> list[Any]:
-        return list(self._call("ListImages", pb2.ListImagesRequest(project_id=project_id)).images)
+        """Every image of the project, page after page."""
+        out: list[Any] = []
+        token = ""
+        while True:
+            r = self._call("ListImages", pb2.ListImagesRequest(project_id=project_id, page_token=token))
+            out += r.images
+            if not (token := r.next_page_token):
+                return out
 
     # -- jobs --------------------------------------------------------------------------------
     def submit_matching(

@@ -7,8 +7,10 @@ Three rules keep the server answering:
 
 - streaming calls (UploadImages, MatchPair, WatchJob, GetModel) hold at most ``STREAMS`` threads in
   all, so ``RESERVED`` threads are always left for unary calls and health checks;
-- one tenant holds at most ``Settings.grpc_tenant_streams`` of those, so it cannot take the others'
-  share either; a call past either limit is refused at once with RESOURCE_EXHAUSTED;
+- one tenant holds at most ``Settings.grpc_tenant_streams`` of those, and the last quarter of them
+  only go to tenants holding fewer than a quarter of that cap, so tenants holding many cannot take
+  the others' share either (three tenants of 16 took all 48 before); a call past a limit is
+  refused at once with RESOURCE_EXHAUSTED;
 - a request stream that sends nothing for ``Settings.grpc_stream_idle_s`` is cancelled, which
   gives its thread (and its tenant's slot) back.
 """
@@ -23,7 +25,7 @@ from contextlib import contextmanager
 
 import grpc
 
-from geomatch_core.errors import Overloaded
+from ..slots import FairSlots
 
 log = logging.getLogger("geomatch.service.grpc")
 
@@ -32,46 +34,12 @@ RESERVED = 16  # of those, never taken by streams: unary calls and health checks
 STREAMS = THREADS - RESERVED
 
 
-class StreamSlots:
-    """Counts open streaming calls, in all and per tenant; ``open`` refuses one over a limit."""
+class StreamSlots(FairSlots):
+    """Open streaming calls, in all and per tenant (``service/slots.py``: with a reserve that
+    tenants holding many streams cannot take, so three of them cannot lock out a fourth)."""
 
     def __init__(self, total: int, per_tenant: int) -> None:
-        self.total = total
-        self.per_tenant = per_tenant
-        self._lock = threading.Lock()
-        self._open = 0
-        self._by_tenant: dict[str, int] = {}
-
-    @contextmanager
-    def open(self, tenant_id: str) -> Iterator[None]:
-        with self._lock:
-            mine = self._by_tenant.get(tenant_id, 0)
-            if mine >= self.per_tenant:
-                raise Overloaded(
-                    f"this key's tenant has {mine} streaming calls open, the most one tenant may "
-                    "hold at once; retry when one has ended"
-                )
-            if self._open >= self.total:
-                raise Overloaded(
-                    f"the server has {self._open} streaming calls open, the most it serves at once; "
-                    "retry shortly"
-                )
-            self._open += 1
-            self._by_tenant[tenant_id] = mine + 1
-        try:
-            yield
-        finally:
-            with self._lock:
-                self._open -= 1
-                left = self._by_tenant[tenant_id] - 1
-                if left:
-                    self._by_tenant[tenant_id] = left
-                else:
-                    del self._by_tenant[tenant_id]
-
-    def counts(self) -> tuple[int, dict[str, int]]:
-        with self._lock:
-            return self._open, dict(self._by_tenant)
+        super().__init__("streaming calls", total, per_tenant)
 
 
 class IdleStreams:

@@ -132,24 +132,28 @@ def start(service: Service, host: str = "127.0.0.1", port: int = DEFAULT_PORT) -
 
 
 def _follow_readiness(service: Service, h: health.HealthServicer, stop: threading.Event) -> None:
-    """Health mirrors /readyz: SERVING while the store, the queue and the storage answer. The
-    first check is made before the server starts, so no client ever sees an unknown status."""
+    """Health follows /readyz. ``geomatch.v1.Matching`` is SERVING while the service can get work
+    done: the store, the queue and the storage answer and, in queue mode, a worker is alive. The
+    server's own name ``""`` leaves the workers out (the store, the queue and the storage only): it
+    says whether this process serves, which the image's health check asks and which must not wait
+    for workers that themselves start after the API. The first check is made before the server
+    starts, so no client ever sees an unknown status."""
     serving, not_serving = health_pb2.HealthCheckResponse.SERVING, health_pb2.HealthCheckResponse.NOT_SERVING
 
-    def update(last: bool | None) -> bool:
+    def update(last: tuple[bool, bool] | None) -> tuple[bool, bool]:
         try:
             r = service.readiness()
-            ok, checks = r.ok, r.checks
+            now, checks = (r.serving, r.ok), r.checks
         except Exception as e:
-            ok, checks = False, {"readiness": str(e)}
-        if ok != last:
-            for name in ("", SERVICE_NAME):
+            now, checks = (False, False), {"readiness": str(e)}
+        if now != last:
+            for name, ok in (("", now[0]), (SERVICE_NAME, now[1])):
                 h.set(name, serving if ok else not_serving)
-            if not ok:
-                log.warning("gRPC health: NOT_SERVING %s", checks)
-        return ok
+            if not now[1]:
+                log.warning("gRPC health: %s NOT_SERVING %s", SERVICE_NAME, checks)
+        return now
 
-    def loop(last: bool) -> None:
+    def loop(last: tuple[bool, bool]) -> None:
         while not stop.wait(READINESS_INTERVAL_S):
             last = update(last)
 

@@ -17,6 +17,7 @@ import grpc
 
 from geomatch_core.errors import InvalidRequest, Unavailable
 
+from ..paging import offset_of
 from ..usecases import Service
 from ..usecases.views import Upload
 from . import convert
@@ -52,8 +53,9 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
 
     @rpc
     def ListProjects(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        page = self.service.list_projects(tenant_id, offset_of(request.page_token), request.page_size)
         return pb2.ListProjectsResponse(
-            projects=[convert.project(p) for p in self.service.list_projects(tenant_id)]
+            projects=[convert.project(p) for p in page.items], next_page_token=token_of(page.next_offset)
         )
 
     @rpc
@@ -77,8 +79,12 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
 
     @rpc
     def ListImages(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        views = self.service.list_images(tenant_id, request.project_id)
-        return pb2.ListImagesResponse(images=[convert.image(v) for v in views])
+        page = self.service.list_images(
+            tenant_id, request.project_id, offset_of(request.page_token), request.page_size
+        )
+        return pb2.ListImagesResponse(
+            images=[convert.image(v) for v in page.items], next_page_token=token_of(page.next_offset)
+        )
 
     # -- jobs --------------------------------------------------------------------------------
     @rpc
@@ -172,6 +178,10 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
                 )
             raise
         return convert.pair_matches(matches)
+
+
+def token_of(next_offset: int | None) -> str:
+    return "" if next_offset is None else str(next_offset)
 
 
 def _summary(f: IO[bytes], fmt: str, path: Path) -> dict[str, Any]:

@@ -29,7 +29,8 @@ CODES: dict[type[errors.DomainError], grpc.StatusCode] = {
     # a bomb is a bad image; a big file is a limit (its own subclass first: the MRO decides)
     errors.DecompressionBomb: grpc.StatusCode.INVALID_ARGUMENT,
     errors.TooLarge: grpc.StatusCode.RESOURCE_EXHAUSTED,
-    errors.Overloaded: grpc.StatusCode.RESOURCE_EXHAUSTED,
+    errors.Overloaded: grpc.StatusCode.RESOURCE_EXHAUSTED,  # RateLimited included
+    errors.QuotaExceeded: grpc.StatusCode.RESOURCE_EXHAUSTED,
     errors.Conflict: grpc.StatusCode.FAILED_PRECONDITION,
     errors.Unavailable: grpc.StatusCode.UNAVAILABLE,
     errors.InsufficientStorage: grpc.StatusCode.RESOURCE_EXHAUSTED,

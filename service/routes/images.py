@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, File, Form, UploadFile
+from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import FileResponse
 
+from ..paging import IMAGES
 from ..schemas import ImageOut, ImagesOut
 from ..usecases.images import IMAGE_MEDIA
 from ..usecases.views import Upload
-from .deps import Svc, Tenant
+from .deps import MAX_OFFSET, Svc, Tenant, link_next
 
 router = APIRouter(tags=["images"])
 
@@ -32,9 +33,26 @@ def upload_images(
 
 
 @router.get("/projects/{project_id}/images", response_model=ImagesOut)
-def list_images(project_id: str, svc: Svc, tenant_id: Tenant) -> ImagesOut:
-    views = svc.list_images(tenant_id, project_id)
-    return ImagesOut(images=[ImageOut.model_validate(v, from_attributes=True) for v in views])
+def list_images(
+    project_id: str,
+    request: Request,
+    response: Response,
+    svc: Svc,
+    tenant_id: Tenant,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET, description="images to skip")] = 0,
+    limit: Annotated[
+        int,
+        Query(
+            ge=1,
+            le=IMAGES.max,
+            description=f"page size (default {IMAGES.default}); the next page is in the `Link` header",
+        ),
+    ] = IMAGES.default,
+) -> ImagesOut:
+    """The project's images by name, one page at a time."""
+    page = svc.list_images(tenant_id, project_id, offset, limit)
+    link_next(request, response, page.next_offset, limit)
+    return ImagesOut(images=[ImageOut.model_validate(v, from_attributes=True) for v in page.items])
 
 
 @router.get(

@@ -84,5 +84,5 @@ async def job_events(job_id: str, svc: Svc, tenant_id: Tenant) -> StreamingRespo
     return StreamingResponse(
         stream(),
         media_type="text/event-stream",
-        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+        headers={"X-Accel-Buffering": "no"},  # Cache-Control: no-store, as all of /v1 (headers.py)
     )

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from typing import Annotated
 
+from fastapi import APIRouter, Query, Request, Response
+
+from ..paging import PROJECTS
 from ..schemas import ProjectCreate, ProjectOut
-from .deps import Svc, Tenant
+from .deps import MAX_OFFSET, Svc, Tenant, link_next
 
 router = APIRouter(tags=["projects"])
 
@@ -17,8 +20,25 @@ def create_project(body: ProjectCreate, svc: Svc, tenant_id: Tenant) -> ProjectO
 
 
 @router.get("/projects", response_model=list[ProjectOut])
-def list_projects(svc: Svc, tenant_id: Tenant) -> list[ProjectOut]:
-    return [ProjectOut.model_validate(p, from_attributes=True) for p in svc.list_projects(tenant_id)]
+def list_projects(
+    request: Request,
+    response: Response,
+    svc: Svc,
+    tenant_id: Tenant,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET, description="projects to skip")] = 0,
+    limit: Annotated[
+        int,
+        Query(
+            ge=1,
+            le=PROJECTS.max,
+            description=f"page size (default {PROJECTS.default}); the next page is in the `Link` header",
+        ),
+    ] = PROJECTS.default,
+) -> list[ProjectOut]:
+    """The tenant's projects, oldest first, one page at a time."""
+    page = svc.list_projects(tenant_id, offset, limit)
+    link_next(request, response, page.next_offset, limit)
+    return [ProjectOut.model_validate(p, from_attributes=True) for p in page.items]
 
 
 @router.get("/projects/{project_id}", response_model=ProjectOut)

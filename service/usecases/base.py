@@ -5,22 +5,27 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from geomatch.options import PROJECT_OPTIONS, defaults
 from geomatch_core.config import Settings
-from geomatch_core.errors import InvalidRequest, NotFound, TooLarge
+from geomatch_core.errors import Conflict, InvalidRequest, NotFound, TooLarge
 from geomatch_core.locks import LockFactory
 from geomatch_core.models import Project
 from geomatch_core.queue import JobQueue
 from geomatch_core.storage import Storage
 from geomatch_core.store import MetadataStore
 
+from ..ids import known_id
+from ..ratelimit import RateLimiter
+from ..slots import FairSlots
 from ..validation import ImageInfo, check_image, check_option
 
 # a project's configuration and a match job's options: geomatch.options holds them, with defaults
@@ -76,9 +81,14 @@ class UseCases:
         self.queue = queue
         self.locks = locks
         self.on_upload: Callable[[int, int], object] | None = None  # (new images, bytes): metrics
+        self.rate = RateLimiter(settings.rate_per_s, settings.rate_burst)
+        # the work the API does itself, in the caller's thread (pictures it waits for, exports,
+        # snapshots): bounded, so that one tenant's calls cannot hold every thread of the server
+        self.heavy = FairSlots("heavy calls", settings.heavy_slots, settings.heavy_tenant_slots)
 
     def _project(self, s: Session, tenant_id: str, project_id: str) -> Project:
-        p = s.get(Project, project_id)
+        """The tenant's project: every use case that takes a project id looks it up here."""
+        p = s.get(Project, known_id("project", project_id))
         if p is None or p.tenant_id != tenant_id:
             raise NotFound(f"project {project_id} not found")
         return p
@@ -87,6 +97,23 @@ class UseCases:
         """NotFound unless the tenant has this project."""
         with self.store.session() as s:
             self._project(s, tenant_id, project_id)
+
+    @contextmanager
+    def _unless_deleted(self, tenant_id: str, project_id: str) -> Iterator[None]:
+        """A write to a project that a concurrent delete removes under it: NotFound.
+
+        The project is checked when the write starts, but nothing holds it until the write commits
+        (SQLite has no row locks, and a lock on PostgreSQL's row would make every delete wait for
+        uploads), so the delete may win in between. The write then trips on what the delete took
+        away: the foreign key of the row it inserts (IntegrityError), the images it counted (none
+        left: InvalidRequest), the succeeded match it needs (Conflict) or the folder it moves files
+        into (OSError). If the project is gone by then, that is the answer; otherwise the error was
+        the write's own and goes out as it is."""
+        try:
+            yield
+        except (IntegrityError, InvalidRequest, Conflict, OSError):
+            self._owned(tenant_id, project_id)
+            raise
 
     def _stage(self, name: str, stream: BinaryIO) -> Staged:
         fd, tmp = self.storage.temp_file()

@@ -7,14 +7,23 @@ import os
 from collections.abc import Iterable
 from pathlib import Path
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
 
 from geomatch.options import CAPTURES
-from geomatch_core.errors import BadFile, Conflict, InsufficientStorage, InvalidRequest, NotFound
-from geomatch_core.models import Image
+from geomatch_core.errors import (
+    BadFile,
+    Conflict,
+    InsufficientStorage,
+    InvalidRequest,
+    NotFound,
+    QuotaExceeded,
+)
+from geomatch_core.models import Image, Project
 
+from ..ids import known_name
+from ..paging import IMAGES, Page, page_of
 from ..validation import check_name
 from .base import Staged, UseCases, choice
 from .views import ImageView, Upload, image_view
@@ -42,6 +51,16 @@ class ImageUseCases(UseCases):
         capture = choice("capture", capture, CAPTURES)
         if not uploads:
             raise InvalidRequest("no files: send one or more multipart fields named 'files'")
+        with self._unless_deleted(tenant_id, project_id):
+            views = self._store(tenant_id, project_id, uploads, capture)
+        new = [v for v in views if v.created]
+        if self.on_upload is not None and new:
+            self.on_upload(len(new), sum(v.size_bytes for v in new))
+        return views
+
+    def _store(
+        self, tenant_id: str, project_id: str, uploads: Iterable[Upload], capture: str
+    ) -> list[ImageView]:
         with self.store.session() as s:
             self._project(s, tenant_id, project_id)
         staged: list[Staged] = []
@@ -61,8 +80,10 @@ class ImageUseCases(UseCases):
             try:
                 with self.store.session() as s:
                     self._project(s, tenant_id, project_id)
-                    views = self._register(s, project_id, staged, capture, moved)
-            except IntegrityError:  # a concurrent upload took a name or the bytes first
+                    views = self._register(s, tenant_id, project_id, staged, capture, moved)
+            # a concurrent upload took a name or the bytes first (or a delete took the project:
+            # upload_images answers NotFound for that)
+            except IntegrityError:
                 raise Conflict(
                     "another upload of the same name or bytes was committed concurrently; retry"
                 ) from None
@@ -83,13 +104,16 @@ class ImageUseCases(UseCases):
         finally:
             for st in staged:
                 st.path.unlink(missing_ok=True)
-        new = [v for v in views if v.created]
-        if self.on_upload is not None and new:
-            self.on_upload(len(new), sum(v.size_bytes for v in new))
         return views
 
     def _register(
-        self, s: Session, project_id: str, staged: list[Staged], capture: str, moved: list[Path]
+        self,
+        s: Session,
+        tenant_id: str,
+        project_id: str,
+        staged: list[Staged],
+        capture: str,
+        moved: list[Path],
     ) -> list[ImageView]:
         shas = [st.sha256 for st in staged]
         names = [st.name for st in staged]
@@ -125,6 +149,7 @@ class ImageUseCases(UseCases):
             by_sha[st.sha256] = img
             new.append((st, img))
             views.append(image_view(img, created=True))
+        self._within_image_quotas(s, tenant_id, [st for st, _ in new])
         s.add_all([img for _, img in new])
         s.flush()
         images_dir = self.storage.images_dir(project_id)
@@ -135,10 +160,34 @@ class ImageUseCases(UseCases):
             moved.append(dest)
         return [image_view(by_sha[v.sha256], created=v.created) for v in views]
 
+    def _within_image_quotas(self, s: Session, tenant_id: str, new: list[Staged]) -> None:
+        """QuotaExceeded when the new images would take the tenant past ``quota_images`` or
+        ``quota_bytes`` (all its projects together); the request then stores nothing."""
+        n_quota, bytes_quota = self.settings.quota_images, self.settings.quota_bytes
+        if not new or not (n_quota or bytes_quota):
+            return
+        n, size = s.execute(
+            select(func.count(Image.id), func.coalesce(func.sum(Image.size_bytes), 0))
+            .join(Project, Project.id == Image.project_id)
+            .where(Project.tenant_id == tenant_id)
+        ).one()
+        if n_quota and n + len(new) > n_quota:
+            raise QuotaExceeded(
+                f"this key's tenant has {n} images, its quota is {n_quota}: these {len(new)} would "
+                "pass it (delete a project to make room)"
+            )
+        added = sum(st.size for st in new)
+        if bytes_quota and size + added > bytes_quota:
+            raise QuotaExceeded(
+                f"this key's tenant stores {size} bytes of images, its quota is {bytes_quota}: "
+                f"these {added} would pass it (delete a project to make room)"
+            )
+
     def image_file(self, tenant_id: str, project_id: str, name: str) -> tuple[Path, str]:
         """An uploaded image's bytes and media type, for a browser to show it (thumbnails)."""
         with self.store.session() as s:
             self._project(s, tenant_id, project_id)
+            name = known_name(project_id, name)
             img = s.scalar(select(Image).where(Image.project_id == project_id, Image.name == name))
             if img is None:
                 raise NotFound(f"image {name!r} not found in project {project_id}")
@@ -148,8 +197,18 @@ class ImageUseCases(UseCases):
             raise NotFound(f"image {name!r} not found in project {project_id}")
         return path, IMAGE_MEDIA.get(fmt, "application/octet-stream")
 
-    def list_images(self, tenant_id: str, project_id: str) -> list[ImageView]:
+    def list_images(
+        self, tenant_id: str, project_id: str, offset: int = 0, limit: int | None = None
+    ) -> Page[ImageView]:
+        """One page of the project's images by name (``paging.IMAGES``: its sizes)."""
+        limit = IMAGES.clamp(limit)
         with self.store.session() as s:
             self._project(s, tenant_id, project_id)
-            rows = s.scalars(select(Image).where(Image.project_id == project_id).order_by(Image.name)).all()
-            return [image_view(i) for i in rows]
+            rows = s.scalars(
+                select(Image)
+                .where(Image.project_id == project_id)
+                .order_by(Image.name)
+                .offset(offset)
+                .limit(limit + 1)
+            ).all()
+            return page_of([image_view(i) for i in rows], offset, limit)

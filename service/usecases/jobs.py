@@ -16,6 +16,7 @@ from geomatch_core.errors import Conflict, InvalidRequest, NotFound, Unavailable
 from geomatch_core.models import Image, Job
 from geomatch_core.queue import ENTRY_STEP
 
+from ..ids import known_id
 from ..validation import check_option, check_pair_list
 from .base import DEFAULTS, UseCases, check_config
 from .views import JobView, MatchRequest, job_view
@@ -25,7 +26,7 @@ class JobUseCases(UseCases):
     def start_match(
         self, tenant_id: str, project_id: str, req: MatchRequest
     ) -> tuple[JobView, JobView | None]:
-        with self.store.session() as s:
+        with self._unless_deleted(tenant_id, project_id), self.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             names = set(s.scalars(select(Image.name).where(Image.project_id == project_id)))
             if len(names) < 2:
@@ -44,7 +45,7 @@ class JobUseCases(UseCases):
         return views
 
     def start_reconstruct(self, tenant_id: str, project_id: str, mapper: str | None = None) -> JobView:
-        with self.store.session() as s:
+        with self._unless_deleted(tenant_id, project_id), self.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             mapper = check_option("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"])
             matched = s.scalar(
@@ -69,8 +70,9 @@ class JobUseCases(UseCases):
             raise Unavailable(f"the job queue is not reachable ({e}); the job was not started") from None
 
     def get_job(self, tenant_id: str, job_id: str) -> JobView:
+        """Every use case that takes a job id (cancel, watch) looks it up here."""
         with self.store.session() as s:
-            job = s.get(Job, job_id)
+            job = s.get(Job, known_id("job", job_id))
             if job is None or job.tenant_id != tenant_id:
                 raise NotFound(f"job {job_id} not found")
             return job_view(job)

@@ -19,6 +19,7 @@ from geomatch_core.errors import InvalidRequest, NotFound, Unavailable
 from geomatch_core.models import Image
 from geomatch_core.queue import RENDER_PAIR
 
+from ..ids import known_name
 from ..modelscene import read_scene
 from ..pairlist import PairView, read_pairs
 from .base import UseCases
@@ -61,7 +62,7 @@ class OutputUseCases(UseCases):
             raise InvalidRequest(f"format must be one of {', '.join(model_formats())}, not {fmt!r}")
         self._owned(tenant_id, project_id)
         if fmt not in files:
-            return self._model_export(project_id, fmt)
+            return self._model_export(tenant_id, project_id, fmt)
         path = self.storage.model_dir(project_id) / files[fmt]
         if not path.is_file():
             if not (self.storage.model_dir(project_id) / "summary.json").is_file():
@@ -69,7 +70,7 @@ class OutputUseCases(UseCases):
             raise NotFound(f"the model of project {project_id} has no {fmt} (no 3D points)")
         return path
 
-    def _model_export(self, project_id: str, fmt: str) -> Path:
+    def _model_export(self, tenant_id: str, project_id: str, fmt: str) -> Path:
         """The model exported as ``fmt`` (geomatch.export), zipped, built once and kept.
 
         The zip lives inside the model folder, under a key of that model's summary.json: a
@@ -78,7 +79,8 @@ class OutputUseCases(UseCases):
         key, which the new summary never asks for. The zip is written beside and renamed (in
         ``export_zip``), so a concurrent request sees it whole or not at all. A format that reads
         the database (hloc) reads a snapshot of the project's (keypoints and verified matches as
-        of the first request for this model).
+        of the first request for this model). Building one is heavy work: it takes one of the
+        tenant's ``heavy`` slots.
         """
         from geomatch.export import ExportError, export_zip, model_dir, open_run
 
@@ -94,12 +96,13 @@ class OutputUseCases(UseCases):
             return path
         snapshot = None
         try:
-            if DATABASE in FORMATS[fmt].needs:
-                fd, snapshot = self.storage.temp_file()
-                os.close(fd)
-                snapshot_sqlite(self.storage.database_path(project_id), snapshot)
-            source = open_run(model, images=self.storage.images_dir(project_id), database=snapshot)
-            return export_zip(source, fmt, path)
+            with self.heavy.open(tenant_id):
+                if DATABASE in FORMATS[fmt].needs:
+                    fd, snapshot = self.storage.temp_file()
+                    os.close(fd)
+                    snapshot_sqlite(self.storage.database_path(project_id), snapshot)
+                source = open_run(model, images=self.storage.images_dir(project_id), database=snapshot)
+                return export_zip(source, fmt, path)
         except ExportError as e:  # the model folder lacks an input (the images were deleted ...)
             raise NotFound(f"project {project_id}: {e}") from None
         finally:
@@ -109,7 +112,8 @@ class OutputUseCases(UseCases):
     def model_scene(self, tenant_id: str, project_id: str) -> dict[str, Any]:
         """Points with colours and posed cameras of the largest model, for a 3D viewer."""
         self._owned(tenant_id, project_id)
-        return read_scene(self.storage.model_dir(project_id))
+        with self.heavy.open(tenant_id):  # parses every point of the model's text files
+            return read_scene(self.storage.model_dir(project_id))
 
     def list_pairs(self, tenant_id: str, project_id: str) -> list[PairView]:
         """The project's matched pairs and their counts (none before the first match job)."""
@@ -128,7 +132,8 @@ class OutputUseCases(UseCases):
         fd, tmp = self.storage.temp_file()
         os.close(fd)
         try:
-            snapshot_sqlite(src, tmp)
+            with self.heavy.open(tenant_id):
+                snapshot_sqlite(src, tmp)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
@@ -137,6 +142,7 @@ class OutputUseCases(UseCases):
     def matches_picture(self, tenant_id: str, project_id: str, name0: str, name1: str) -> Path:
         with self.store.session() as s:
             self._project(s, tenant_id, project_id)
+            name0, name1 = known_name(project_id, name0), known_name(project_id, name1)
             known = set(
                 s.scalars(
                     select(Image.name).where(Image.project_id == project_id, Image.name.in_([name0, name1]))
@@ -150,10 +156,13 @@ class OutputUseCases(UseCases):
         path = self.storage.picture_path(project_id, name0, name1)
         if path.is_file():
             return path
+        # waiting for a worker holds a thread of the API for up to render_timeout_s: a heavy slot.
+        # Without one, 45 waiting pictures of one tenant took every thread, /healthz included
         try:
-            out = self.queue.call(
-                RENDER_PAIR, project_id, name0, name1, timeout=self.settings.render_timeout_s
-            )
+            with self.heavy.open(tenant_id):
+                out = self.queue.call(
+                    RENDER_PAIR, project_id, name0, name1, timeout=self.settings.render_timeout_s
+                )
         except TimeoutError:
             raise Unavailable(
                 f"no worker drew the picture within {self.settings.render_timeout_s}s; retry later"

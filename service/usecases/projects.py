@@ -8,9 +8,10 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
 from geomatch_core import jobstate
-from geomatch_core.errors import InvalidRequest, NotFound
+from geomatch_core.errors import InvalidRequest, NotFound, QuotaExceeded
 from geomatch_core.models import Image, Job, Project
 
+from ..paging import PROJECTS, Page, page_of
 from ..validation import check_project_name
 from .base import UseCases, check_config
 from .views import ProjectView
@@ -25,17 +26,36 @@ class ProjectUseCases(UseCases):
                 "a project's default pairs is a spec (exhaustive, sequential:K, retrieval:K)"
             )
         with self.store.session() as s:
+            self._within_project_quota(s, tenant_id)
             p = Project(tenant_id=tenant_id, name=name, config=cfg)
             s.add(p)
             s.flush()
             return self._project_view(s, p)
 
-    def list_projects(self, tenant_id: str) -> list[ProjectView]:
+    def _within_project_quota(self, s: Session, tenant_id: str) -> None:
+        """QuotaExceeded at ``quota_projects``. Checked in the creating transaction, not locked:
+        concurrent creates may pass it by a few, which a quota against slow exhaustion allows."""
+        quota = self.settings.quota_projects
+        if not quota:
+            return
+        n = s.scalar(select(func.count()).select_from(Project).where(Project.tenant_id == tenant_id)) or 0
+        if n >= quota:
+            raise QuotaExceeded(
+                f"this key's tenant has {n} projects, its quota is {quota}: delete one to create another"
+            )
+
+    def list_projects(self, tenant_id: str, offset: int = 0, limit: int | None = None) -> Page[ProjectView]:
+        """One page of the tenant's projects, oldest first (``paging.PROJECTS``: its sizes)."""
+        limit = PROJECTS.clamp(limit)
         with self.store.session() as s:
             rows = s.scalars(
-                select(Project).where(Project.tenant_id == tenant_id).order_by(Project.created_at)
+                select(Project)
+                .where(Project.tenant_id == tenant_id)
+                .order_by(Project.created_at, Project.id)
+                .offset(offset)
+                .limit(limit + 1)
             ).all()
-            return [self._project_view(s, p) for p in rows]
+            return page_of([self._project_view(s, p) for p in rows], offset, limit)
 
     def get_project(self, tenant_id: str, project_id: str) -> ProjectView:
         with self.store.session() as s:

@@ -59,6 +59,24 @@ class GrpcDeployment(Deployment):
                 time.sleep(0.3)
         raise RuntimeError(f"the gRPC server is not SERVING after {timeout}s:\n{self.logs()}")
 
+    def start_worker(self, timeout: float = 120.0) -> subprocess.Popen[bytes]:
+        """Returned once the gRPC server's health counts it too (it checks every few seconds)."""
+        w = super().start_worker(timeout)
+        if self.target:
+            deadline = time.monotonic() + timeout
+            with grpc.insecure_channel(self.target) as ch:
+                stub = health_pb2_grpc.HealthStub(ch)
+                while time.monotonic() < deadline:
+                    with contextlib.suppress(grpc.RpcError):
+                        r = stub.Check(
+                            health_pb2.HealthCheckRequest(service="geomatch.v1.Matching"), timeout=2
+                        )
+                        if r.status == health_pb2.HealthCheckResponse.SERVING:
+                            return w
+                    time.sleep(0.3)
+            raise RuntimeError(f"geomatch.v1.Matching not SERVING after {timeout}s:\n{self.logs()}")
+        return w
+
     def grpc_client(self, key: str | None, timeout: float = 120.0) -> GrpcClient:
         return GrpcClient(self.target, key, timeout=timeout)
 

@@ -84,17 +84,36 @@ class Deployment:
         while time.monotonic() < deadline:
             if self.server.poll() is not None:
                 raise RuntimeError(f"geomatch serve exited with {self.server.returncode}:\n{self.logs()}")
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+            with contextlib.suppress(httpx.HTTPError, ValueError):
+                if serving(httpx.get(f"{self.url}/readyz", timeout=2).json()):
                     self.server_out = (self.root / "server.log").read_text()
                     return self.url
             time.sleep(0.3)
         raise RuntimeError(f"geomatch serve not ready after {timeout}s:\n{self.logs()}")
 
-    def start_worker(self) -> subprocess.Popen[bytes]:
+    def start_worker(self, timeout: float = 120.0) -> subprocess.Popen[bytes]:
+        """A `geomatch worker`, returned once it takes work (it beats: readiness counts it)."""
+        before = self.live_workers()
         w = self.spawn(["worker", "--concurrency", "1"], f"worker-{len(self.workers)}.log")
         self.workers.append(w)
+        deadline = time.monotonic() + timeout
+        while len(self.live_workers() - before) < 1:
+            if w.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"geomatch worker not alive after {timeout}s:\n{self.logs()}")
+            time.sleep(0.3)
         return w
+
+    def live_workers(self) -> set[str]:
+        """Ids of this deployment's workers heard from within their lease (Redis mode)."""
+        if not self.redis_url:
+            return set()
+        import redis
+
+        from geomatch_core.config import Settings
+        from workers.liveness import Registry
+
+        lease = int(self.env.get("GEOMATCH_WORKER_LEASE") or Settings.worker_lease_s)
+        return Registry(redis.Redis.from_url(self.redis_url), self.prefix, lease).alive()
 
     @staticmethod
     def kill(proc: subprocess.Popen[bytes], sig: int = signal.SIGKILL) -> None:
@@ -197,6 +216,13 @@ def ground_match_under_kill(
         yield KillSetup(d, worker, key, c, pid, job_id)
     finally:
         d.stop()
+
+
+def serving(readiness: dict[str, Any]) -> bool:
+    """/readyz's answer says the server's own parts answer: every check but the workers' ok (a
+    server in queue mode is not ready until a worker beats, and tests start workers after it)."""
+    checks = readiness.get("checks", {})
+    return bool(checks) and all(v == "ok" for k, v in checks.items() if k not in ("mode", "workers"))
 
 
 def wait_job(c: httpx.Client, job_id: str, timeout: float = 600.0, until: Any = None) -> dict[str, Any]:

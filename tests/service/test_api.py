@@ -31,6 +31,26 @@ def png_header_bomb(width: int = 50_000, height: int = 50_000) -> bytes:
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
 
 
+def bmp_header(width: int, height: int, bits: int, compression: int = 0, data_size: int = 0) -> bytes:
+    """A BITMAPFILEHEADER + BITMAPINFOHEADER (with a grey palette below 16 bits a pixel)."""
+    colours = 1 << bits if bits <= 8 else 0
+    offset = 14 + 40 + 4 * colours
+    row = (width * bits + 31) // 32 * 4
+    total = offset + (data_size or row * height)
+    dpm = 2835  # 72 dpi in pixels a metre
+    fields = (40, width, height, 1, bits, compression, data_size, dpm, dpm, colours, 0)
+    info = struct.pack("<IiiHHIIiiII", *fields)
+    palette = b"".join(bytes((i, i, i, 0)) for i in range(colours))
+    return b"BM" + struct.pack("<IHHI", total, 0, 0, offset) + info + palette
+
+
+def big_bmp_cut_short() -> bytes:
+    """The header of a 4000x3000 24-bit BMP and 1000 bytes in all: its bitmap (48 MB to Pillow)
+    is past the decode budget, so only the promised size can find it short."""
+    head = bmp_header(4000, 3000, 24)
+    return head + b"\0" * (1000 - len(head))
+
+
 def gif_bytes() -> bytes:
     buf = io.BytesIO()
     Image.new("RGB", (64, 64), (200, 10, 10)).save(buf, format="GIF")
@@ -118,6 +138,7 @@ def bad_files(scene: Path) -> list[tuple[str, str, bytes, int, str]]:
     return [
         ("not an image", "notes.png", b"this is not an image, just text\n" * 10, 400, "not a readable image"),
         ("truncated", "cut.png", png[: len(png) // 2], 400, "truncated"),
+        ("truncated bmp", "cut.bmp", big_bmp_cut_short(), 400, "truncated file: 1000 bytes"),
         ("zero bytes", "empty.png", b"", 400, "empty file"),
         ("decompression bomb", "bomb.png", png_header_bomb(), 413, "exceeds the limit"),
         ("over the byte limit", "huge.png", png + b"\0" * (2 * 1024 * 1024), 413, "upload limit"),
@@ -133,6 +154,7 @@ def bad_files(scene: Path) -> list[tuple[str, str, bytes, int, str]]:
 BAD_FILES = [
     "not an image",
     "truncated",
+    "truncated bmp",
     "zero bytes",
     "decompression bomb",
     "over the byte limit",
@@ -295,7 +317,7 @@ def test_health_metrics_and_docs(deployment: Deployment) -> None:
     ready = c.get("/readyz").json()
     assert ready == {
         "ready": True,
-        "checks": {"database": "ok", "queue": "ok", "storage": "ok", "mode": "redis"},
+        "checks": {"database": "ok", "queue": "ok", "storage": "ok", "mode": "redis", "workers": "ok"},
     }
     metrics = c.get("/metrics").text
     assert 'geomatch_http_requests_total{method="GET",route="/healthz",status="200"}' in metrics

@@ -483,6 +483,7 @@ def test_another_tenants_project_and_jobs_are_not_found(
 GRPC_STATUS = {
     "not an image": grpc.StatusCode.INVALID_ARGUMENT,
     "truncated": grpc.StatusCode.INVALID_ARGUMENT,
+    "truncated bmp": grpc.StatusCode.INVALID_ARGUMENT,
     "zero bytes": grpc.StatusCode.INVALID_ARGUMENT,
     "decompression bomb": grpc.StatusCode.INVALID_ARGUMENT,
     "over the byte limit": grpc.StatusCode.RESOURCE_EXHAUSTED,

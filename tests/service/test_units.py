@@ -20,12 +20,13 @@ from geomatch import steps
 from geomatch.sfm.pairs import PairSpecError, parse_plan
 from geomatch.synth.photos import WarpedPair
 from geomatch_core import jobstate
-from geomatch_core.errors import BadFile, InvalidRequest
-from geomatch_core.models import Job, JobPair, Project, Tenant
+from geomatch_core.errors import BadFile, InvalidRequest, NotFound
+from geomatch_core.models import Job, JobPair, Project, Tenant, new_id
 from geomatch_core.store import MetadataStore
-from service import validation
+from service import ids, validation
 
 from ..loaded_modules import loaded_after
+from .test_api import big_bmp_cut_short, bmp_header
 
 
 @pytest.mark.unit
@@ -116,6 +117,22 @@ def png(ihdr: bytes, raw: bytes) -> bytes:
 
 
 @pytest.mark.unit
+def test_ids_the_service_makes_are_known_and_no_other_shape_is() -> None:
+    made = new_id()
+    assert ids.known_id("project", made) == made
+    for bad in ["", "\x00", made[:-1] + "\x00", made.upper(), made + "0", made[:-1], "../" + made[3:]]:
+        with pytest.raises(NotFound, match=r"^job "):
+            ids.known_id("job", bad)
+    with pytest.raises(NotFound) as e:
+        ids.known_id("project", "\x00" * 10_000)
+    assert len(e.value.message) < 120 and "\\x00" in e.value.message  # escaped, cut short
+    assert ids.known_name(made, "a.png") == "a.png"
+    for bad in ["a\x00.png", "../a.png", "x" * 201, ""]:
+        with pytest.raises(NotFound, match="not found in project"):
+            ids.known_name(made, bad)
+
+
+@pytest.mark.unit
 def test_png_check_takes_every_kind_of_png_and_refuses_damage(tmp_path: Path) -> None:
     """The upload check streams a PNG's data instead of decoding it: it must agree with Pillow on
     what a whole PNG is (bit depths, palettes, interlacing) and still find damage."""
@@ -149,6 +166,42 @@ def test_png_check_takes_every_kind_of_png_and_refuses_damage(tmp_path: Path) ->
         with pytest.raises(BadFile, match="truncated or corrupt image data") as e:
             validation.check_image(path, "x.png", 10**9)
         assert message in e.value.message, (label, e.value.message)
+
+
+@pytest.mark.unit
+def test_bmp_tiff_and_webp_checks_find_missing_data_past_the_decode_budget(tmp_path: Path) -> None:
+    """Past DECODE_BUDGET the upload check does not decode, so the data a BMP's or a TIFF's
+    header promises is measured against the file instead; a cut WebP fails in libwebp's demuxer
+    when Pillow opens it. Whole files of each kind still pass."""
+    rng = np.random.default_rng(1)
+    big = PILImage.fromarray((rng.random((3000, 4000, 3)) * 255).astype(np.uint8))
+    path = tmp_path / "x"
+    rle = b"".join(bytes((32, y * 8)) + b"\0\0" for y in range(16)) + b"\0\1"  # 32x16, RLE8 rows
+    whole_rle = bmp_header(32, 16, 8, compression=1, data_size=len(rle)) + rle
+    path.write_bytes(whole_rle)
+    assert validation.check_image(path, "x.bmp", 10**9) == validation.ImageInfo(32, 16, "bmp")
+    with PILImage.open(path) as im:  # the RLE rows decoded as written (bottom-up)
+        assert np.asarray(im)[:, 0].tolist() == [y * 8 for y in range(15, -1, -1)]
+    whole = {}
+    for fmt in ("BMP", "TIFF", "WEBP"):
+        big.save(path, fmt, **({"quality": 10} if fmt == "WEBP" else {}))
+        assert validation.check_image(path, f"x.{fmt.lower()}", 10**9).width == 4000, fmt
+        whole[fmt] = path.read_bytes()
+    bmp, tiff, webp = whole["BMP"], whole["TIFF"], whole["WEBP"]
+    rle_head = bmp_header(4000, 3000, 8, compression=1, data_size=100_000)
+    rle_unsized = bmp_header(4000, 3000, 8, compression=1)
+    for label, name, data, message in [
+        ("bmp header only", "x.bmp", big_bmp_cut_short(), "1000 bytes, the header promises 36000054"),
+        ("bmp cut in half", "x.bmp", bmp[: len(bmp) // 2], "the header promises"),
+        ("rle bmp cut", "x.bmp", rle_head + b"\0" * 100, "the header promises"),
+        ("rle bmp without a size", "x.bmp", rle_unsized + b"\0" * 100, "without its data size"),
+        ("tiff cut in half", "x.tiff", tiff[: len(tiff) // 2], "the strips reach byte"),
+        ("webp cut in half", "x.webp", webp[: len(webp) // 2], "could not create decoder"),
+    ]:
+        path.write_bytes(data)
+        with pytest.raises(BadFile) as e:
+            validation.check_image(path, name, 10**9)
+        assert message in e.value.message and str(path) not in e.value.message, (label, e.value.message)
 
 
 @pytest.mark.unit

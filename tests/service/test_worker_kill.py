@@ -2,7 +2,8 @@
 
 Its own deployment (server, queue and Redis prefix) so no other worker picks the job up. The
 visibility timeout is short (15 s) so that Redis hands the dead worker's unacknowledged steps to
-the new worker quickly; the lock timeout likewise, in case the kill lands inside a write.
+the new worker quickly; the lock timeout likewise, in case the kill lands inside a write. With no
+worker left, /readyz answers 503 once the dead worker's lease (30 s) has lapsed.
 """
 
 from __future__ import annotations
@@ -34,7 +35,15 @@ def test_killed_worker_loses_nothing_and_writes_nothing_twice(
         stalled = c.get(f"/v1/jobs/{job_id}").json()
         assert stalled["state"] == "running" and stalled["progress"] == job["progress"]  # nobody works
 
+        # with no worker left, readiness says so once the dead one's lease has lapsed
+        deadline = time.monotonic() + 120
+        while (ready := c.get("/readyz")).status_code == 200 and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert ready.status_code == 503, ready.text
+        assert ready.json()["checks"]["workers"].startswith("error: no worker heard from"), ready.text
+
         d.start_worker()
+        assert c.get("/readyz").status_code == 200  # start_worker returns once the worker beats
         job = wait_job(c, job_id, timeout=400)
         assert job["state"] == "succeeded", (job, d.logs())
         assert job["progress"] == {"done": 6, "total": 6}
