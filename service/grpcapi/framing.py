@@ -59,13 +59,34 @@ class Messages:
         self._pending.append(msg)
 
 
+class Budget:
+    """What one upload stream may carry over all its images (``GEOMATCH_MAX_REQUEST_MB``, the
+    limit a multipart request has over all its files): without it, a stream of files each under
+    the per-file limit could fill the staging disk."""
+
+    def __init__(self, limit: int | None) -> None:
+        self.limit = limit
+        self.used = 0
+
+    def take(self, n: int, name: str) -> None:
+        self.used += n
+        if self.limit is not None and self.used > self.limit:
+            raise TooLarge(
+                f"{name}: the stream's images pass the limit of {self.limit // (1024 * 1024)} MiB "
+                "for one upload together; send them in several calls"
+            )
+
+
 class ChunkReader(io.RawIOBase):
     """The bytes of one image: chunk messages up to the next header or the end of the stream."""
 
-    def __init__(self, messages: Messages, name: str, declared: int | None) -> None:
+    def __init__(
+        self, messages: Messages, name: str, declared: int | None, budget: Budget | None = None
+    ) -> None:
         self._messages = messages
         self._name = name or "an image"
         self._declared = declared
+        self._budget = budget or Budget(None)
         self._buf = memoryview(b"")
         self._received = 0
         self._done = False
@@ -92,6 +113,7 @@ class ChunkReader(io.RawIOBase):
                     f"{self._name}: a chunk of {len(msg.chunk)} bytes; chunks are at most {MAX_CHUNK} bytes"
                 )
             self._received += len(msg.chunk)
+            self._budget.take(len(msg.chunk), self._name)
             if self._declared is not None and self._received > self._declared:
                 raise BadFile(f"{self._name}: more bytes than the {self._declared} declared")
             self._buf = memoryview(msg.chunk)
@@ -104,8 +126,12 @@ class ChunkReader(io.RawIOBase):
             pass
 
 
-def images(messages: Messages, max_bytes: int, project_id: str = "") -> Iterator[Upload]:
-    """The images of the stream, in order; each must be read to its end before the next."""
+def images(
+    messages: Messages, max_bytes: int, project_id: str = "", max_total: int | None = None
+) -> Iterator[Upload]:
+    """The images of the stream, in order; each must be read to its end before the next.
+    ``max_bytes`` bounds each image, ``max_total`` all of them together."""
+    budget = Budget(max_total)
     while (msg := messages.next()) is not None:
         part = msg.WhichOneof("part")
         if part != "image":
@@ -126,7 +152,7 @@ def images(messages: Messages, max_bytes: int, project_id: str = "") -> Iterator
             )
         if header.capture not in CAPTURES:
             raise InvalidRequest(f"{header.name}: unknown capture {header.capture}")
-        reader = ChunkReader(messages, header.name, declared)
+        reader = ChunkReader(messages, header.name, declared, budget)
         # a RawIOBase with the read() the use case calls: typing.BinaryIO is nominal, no io class is one
         yield Upload(header.name, reader, CAPTURES[header.capture])  # type: ignore[arg-type]
         reader.drain()  # the use case read it all, unless it stopped early (then it raised)

@@ -73,7 +73,10 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
                 raise InvalidRequest("the first message of UploadImages must carry project_id")
             if first.WhichOneof("part") is not None:  # else a message that only names the project
                 messages.push_back(first)
-            uploads = images(messages, self.service.settings.max_upload_bytes, first.project_id)
+            settings = self.service.settings
+            uploads = images(
+                messages, settings.max_upload_bytes, first.project_id, settings.max_request_bytes
+            )
             views = self.service.upload_images(tenant_id, first.project_id, uploads)
         return pb2.UploadImagesResponse(images=[convert.image(v) for v in views])
 

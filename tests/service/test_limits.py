@@ -262,6 +262,34 @@ def test_a_valid_key_over_a_limit_gets_413_early(dep: GrpcDeployment, key: str, 
         assert c.post(f"/v1/projects/{project}/images", files=files).status_code == 201
 
 
+def test_a_grpc_upload_stream_is_bounded_over_all_its_images(
+    dep: GrpcDeployment, key: str, tmp_path: Path
+) -> None:
+    """Five images of 1.9 MiB, each under the 2 MiB file limit, 9.5 MiB together in one stream
+    against the 8 MiB request limit: RESOURCE_EXHAUSTED naming the limit, and none of them stored
+    (the multipart route's six files of 1.9 MiB get 413 the same way, above)."""
+    side = 800  # noise does not compress: 800 x 800 RGB is a 1.9 MiB PNG
+    paths = []
+    for i in range(5):
+        path = tmp_path / f"big{i}.png"
+        path.write_bytes(png(200 + i, side))
+        assert 1.8 * MiB < path.stat().st_size < 2 * MiB
+        paths.append(path)
+    g = dep.grpc_client(key)
+    try:
+        pid = g.create_project("stream-total").id
+        with pytest.raises(grpc.RpcError) as caught:
+            g.upload(pid, [ImageSource.of(p) for p in paths])
+        assert caught.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED, caught.value.details()
+        assert "8 MiB for one upload together" in (caught.value.details() or "")
+        assert list(g.list_images(pid)) == []
+        # the same images in two calls are two uploads under the limit
+        assert len(g.upload(pid, [ImageSource.of(p) for p in paths[:3]])) == 3
+        assert len(g.upload(pid, [ImageSource.of(p) for p in paths[3:]])) == 2
+    finally:
+        g.close()
+
+
 # -- pagination ----------------------------------------------------------------------------------
 def test_lists_come_in_pages(dep: GrpcDeployment) -> None:
     """REST: ?limit and ?offset, the next page in Link; gRPC: page_size and page_token."""
