@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import redis
 
 GEOMATCH = [sys.executable, "-m", "geomatch_app"]  # the `geomatch` command (geomatch_app.cli:main)
 TERMINAL = ("succeeded", "failed", "cancelled")
@@ -365,3 +366,27 @@ class PrivatePostgres:
         with contextlib.suppress(RuntimeError):
             self.stop("immediate")
         shutil.rmtree(self.root, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def reconstruct_held_mid_job(
+    d: Deployment, c: httpx.Client, r: redis.Redis, project_id: str
+) -> Iterator[str]:
+    """A reconstruct job of ``project_id``, held mid-job while the block runs (its id is yielded).
+
+    A small model maps in well under a poll, so the project's writer lock (the Redis lock workers
+    use) is held here: the worker opens its work folder, then waits for the lock to snapshot the
+    database, so a worker killed in the block dies deterministically mid-job. It waits for the
+    folder's owner lock, not only the folder: a folder killed before its lock file exists is left
+    for remove_stale_work's grace period (it may be still being created)."""
+    from geomatch_core.locks import RedisLocks
+
+    project = d.home / "projects" / project_id
+    with RedisLocks(r, d.prefix, timeout_s=300).project(project_id):
+        rec = c.post(f"/v1/projects/{project_id}/reconstruct").json()["job_id"]
+        wait_job(c, rec, timeout=120, until=lambda j: j["state"] == "running")
+        deadline = time.monotonic() + 60
+        while not list(project.glob(".work-reconstruct-*/.owner.lock")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert list(project.glob(".work-reconstruct-*/.owner.lock")), d.logs()
+        yield rec

@@ -21,7 +21,6 @@ import httpx
 import pytest
 import redis
 
-from geomatch_core.locks import RedisLocks
 from geomatch_core.storage import disk_usage
 
 from .harness import (
@@ -30,6 +29,7 @@ from .harness import (
     PrivateRedis,
     database_pairs,
     ground_match_under_kill,
+    reconstruct_held_mid_job,
     upload,
     wait_job,
 )
@@ -198,21 +198,9 @@ def test_api_and_worker_killed_around_reconstruct(
             job = wait_job(c, jid, timeout=120)
             assert job["state"] in ("succeeded", "failed"), job
 
-        # a worker dies in the middle of a reconstruction: another one does it again, to the end.
-        # A small model maps in well under a poll interval, so the test holds the project's writer
-        # lock (the real Redis lock workers use): the worker opens its work folder, then waits for
-        # the lock to take its snapshot, and is killed there, deterministically mid-job.
+        # a worker dies in the middle of a reconstruction: another one does it again, to the end
         project = d.home / "projects" / pid
-        held = RedisLocks(redis.Redis.from_url(redis_url), d.prefix, timeout_s=300)
-        with held.project(pid):
-            rec = c.post(f"/v1/projects/{pid}/reconstruct").json()["job_id"]
-            wait_job(c, rec, timeout=120, until=lambda j: j["state"] == "running")
-            # its owner lock, not only the folder: a folder killed before its lock file exists is
-            # left for remove_stale_work's grace period (it may be still being created)
-            deadline = time.monotonic() + 60
-            while not list(project.glob(".work-reconstruct-*/.owner.lock")) and time.monotonic() < deadline:
-                time.sleep(0.05)
-            assert list(project.glob(".work-reconstruct-*/.owner.lock")), d.logs()
+        with reconstruct_held_mid_job(d, c, redis.Redis.from_url(redis_url), pid) as rec:
             Deployment.kill(first)
             assert c.get(f"/v1/jobs/{rec}").json()["state"] == "running"  # killed mid-job, not after
         assert list(project.glob(".work-reconstruct-*"))  # the dead attempt's folder is left

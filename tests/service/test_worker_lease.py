@@ -20,9 +20,7 @@ import pycolmap
 import pytest
 import redis
 
-from geomatch_core.locks import RedisLocks
-
-from .harness import Deployment, database_pairs, upload, wait_job
+from .harness import Deployment, database_pairs, reconstruct_held_mid_job, upload, wait_job
 
 pytestmark = pytest.mark.chaos
 
@@ -115,17 +113,8 @@ def test_busy_worker_killed_mid_reconstruct_the_other_finishes(
         job_id = c.post(f"/v1/projects/{pid}/match", json={"resize": 320}).json()["job_id"]
         assert wait_job(c, job_id, timeout=600)["state"] == "succeeded", d.logs()
 
-        # A small model maps in well under a poll: the test holds the project's writer lock (the
-        # Redis lock workers use), so the worker opens its work folder and waits there for the
-        # lock to snapshot the database; it is killed there, deterministically mid-job.
         project = d.home / "projects" / pid
-        with RedisLocks(r, d.prefix, timeout_s=300).project(pid):
-            rec = c.post(f"/v1/projects/{pid}/reconstruct").json()["job_id"]
-            wait_job(c, rec, timeout=120, until=lambda j: j["state"] == "running")
-            deadline = time.monotonic() + 60
-            while not list(project.glob(".work-reconstruct-*/.owner.lock")) and time.monotonic() < deadline:
-                time.sleep(0.05)
-            assert list(project.glob(".work-reconstruct-*/.owner.lock")), d.logs()
+        with reconstruct_held_mid_job(d, c, r, pid) as rec:
             Deployment.kill(busy_worker(d, r))
             assert c.get(f"/v1/jobs/{rec}").json()["state"] == "running"  # killed mid-job, not after
 
