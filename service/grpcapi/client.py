@@ -231,7 +231,7 @@ class GrpcClient:
         """Every job of the project, newest first, page after page (of one state when given)."""
         out: list[Any] = []
         token = ""
-        req_state = pb2.JobState.Value(f"JOB_STATE_{state.upper()}") if state else pb2.JOB_STATE_UNSPECIFIED
+        req_state = f"JOB_STATE_{state.upper()}" if state else "JOB_STATE_UNSPECIFIED"  # the enum by name
         while True:
             r = self._call(
                 "ListJobs", pb2.ListJobsRequest(project_id=project_id, page_token=token, state=req_state)

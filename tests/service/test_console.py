@@ -258,7 +258,7 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         page.wait_for_selector("#job:not([hidden])")
         page.wait_for_selector("#job[data-kind=match]")
         page.screenshot(path=tmp_path / "matching.png", full_page=True)
-        # a reload picks the jobs up again (remembered for this tab) and follows them to the end
+        # a reload picks the jobs up again (the server lists them) and follows them to the end
         page.reload()
         page.wait_for_selector("#project-view:not([hidden])")
         page.wait_for_selector("#job:not([hidden])")
@@ -413,3 +413,40 @@ def test_cancel_from_the_page(console: Console, scene: Path, tmp_path: Path) -> 
         c = console.d.client(console.key)
         assert c.get(f"/v1/jobs/{job_id}").json()["state"] == "cancelled"
         assert c.get(f"/v1/projects/{pid}").json()["has_model"] is False
+
+
+def test_a_second_tab_sees_the_projects_jobs(console: Console, scene: Path, tmp_path: Path) -> None:
+    """The jobs are the server's, not the tab's: a page in another browser context (its own
+    sessionStorage, as another device) opened on the project lists a job started elsewhere,
+    follows it and can cancel it; the first page sees the cancellation."""
+    with page_of(console) as first, page_of(console) as second:
+        sign_in(first, console)
+        pid = create_project(first, "console two tabs")
+        first.set_input_files(
+            "#file-input", [str(scene / "images" / n) for n in ("aerial_01.png", "ground_03.png")]
+        )
+        wait_until(first, "document.querySelectorAll('#upload-list li[data-state=done]').length === 2")
+        first.fill("#resize", "0")  # full size: still running when the second page looks
+        first.uncheck("#with-reconstruct")
+        first.click("#start-match")
+        first.wait_for_selector("#job[data-kind=match]")
+        job_id = first.evaluate("document.getElementById('job').dataset.id")
+        wait_until(first, f"document.querySelector('#job-rows tr[data-id=\"{job_id}\"]')")
+
+        sign_in(second, console)
+        second.goto(f"{console.d.url}/#/projects/{pid}")
+        second.wait_for_selector("#project-view:not([hidden])")
+        row = f"#job-rows tr[data-id='{job_id}']"
+        second.wait_for_selector(row)
+        assert second.get_attribute(row, "data-kind") == "match"
+        assert second.get_attribute(row, "data-state") in ("queued", "running")
+        assert second.locator("#job-rows tr[data-id]").count() == 1
+        # the open job is followed on this page too, and cancelled from it
+        second.wait_for_selector(f"#job[data-id='{job_id}']")
+        second.screenshot(path=tmp_path / "second-tab.png", full_page=True)
+        second.click("#cancel-job")
+        wait_until(second, "document.getElementById('job').dataset.state === 'cancelled'")
+        wait_until(second, f"document.querySelector(\"{row}\").dataset.state === 'cancelled'")
+        wait_until(first, "document.getElementById('job').dataset.state === 'cancelled'")
+        wait_until(first, f"document.querySelector(\"{row}\").dataset.state === 'cancelled'")
+        assert console.d.client(console.key).get(f"/v1/jobs/{job_id}").json()["state"] == "cancelled"
