@@ -5,7 +5,8 @@ Listing a tenant's 1002 projects answered all of them in one response; now a pag
 ``max`` (``default`` when the client names no size). An offset is enough here: lists are ordered
 by what does not change (creation time, then id; an image's name), so a page boundary moves only
 when items before it are deleted, and then a client sees an item twice or misses one it could not
-have relied on anyway.
+have relied on anyway. A project's jobs come newest first, what a person looks for: a job started
+between two pages moves the boundary by one, and the next page repeats one job.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ class PageSize:
 
 PROJECTS = PageSize(default=100, max=1000)
 IMAGES = PageSize(default=1000, max=1000)  # one page holds a usual project: the console reads one
+JOBS = PageSize(default=100, max=1000)
 
 
 @dataclass(frozen=True)

@@ -227,6 +227,10 @@ class JobOut(BaseModel):
     finished_at: Timestamp | None
 
 
+class JobsOut(BaseModel):
+    jobs: list[JobOut] = Field(description="newest first")
+
+
 class JobAccepted(BaseModel):
     job_id: str
     reconstruct_job_id: str | None = None

@@ -227,6 +227,19 @@ class GrpcClient:
             req.mapper = mapper
         return self._call("SubmitReconstruction", req)
 
+    def list_jobs(self, project_id: str, state: str | None = None) -> list[Any]:
+        """Every job of the project, newest first, page after page (of one state when given)."""
+        out: list[Any] = []
+        token = ""
+        req_state = f"JOB_STATE_{state.upper()}" if state else "JOB_STATE_UNSPECIFIED"  # the enum by name
+        while True:
+            r = self._call(
+                "ListJobs", pb2.ListJobsRequest(project_id=project_id, page_token=token, state=req_state)
+            )
+            out += r.jobs
+            if not (token := r.next_page_token):
+                return out
+
     def get_job(self, job_id: str) -> Any:
         return self._call("GetJob", pb2.GetJobRequest(job_id=job_id))
 

@@ -29,6 +29,7 @@ JOB_STATES = {
     "failed": pb2.JOB_STATE_FAILED,
     "cancelled": pb2.JOB_STATE_CANCELLED,
 }
+JOB_STATE_NAMES = {v: k for k, v in JOB_STATES.items()}
 # the service's own files of a model (geomatch.export.formats' rows name the others); unspecified
 # is the archive
 OWN_FORMATS = {"MODEL_FORMAT_UNSPECIFIED": "zip", "MODEL_FORMAT_ZIP": "zip", "MODEL_FORMAT_JSON": "json"}

@@ -106,6 +106,18 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
         return convert.job(self.service.start_reconstruct(tenant_id, request.project_id, mapper))
 
     @rpc
+    def ListJobs(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        state = convert.JOB_STATE_NAMES.get(request.state) if request.state else None
+        if request.state and state is None:
+            raise InvalidRequest(f"unknown job state {request.state}")
+        page = self.service.list_jobs(
+            tenant_id, request.project_id, offset_of(request.page_token), request.page_size, state
+        )
+        return pb2.ListJobsResponse(
+            jobs=[convert.job(j) for j in page.items], next_page_token=token_of(page.next_offset)
+        )
+
+    @rpc
     def GetJob(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
         return convert.job(self.service.get_job(tenant_id, request.job_id))
 

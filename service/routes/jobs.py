@@ -1,22 +1,24 @@
-"""Jobs: /v1/projects/{id}/match and /reconstruct start them; /v1/jobs/{id} reads, cancels and
-(/events) streams one."""
+"""Jobs: /v1/projects/{id}/match and /reconstruct start them, /v1/projects/{id}/jobs lists them;
+/v1/jobs/{id} reads, cancels and (/events) streams one."""
 
 from __future__ import annotations
 
 import asyncio
 import json
 from collections.abc import AsyncIterator
+from typing import Annotated, Literal
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from geomatch_core.errors import NotFound
 
-from ..schemas import JobAccepted, JobOut, MatchIn, Progress, ReconstructIn
+from ..paging import JOBS
+from ..schemas import JobAccepted, JobOut, JobsOut, MatchIn, Progress, ReconstructIn
 from ..usecases.jobs import JobWatch
 from ..usecases.views import JobView, MatchRequest
-from .deps import Svc, Tenant
+from .deps import MAX_OFFSET, Svc, Tenant, link_next
 
 router = APIRouter(tags=["jobs"])
 EVENTS_POLL_S = 0.5
@@ -40,6 +42,34 @@ def reconstruct(
 ) -> JobAccepted:
     job = svc.start_reconstruct(tenant_id, project_id, body.mapper if body else None)
     return JobAccepted(job_id=job.id)
+
+
+@router.get("/projects/{project_id}/jobs", response_model=JobsOut)
+def list_jobs(
+    project_id: str,
+    request: Request,
+    response: Response,
+    svc: Svc,
+    tenant_id: Tenant,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET, description="jobs to skip")] = 0,
+    limit: Annotated[
+        int,
+        Query(
+            ge=1,
+            le=JOBS.max,
+            description=f"page size (default {JOBS.default}); the next page is in the `Link` header",
+        ),
+    ] = JOBS.default,
+    state: Annotated[
+        Literal["queued", "running", "succeeded", "failed", "cancelled"] | None,
+        Query(description="only the jobs in this state"),
+    ] = None,
+) -> JobsOut:
+    """The project's jobs, newest first, one page at a time: running and past ones, whoever
+    started them."""
+    page = svc.list_jobs(tenant_id, project_id, offset, limit, state)
+    link_next(request, response, page.next_offset, limit)
+    return JobsOut(jobs=[job_out(j) for j in page.items])
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut)

@@ -1,5 +1,5 @@
-"""Jobs: start a match (and the reconstruction it may chain) or a reconstruction, read, cancel
-and watch a job."""
+"""Jobs: start a match (and the reconstruction it may chain) or a reconstruction, list a project's,
+read, cancel and watch a job."""
 
 from __future__ import annotations
 
@@ -13,12 +13,13 @@ from sqlalchemy.orm import Session
 from geomatch.options import PROJECT_OPTIONS
 from geomatch_core import jobstate
 from geomatch_core.errors import Conflict, InvalidRequest, NotFound, Unavailable
-from geomatch_core.models import Image, Job
+from geomatch_core.models import JOB_STATES, Image, Job
 from geomatch_core.queue import ENTRY_STEP
 
 from ..ids import known_id
+from ..paging import JOBS, Page, page_of
 from ..validation import check_option, check_pair_list
-from .base import DEFAULTS, UseCases, check_config
+from .base import DEFAULTS, UseCases, check_config, choice
 from .views import JobView, MatchRequest, job_view
 
 
@@ -76,6 +77,28 @@ class JobUseCases(UseCases):
             if job is None or job.tenant_id != tenant_id:
                 raise NotFound(f"job {job_id} not found")
             return job_view(job)
+
+    def list_jobs(
+        self,
+        tenant_id: str,
+        project_id: str,
+        offset: int = 0,
+        limit: int | None = None,
+        state: str | None = None,
+    ) -> Page[JobView]:
+        """One page of the project's jobs, newest first (``paging.JOBS``: its sizes), of one state
+        when ``state`` is given. The jobs live in the store, not in a client: any tab, device or
+        program that holds a key of the tenant finds the running and past ones here."""
+        limit = JOBS.clamp(limit)
+        with self.store.session() as s:
+            self._project(s, tenant_id, project_id)
+            query = select(Job).where(Job.project_id == project_id, Job.tenant_id == tenant_id)
+            if state is not None:
+                query = query.where(Job.state == choice("state", state, JOB_STATES))
+            rows = s.scalars(
+                query.order_by(Job.created_at.desc(), Job.id.desc()).offset(offset).limit(limit + 1)
+            ).all()
+            return page_of([job_view(j) for j in rows], offset, limit)
 
     def cancel_job(self, tenant_id: str, job_id: str) -> JobView:
         """Idempotent: a finished job is returned as it is."""

@@ -56,6 +56,7 @@ METHODS = {
     "ListImages",
     "SubmitMatching",
     "SubmitReconstruction",
+    "ListJobs",
     "GetJob",
     "WatchJob",
     "CancelJob",

@@ -394,3 +394,16 @@ def test_retry_policy() -> None:
         assert is_permanent(exc), exc
     for exc in (OSError("disk"), ConnectionError("redis"), RuntimeError("out of memory"), TimeoutError()):
         assert not is_permanent(exc), exc
+
+
+@pytest.mark.unit
+def test_the_job_list_filters_by_the_states_jobs_have() -> None:
+    """The REST route's ``state`` choices (its OpenAPI enum) are the store's job states."""
+    import typing
+
+    from geomatch_core.models import JOB_STATES
+    from service.routes.jobs import list_jobs
+
+    hint = typing.get_type_hints(list_jobs, include_extras=True)["state"]
+    literal = typing.get_args(typing.get_args(hint)[0])[0]
+    assert typing.get_args(literal) == JOB_STATES

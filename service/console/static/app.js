@@ -42,6 +42,8 @@ const state = {
   urls: [], // object URLs of the current page, revoked when it is left
   thumbs: new Map(), // image sha256 -> object URL of its bytes, for this visit
   job: null,
+  jobsPolling: false, // the project's job list is being read again while a job is open
+  jobsKick: false, // a job was started meanwhile: read the list at least once more
 };
 
 function objectUrl(blob) {
@@ -57,6 +59,8 @@ function leavePage() {
   state.urls = [];
   state.thumbs = new Map();
   state.job = null;
+  state.jobsPolling = false;
+  state.jobsKick = false;
 }
 
 function show(view) {
@@ -119,6 +123,7 @@ async function openProject(id) {
   document.title = `${p.name} · geomatch`;
   $("upload-list").replaceChildren();
   $("job").hidden = true;
+  $("job-rows").replaceChildren();
   $("match-picture").hidden = true;
   $("match-caption").textContent = "Choose a pair to see its matches (verified red, others blue).";
   $("camera-image").hidden = true;
@@ -286,28 +291,65 @@ function showJob(job) {
 }
 
 const TERMINAL = ["succeeded", "failed", "cancelled"];
-const jobsKey = () => `geomatch.jobs.${state.project.id}`;
+const isOpen = (job) => !TERMINAL.includes(job.state);
+const JOBS_SHOWN = 20; // the newest; the API pages through the rest
+const JOBS_POLL_MS = 2000;
 
-// The page's last jobs are remembered for this tab, so that a reload (or a visit to another
-// page and back) picks up their progress again: the API has no "jobs of a project" listing.
-function remember(ids) {
-  sessionStorage.setItem(jobsKey(), JSON.stringify(ids));
+// The project's jobs are the server's list, not this tab's memory: a reload, a second tab or
+// another device sees the running and past jobs whoever started them.
+async function loadJobs(signal) {
+  const { jobs } = await api.get(`/projects/${pid()}/jobs?limit=${JOBS_SHOWN}`);
+  if (signal.aborted) return jobs; // the page was left meanwhile: its table is not this one's
+  const rows = jobs.map((j) =>
+    el(
+      "tr",
+      { dataset: { id: j.id, kind: j.kind, state: j.state } },
+      el("td", {}, j.kind === "match" ? "Matching" : "Reconstruction"),
+      el("td", { class: "job-state", dataset: { state: j.state } }, j.state),
+      el("td", { class: "num" }, j.progress.total ? `${j.progress.done} / ${j.progress.total}` : ""),
+      el("td", {}, j.created_at.slice(0, 19).replace("T", " ")),
+    ),
+  );
+  if (!rows.length) rows.push(el("tr", {}, el("td", { colspan: 4, class: "muted" }, "No jobs yet.")));
+  $("job-rows").replaceChildren(...rows);
+  return jobs;
 }
 
-async function resume() {
-  const ids = JSON.parse(sessionStorage.getItem(jobsKey()) || "[]");
-  const jobs = [];
-  for (const id of ids) {
-    try {
-      jobs.push(await api.get(`/jobs/${api.seg(id)}`));
-    } catch (error) {
-      if (error.status !== 404) throw error;
-    }
+// Read the list again every few seconds while any job of it is open (queued or running).
+function pollJobs() {
+  if (state.jobsPolling) {
+    state.jobsKick = true;
+    return;
   }
-  if (!jobs.length) return;
-  const open = jobs.filter((j) => !TERMINAL.includes(j.state));
+  state.jobsPolling = true;
+  const signal = state.controller.signal;
+  const sleep = () => new Promise((resolve) => setTimeout(resolve, JOBS_POLL_MS));
+  (async () => {
+    for (;;) {
+      state.jobsKick = false;
+      const jobs = await loadJobs(signal);
+      if (signal.aborted) return;
+      if (!jobs.some(isOpen) && !state.jobsKick) {
+        state.jobsPolling = false;
+        return;
+      }
+      await sleep();
+      if (signal.aborted) return;
+    }
+  })().catch((error) => {
+    if (!signal.aborted) state.jobsPolling = false;
+    fail(error);
+  });
+}
+
+// Open jobs are followed oldest first (a match, then the reconstruct queued behind it); else the
+// card shows the newest job.
+async function resume() {
+  const jobs = await loadJobs(state.controller.signal);
+  pollJobs();
+  const open = jobs.filter(isOpen).reverse();
   if (open.length) follow(open.map((j) => j.id)).catch(fail);
-  else showJob(jobs[jobs.length - 1]);
+  else if (jobs.length) showJob(jobs[0]);
 }
 
 // Follow the jobs one after the other (a match, then the reconstruct it queued).
@@ -342,7 +384,7 @@ async function startMatch(e) {
     notice("");
     const accepted = await api.post(`/projects/${pid()}/match`, body);
     const ids = [accepted.job_id, accepted.reconstruct_job_id].filter(Boolean);
-    remember(ids);
+    pollJobs();
     await follow(ids);
   } catch (error) {
     fail(error);
@@ -354,7 +396,7 @@ async function startReconstruct() {
     notice("");
     const body = $("mapper").value ? { mapper: $("mapper").value } : {};
     const accepted = await api.post(`/projects/${pid()}/reconstruct`, body);
-    remember([accepted.job_id]);
+    pollJobs();
     await follow([accepted.job_id]);
   } catch (error) {
     fail(error);
@@ -365,6 +407,7 @@ async function cancelJob() {
   if (!state.job) return;
   try {
     showJob(await api.del(`/jobs/${api.seg(state.job.id)}`));
+    pollJobs();
   } catch (error) {
     fail(error);
   }
