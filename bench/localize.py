@@ -133,7 +133,8 @@ HEADER = (
     "| split | scene | model | success (<=1 deg, <=1 %) | high confidence | position error m (median / max) "
     "| % of extent (median / max) | rotation error deg (median / max) "
     "| full run: position m | full run: rotation deg "
-    "| s per photo (median / max) | full re-run s | max photo s / re-run s |"
+    "| s per photo (median / max) | full re-run s | max photo s / re-run s "
+    "| other-scene photos localized | their max inliers |"
 )
 KEYS = (
     "split",
@@ -156,11 +157,40 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     print(HEADER)
     print("|---|---|---|" + "---:|" * (len(KEYS) - 3))
     for r in rows:
-        print("| " + " | ".join(str(r[k]) for k in KEYS) + " |")
+        print("| " + " | ".join(str(r.get(k, "-")) for k in KEYS) + " |")
     sys.stdout.flush()
 
 
-def strecha(scene: str, split: str) -> dict[str, Any]:
+def other_scene(run: Path, matcher: Any, photos: list[str]) -> dict[str, Any]:
+    """Package photos of other things (scikit-image's) localized against the scene's model: how
+    many come back localized, and the most inliers any of them got (the margin under
+    ``min_inliers``)."""
+    from PIL import Image
+
+    from geomatch.synth.photos import photo
+
+    folder = run.parent / "other-photos"
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name in photos:
+        path = folder / f"{name}.png"
+        if not path.is_file():
+            Image.fromarray(photo(name)).save(path)
+        paths.append(path)
+    found = localize_photos(run, paths, LocalizeOptions(), matcher)
+    for loc in found:
+        print(
+            json.dumps(
+                {k: loc.to_json()[k] for k in ("name", "localized", "confidence", "inliers", "matches")}
+            )
+        )
+    return {
+        "others_localized": f"{sum(r.localized for r in found)}/{len(found)}",
+        "others_max_inliers": max((r.inliers for r in found), default=0),
+    }
+
+
+def strecha(scene: str, split: str, others: list[str]) -> dict[str, Any]:
     base = DATA / "strecha" / scene
     run = OUT / scene / "full"
     wall = full_run(base / "images", run, [])
@@ -168,7 +198,7 @@ def strecha(scene: str, split: str) -> dict[str, Any]:
     names = sorted(json.loads((run / "summary.json").read_text())["registered_names"])
     rows = leave_one_out(run, base / "images", base / "gt", names, matcher)
     (OUT / scene / "rows.json").write_text(json.dumps(rows, indent=2))
-    return summarise(split, scene, "all other photos", rows, wall)
+    return summarise(split, scene, "all other photos", rows, wall) | other_scene(run, matcher, others)
 
 
 def aerial_only(run: Path, aerial: list[str]) -> Path:
@@ -229,11 +259,15 @@ def main() -> int:
     ap.add_argument("--aerial", type=int, default=3)
     ap.add_argument("--ground", type=int, default=5)
     ap.add_argument("--pairs", default="exhaustive", help="the synthetic full run's pair plan")
+    ap.add_argument(
+        "--others", default="coffee,astronaut,brick,grass", help="package photos of other scenes (Strecha)"
+    )
     args = ap.parse_args()
+    others = [o for o in args.others.split(",") if o]
     table = []
     for scene in filter(None, args.strecha.split(",")):
         split = "test" if scene in SPLITS["test"] else "tuning"
-        table.append(strecha(scene, split))
+        table.append(strecha(scene, split, others))
         print_table(table[-1:])
     for split, seeds in (("tuning", args.seeds), ("test", args.test_seeds)):
         for seed in filter(None, seeds.split(",")):

@@ -18,6 +18,7 @@ a project stored by the service (``database.db``, ``images/``, ``model/sparse/0`
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 import time
@@ -216,6 +217,7 @@ class Localizer:
         self.aerial = set(aerial) & set(self.names)
         self.frame = project.frame()
         self._descriptors: list[np.ndarray] | None = None
+        self._sparse: Any = None
 
     # -- candidates
     def model_descriptors(self) -> list[np.ndarray]:
@@ -224,7 +226,13 @@ class Localizer:
         return self._descriptors
 
     def local_descriptors(self, image: np.ndarray) -> np.ndarray:
-        sparse = self.matcher.derive(method="sparse")
+        if self._sparse is None:
+            # the plain pairs' own sparse matcher when they are matched by anchors alone (``auto``
+            # on a ground project: fewer keypoints), so the photo's and the model images'
+            # features serve retrieval and matching both (the photo's were extracted twice)
+            plain = self.matcher.for_pair(False, bool(self.aerial))
+            self._sparse = plain if plain.config.method == "sparse" else self.matcher.derive(method="sparse")
+        sparse = self._sparse
         feats = sparse.features(image)[sparse.config.sparse].sparse
         assert feats is not None
         return np.asarray(feats.descriptors.float().cpu().numpy())
@@ -287,9 +295,8 @@ class Localizer:
         if meta.has_device:
             for n in self.names:
                 if self.metas[n].device == meta.device:
-                    return pycolmap.Camera(
-                        self.rec.cameras[self.rec.find_image_with_name(n).camera_id]
-                    ), "model"
+                    calibrated = self.rec.cameras[self.rec.find_image_with_name(n).camera_id]
+                    return copy.copy(calibrated), "model"
         focal = meta.focal_px or default_focal(meta.width, meta.height)
         cam = pycolmap.Camera.create_from_model_name(0, CAMERA_MODEL, focal, meta.width, meta.height)
         return cam, "exif" if meta.focal_px else "estimated"
@@ -379,7 +386,7 @@ def judge(name: str, pose: Any, corr: Any, opts: LocalizeOptions, chosen: Sequen
         if ok:
             support[n] = support.get(n, 0) + 1
     supporting = sorted(support, key=lambda n: -support[n])
-    reason = None
+    reason: str | None = None
     if inliers < opts.min_inliers:
         reason = f"only {inliers} of {tried} matches to the model agree on a pose (needs {opts.min_inliers})"
     elif ratio < opts.min_inlier_ratio:
@@ -426,9 +433,10 @@ def add_to_project(project: Project, photo: Path, evidence: Evidence, matcher: A
     with ColmapDatabase(project.database) as db:
         photo_id = db.add_image(photo.name, meta, share if isinstance(share, bool) else None)
         for name, m in evidence.pairs.items():
-            if not db.db.exists_image(name) or name == photo.name:
+            image = db.db.read_image_with_name(name) if db.db.exists_image(name) else None
+            if image is None or name == photo.name:
                 continue
-            other = int(db.db.read_image_with_name(name).image_id)
+            other = int(image.image_id)
             steps.write(db, photo_id, other, m, snap, matcher.config.resize)
     return photo_id
 

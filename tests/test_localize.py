@@ -163,7 +163,7 @@ def test_add_writes_the_photo_and_its_matches_once(
     assert first.localized
     after = state()
     assert after[0] == len(before_images) + 1
-    assert after[1] == len(first.candidates) >= 2  # its matches to every model image it was matched with
+    assert 2 <= after[1] <= len(first.candidates)  # its matches to the model images it was matched with
     assert (images / "new_view.png").read_bytes() == fresh.read_bytes()
     [again] = localize_photos(run, [fresh], **kwargs)
     assert again.localized

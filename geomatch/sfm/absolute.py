@@ -13,6 +13,7 @@ its inliers: COLMAP's own image registration, given correspondences the matcher 
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -152,7 +153,7 @@ def estimate_pose(
     est.ransac.random_seed = seed
     ref = pycolmap.AbsolutePoseRefinementOptions()
     ref.refine_focal_length = estimate_focal
-    camera = pycolmap.Camera(camera)  # the refinement writes the focal length into it
+    camera = copy.copy(camera)  # the refinement writes the focal length into it
     found = pycolmap.estimate_and_refine_absolute_pose(
         np.asarray(points2D, np.float64) + COLMAP_OFFSET, np.asarray(points3D, np.float64), camera, est, ref
     )
