@@ -348,7 +348,8 @@ class Localizer:
             ev = self.evidence(image, stage, aerial_photo, ev)
             matched += stage
             pose = self.pose(ev.correspondences, camera, threshold, focal_source == "estimated")
-            out = judge(photo.name, pose, ev.correspondences, self.options, matched)
+            support = self.support_of(ev, pose, camera, threshold) if pose is not None else None
+            out = judge(photo.name, pose, ev.correspondences, self.options, matched, support)
         if out is None:  # a model with no image to match
             out = judge(photo.name, None, Correspondences.empty(), self.options, [])
         out.focal_source = focal_source
@@ -361,6 +362,22 @@ class Localizer:
                 out.wgs84 = wgs84(self.frame, pose.centre, R)
         out.seconds = time.perf_counter() - t0
         return out, ev
+
+    def support_of(self, ev: Evidence, pose: Pose, camera: Any, threshold: float) -> dict[str, int]:
+        """Per model image, how many of its own 2D-3D correspondences the pose reprojects within
+        ``threshold``: the images that independently agree with it (a wrong pose fitted to one
+        image's coherent but wrong matches, a facade's repeated windows say, finds no second)."""
+        from .sfm.absolute import reprojection_errors
+
+        out: dict[str, int] = {}
+        for part in ev.parts:
+            if not len(part):
+                continue
+            xyz = np.array([self.rec.points3D[int(i)].xyz for i in part.point3D_ids], np.float64)
+            errors = reprojection_errors(pose.cam_from_world, pose.camera, part.points2D, xyz)
+            name = part.images[0]
+            out[name] = out.get(name, 0) + int((errors <= threshold).sum())
+        return out
 
     def pose(self, corr: Correspondences, camera: Any, threshold: float, estimate_focal: bool) -> Pose | None:
         from .sfm.absolute import estimate_pose
@@ -385,11 +402,22 @@ def describe(pose: Any) -> tuple[dict[str, list[float]], list[float], dict[str, 
     return {"qvec": [w, x, y, z], "tvec": t}, [float(v) for v in pose.centre], camera
 
 
-def judge(name: str, pose: Any, corr: Any, opts: LocalizeOptions, chosen: Sequence[str]) -> Localization:
+def judge(
+    name: str,
+    pose: Pose | None,
+    corr: Correspondences,
+    opts: LocalizeOptions,
+    chosen: Sequence[str],
+    support: dict[str, int] | None = None,
+) -> Localization:
     """Localized or not, and how confident, from the pose's evidence (thresholds: LocalizeOptions).
 
-    ``high``: enough inliers from at least two model images; ``low``: localized on less (one
-    image's matches, or few inliers): usable, but a user should check it."""
+    ``high``: enough inliers, with at least ``high_min_images`` model images each agreeing on
+    the pose with a quarter of ``min_inliers`` of their own matches; ``low``: localized on less
+    (one image's matches, or few inliers): usable, but a user should check it. ``support``: each
+    model image's own correspondences that agree with the pose (:func:`support_of`); without it
+    the merged correspondences' images count, which credit a point seen by several model images
+    to the first only."""
     tried = len(corr)
     base: dict[str, Any] = dict(
         name=name,
@@ -418,10 +446,12 @@ def judge(name: str, pose: Any, corr: Any, opts: LocalizeOptions, chosen: Sequen
         )
     inliers = pose.num_inliers
     ratio = inliers / tried if tried else 0.0
-    support: dict[str, int] = {}
-    for n, ok in zip(corr.images, pose.inliers, strict=True):
-        if ok:
-            support[n] = support.get(n, 0) + 1
+    if support is None:
+        support = {}
+        for n, ok in zip(corr.images, pose.inliers, strict=True):
+            if ok:
+                support[n] = support.get(n, 0) + 1
+    support = {n: k for n, k in support.items() if k > 0}
     supporting = sorted(support, key=lambda n: -support[n])
     reason: str | None = None
     if inliers < opts.min_inliers:
