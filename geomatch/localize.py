@@ -430,14 +430,14 @@ def judge(
         candidates=list(chosen),
     )
     if pose is None:
-        reason = (
+        why = (
             "no match with the model's 3D points"
             if tried < 4
             else f"no camera pose agrees with its {tried} matches to the model's 3D points"
         )
         return Localization(
             localized=False,
-            reason=reason + ": the photo does not seem to show this scene",
+            reason=why + ": the photo does not seem to show this scene",
             inliers=0,
             reprojection_error_px=None,
             confidence="none",
