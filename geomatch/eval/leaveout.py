@@ -11,7 +11,7 @@ keypoints, nor its tracks, nor its pose (its matches to the model are made afres
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -21,12 +21,14 @@ from .alignment import align
 from .metrics import scene_extent
 
 
-def without_image(model: Path, name: str, dest: Path) -> Path:
-    """``model`` written to ``dest`` without ``name`` (binary); returns ``dest``."""
+def without_image(model: Path, name: str | Collection[str], dest: Path) -> Path:
+    """``model`` written to ``dest`` without the image ``name`` (or each of several names;
+    binary); returns ``dest``."""
     rec = pycolmap.Reconstruction(str(model))
-    image = rec.find_image_with_name(name)
-    if image is not None and image.has_pose:
-        rec.deregister_frame(image.frame_id)
+    for n in [name] if isinstance(name, str) else name:
+        image = rec.find_image_with_name(n)
+        if image is not None and image.has_pose:
+            rec.deregister_frame(image.frame_id)
     dest.mkdir(parents=True, exist_ok=True)
     rec.write_binary(str(dest))
     return dest
