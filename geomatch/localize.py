@@ -38,24 +38,31 @@ if TYPE_CHECKING:  # the API process reads the options and answers without torch
 
 @dataclass
 class LocalizeOptions:
-    """How a photo is localized. The defaults were measured (docs/benchmarks.md, "Localization";
-    bench/localize.py) on the Strecha tuning scenes and the synthetic air-to-ground tuning seeds."""
+    """How a photo is localized. The defaults were chosen on the Strecha tuning scenes and the
+    synthetic air-to-ground tuning seed (bench/localize.py; docs/benchmarks.md, "Localization")."""
 
-    # model images matched per photo, by retrieval: the true neighbours of a Strecha photo are
-    # within the top 4 of VLAD's list, and each extra pair costs a full match (~1-3 s on 2 cores)
+    # model images matched per photo by retrieval (the plain pairs): with 4, every photo of
+    # Herz-Jesus-P8 and fountain-P11 had 500-900 inliers, and each further pair costs one more
+    # match (~1 s per pair there, ~3 s per photo in all)
     max_candidates: int = 4
     # added when the photo has a GPS fix and the model is georeferenced: its nearest cameras
     gps_candidates: int = 2
-    # added for a ground photo of a project with aerial images: the most similar aerial images,
-    # matched tiled (several matchings each, so few)
+    # for a ground photo of a project with aerial images: the most similar aerial images, matched
+    # tiled, and only when the plain pairs did not localize the photo confidently (a tiled pair
+    # is several matchings: ~15-30 s on 2 busy cores where a plain pair took ~3 s)
     aerial_candidates: int = 1
-    # PnP inliers below which a photo is not localized: a photo of another scene gets a few
-    # dozen at most against the synthetic and Strecha models, a true one hundreds
-    min_inliers: int = 40
+    # PnP inliers below which a photo is not localized: COLMAP's own bar for registering an image
+    # (the mapper's default, options.MIN_POSE_INLIERS). Measured: package photos of other things
+    # got 0-6 inliers against the Strecha models (of 3-87 correspondences), true photos 500-900
+    # against a full model and 33-38 against the synthetic seed's aerial images alone (there
+    # within 0.7 deg and 0.6 % of the scene extent)
+    min_inliers: int = 30
     # inliers over the correspondences tried: another scene's matches scatter over the model
-    min_inlier_ratio: float = 0.2
-    # a confident answer ("high") needs this many inliers, from at least ``high_min_images`` model
-    # images (one image's matches can agree on a wrong plane; two views' rarely do)
+    # (measured: 0-16 % for the package photos, 97-100 % for the true photos looked at)
+    min_inlier_ratio: float = 0.25
+    # a confident answer ("high") needs this many inliers, with at least ``high_min_images``
+    # model images agreeing with the pose through their own matches (one image's coherent but
+    # wrong matches, repeated windows say, can fit a wrong pose; two images' rarely do)
     high_min_inliers: int = 100
     high_min_images: int = 2
     # RANSAC's reprojection threshold in network pixels (the matcher's working size, as
