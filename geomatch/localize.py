@@ -167,13 +167,15 @@ def project_matcher(project: Project) -> Any:
 
     recorded = project.run_options
     budget = cache_budget()
-    config = config_from_options(
-        method=recorded.get("method", DEFAULTS["method"]),
-        resize=recorded.get("resize", DEFAULTS["resize"]),
-        device=recorded.get("device", DEFAULTS["device"]),
-        **{"cache_features_mb": budget.features_mb, "cache_anchors_mb": budget.anchors_mb},
-        **dict(recorded.get("matcher") or {}),
-    )
+    options = {
+        "method": recorded.get("method", DEFAULTS["method"]),
+        "resize": recorded.get("resize", DEFAULTS["resize"]),
+        "device": recorded.get("device", DEFAULTS["device"]),
+        "cache_features_mb": budget.features_mb,
+        "cache_anchors_mb": budget.anchors_mb,
+        **dict(recorded.get("matcher") or {}),  # the run's further matcher and optimizer options
+    }
+    config = config_from_options(**options)
     return Matcher(config)
 
 
