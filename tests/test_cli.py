@@ -101,3 +101,17 @@ def test_export_of_a_folder_without_a_model_is_a_one_line_error(tmp_path) -> Non
     ]
     assert not (tmp_path / "export").exists()
     assert "--format {nerfstudio,colmap-text,ply,hloc,openmvs}" in run("export", "--help").stdout
+
+
+@pytest.mark.unit
+def test_localize_against_a_folder_without_a_model_is_a_one_line_error(pair_files, tmp_path) -> None:
+    """tests/test_localize.py localizes against a real run; here only the command's refusals."""
+    a, _, _ = pair_files
+    res = run("localize", str(tmp_path), str(a))
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [
+        f"geomatch: error: {tmp_path}: no model (sparse/0 or model/sparse/0): reconstruct the project first"
+    ]
+    res = run("localize", str(tmp_path), str(tmp_path / "nope.jpg"), "--json")
+    assert res.returncode == 2
+    assert res.stderr.strip() == f"geomatch: error: no such photo: {tmp_path / 'nope.jpg'}"
