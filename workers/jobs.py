@@ -1,7 +1,7 @@
 """The steps of a job, whatever runs them (Celery worker processes or the embedded threads).
 
 A match job is ``plan_match`` -> ``extract`` per image -> ``match_pair`` per pair; a reconstruct
-job is one ``reconstruct``. Every step may run twice (redelivery after a worker died, a
+job is one ``reconstruct``; a localize job is one ``localize``. Every step may run twice (redelivery after a worker died, a
 duplicate dispatch) and must then do nothing twice:
 
 - a pair already in the COLMAP database is not matched again, and ``write_pair`` is a no-op for
@@ -17,19 +17,20 @@ steps only, so importing this module does not import torch.
 from __future__ import annotations
 
 import logging
+import shutil
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy import exists, select, update
 
-from geomatch.options import DEFAULTS
+from geomatch.options import DEFAULTS, PROJECT_OPTIONS
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
 from geomatch_core import jobstate
 from geomatch_core.models import Image, Job, JobPair
-from geomatch_core.queue import EXTRACT, MATCH_PAIR, RENDER_PAIR
+from geomatch_core.queue import EXTRACT, LOCALIZE, MATCH_PAIR, RENDER_PAIR
 
 from . import redact, runtime
 from .context import Context, PermanentError
@@ -272,6 +273,78 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     return "done"
 
 
+# -- localize jobs ------------------------------------------------------------------------------
+class Cancelled(Exception):
+    """Raised from the progress callback into the library when the job stopped running."""
+
+
+def localize(ctx: Context, job_id: str) -> str:
+    """Pose the job's photos against the project's model (``geomatch.localize``) and store one
+    answer per photo as the job's result.
+
+    Photos that are not added to the project live in the job's own folder, removed when the job
+    ends however it ends (here, or in ``on_failure``); added ones were stored as project images
+    by the request, and only then is the project's writer lock taken: the library writes them and
+    their matches into the COLMAP database. Without ``add`` the step only reads the project (the
+    model, the database, the images), so it runs beside match and reconstruct jobs. A rerun after
+    a redelivery starts over: the answer is the same, and an added photo's rows are written once
+    (the library checks what the database holds under the lock)."""
+    from geomatch.localize import localize_photos
+
+    job = jobstate.claim(ctx.store, job_id)
+    if job is None:
+        _drop_photos(ctx, job_id)
+        return "skipped"
+    pid, stored = job.project_id, dict(job.options)
+    add = bool(stored.get("add"))
+    names = [str(n) for n in stored.get("photos", [])]
+    folder = ctx.storage.images_dir(pid) if add else ctx.storage.localize_dir(pid, job_id)
+    missing = [n for n in names if not (folder / n).is_file()]
+    if missing:
+        raise PermanentError(f"the photos {', '.join(missing)} are gone (the project was changed meanwhile)")
+    opts = runtime.job_options({k: v for k, v in stored.items() if k in PROJECT_OPTIONS})
+
+    def progress(done: int, total: int) -> None:
+        if not jobstate.is_active(ctx.store, job_id):
+            raise Cancelled
+        jobstate.set_progress(ctx.store, job_id, done)
+
+    t0 = time.perf_counter()
+    try:
+        with ctx.locks.project(pid) if add else nullcontext():
+            results = localize_photos(
+                ctx.storage.project_dir(pid),
+                [folder / n for n in names],
+                matcher=runtime.matcher(ctx, opts),
+                add=add,
+                progress=progress,
+                model_dir=ctx.storage.model_dir(pid),
+                images_dir=ctx.storage.images_dir(pid),
+            )
+    except Cancelled:
+        _drop_photos(ctx, job_id)
+        return "cancelled"
+    answers = [r.to_json() for r in results]
+    jobstate.succeed(ctx.store, job_id, {"localizations": answers})
+    _drop_photos(ctx, job_id)
+    log.info(
+        "localized %d of %d photos in %.1fs (add=%s)",
+        sum(bool(a.get("localized")) for a in answers),
+        len(answers),
+        time.perf_counter() - t0,
+        add,
+        extra={"job_id": job_id, "project_id": pid},
+    )
+    return "done"
+
+
+def _drop_photos(ctx: Context, job_id: str) -> None:
+    """Remove a localize job's own photos (none for a job that added them to the project)."""
+    job = jobstate.get(ctx.store, job_id)
+    if job is not None:
+        shutil.rmtree(ctx.storage.localize_dir(job.project_id, job_id), ignore_errors=True)
+
+
 # -- interactive --------------------------------------------------------------------------------
 def render_pair(ctx: Context, project_id: str, name0: str, name1: str) -> dict[str, Any]:
     """Draw a matched pair from the COLMAP database: verified inliers red, other matches blue."""
@@ -327,6 +400,11 @@ def on_failure(ctx: Context, step: str, args: tuple[Any, ...], exc: BaseExceptio
     if jobstate.fail(ctx.store, job_id, f"{where}: {reason}"):
         log.error("job failed in %s: %s", where, exc, extra={"job_id": job_id})
         jobstate.release_followers(ctx.store, ctx.queue, job_id)
+    if step == LOCALIZE:
+        try:
+            _drop_photos(ctx, job_id)
+        except Exception as e:  # the store may be what failed the step
+            log.warning("could not remove the photos of job %s (%s)", job_id, e)
 
 
 def _project_dir(ctx: Context, job_id: str) -> Path | None:
