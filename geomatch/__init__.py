@@ -20,6 +20,9 @@ _EXPORTS = {
     "GeoOptions": "matching.optimizer",
     "RefineOptions": "features.refine",
     "WeightsNotFoundError": "weights",
+    "localize_photos": "localize",
+    "Localization": "localize",
+    "LocalizeOptions": "localize",
 }
 __all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"

@@ -51,6 +51,7 @@ RANKS = {
     "geomatch.demo": 5,
     "geomatch.viz": 5,
     "geomatch.cli": 5,
+    "geomatch.localize": 5,
     "geomatch": 5,
 }
 """Ranks of the parts of the library: its folders (sub-packages) and its top-level modules.

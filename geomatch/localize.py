@@ -1,0 +1,477 @@
+"""Localize new photos against a project's model, without mapping the project again.
+
+For each photo: choose the model images to match it with (:func:`candidates`: VLAD retrieval over
+the project's own features, the nearest cameras to its GPS fix when the model is georeferenced,
+and the most similar aerial images when the photo is a ground view of a project flown from
+above, those pairs tiled as ``geomatch run`` tiles them), match each pair with the project's
+matcher (``steps.match``, so tiling, the quarter-turn probe and ``auto``'s choice of method are
+the pipeline's), lift the matches to 2D-3D correspondences through the model images'
+observations and estimate the pose with pycolmap's absolute pose (sfm/absolute.py). The answer
+says how sure it is (:func:`judge`): a photo of another scene must come back not localized, never
+as a confident wrong pose.
+
+Two layouts of a project are read: a ``geomatch run --out OUT`` folder (``database.db``,
+``sparse/0``, ``summary.json`` naming the images folder, the options and the aerial images) and
+a project stored by the service (``database.db``, ``images/``, ``model/sparse/0``,
+``model/summary.json``); explicit ``model_dir`` / ``images_dir`` override either.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .imageio import read_image
+from .metadata import ImageMeta, read_metadata
+from .options import DEFAULTS
+
+
+@dataclass
+class LocalizeOptions:
+    """How a photo is localized. The defaults were measured (docs/benchmarks.md, "Localization";
+    bench/localize.py) on the Strecha tuning scenes and the synthetic air-to-ground tuning seeds."""
+
+    # model images matched per photo, by retrieval: the true neighbours of a Strecha photo are
+    # within the top 4 of VLAD's list, and each extra pair costs a full match (~1-3 s on 2 cores)
+    max_candidates: int = 4
+    # added when the photo has a GPS fix and the model is georeferenced: its nearest cameras
+    gps_candidates: int = 2
+    # added for a ground photo of a project with aerial images: the most similar aerial images,
+    # matched tiled (several matchings each, so few)
+    aerial_candidates: int = 1
+    # PnP inliers below which a photo is not localized: a photo of another scene gets a few
+    # dozen at most against the synthetic and Strecha models, a true one hundreds
+    min_inliers: int = 40
+    # inliers over the correspondences tried: another scene's matches scatter over the model
+    min_inlier_ratio: float = 0.2
+    # a confident answer ("high") needs this many inliers, from at least ``high_min_images`` model
+    # images (one image's matches can agree on a wrong plane; two views' rarely do)
+    high_min_inliers: int = 100
+    high_min_images: int = 2
+    # RANSAC's reprojection threshold in network pixels (the matcher's working size, as
+    # ``snap_radius``): scaled to the photo's pixels, since a match is no more precise than the
+    # resolution it was found at
+    max_error: float = 4.0
+    # a match counts as seeing a model point when it lands this close to the point's observation
+    # in the model image, network pixels (the pipeline's default snap radius)
+    lift_radius: float = DEFAULTS["snap_radius"]
+
+
+@dataclass
+class Localization:
+    name: str  # the photo's file name
+    localized: bool
+    reason: str | None  # why not localized (for a user), None when localized
+    cam_from_world: dict[str, list[float]] | None  # {"qvec": [w, x, y, z], "tvec": [x, y, z]}, COLMAP's
+    center: list[float] | None  # camera centre in the model frame
+    wgs84: dict[str, float] | None  # {"lat", "lon", "alt", "heading_deg"} when the model is georeferenced
+    inliers: int
+    matches: int  # 2D-3D correspondences tried
+    reprojection_error_px: float | None
+    confidence: str  # "high" | "low" | "none"
+    supporting_images: list[str]  # model images whose matches gave inliers
+    camera: dict[str, Any] | None  # {"model", "width", "height", "params"}
+    seconds: float
+    candidates: list[str] = field(default_factory=list)  # model images the photo was matched with
+    inlier_ratio: float = 0.0
+    focal_source: str = ""  # "model" (a model camera of the same device), "exif", "estimated"
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+# -- the project --------------------------------------------------------------------------------
+class LocalizeError(ValueError):
+    """The project cannot be localized against: no model, no database, no images."""
+
+
+@dataclass(frozen=True)
+class Project:
+    """Where a project's parts are and what its run recorded."""
+
+    database: Path
+    model_dir: Path
+    images_dir: Path
+    summary: dict[str, Any]
+
+    @classmethod
+    def find(cls, root: Path, model_dir: Path | None = None, images_dir: Path | None = None) -> Project:
+        root = Path(root)
+        if model_dir is None:
+            model_dir = next(
+                (
+                    d
+                    for d in (root / "sparse" / "0", root / "model" / "sparse" / "0")
+                    if (d / "images.bin").is_file()
+                ),
+                None,
+            )
+        if model_dir is None or not (Path(model_dir) / "images.bin").is_file():
+            raise LocalizeError(
+                f"{root}: no model (sparse/0 or model/sparse/0): reconstruct the project first"
+            )
+        model_dir = Path(model_dir)
+        summary_path = next(
+            (p for p in (model_dir.parent.parent / "summary.json", root / "summary.json") if p.is_file()),
+            None,
+        )
+        summary = json.loads(summary_path.read_text()) if summary_path is not None else {}
+        if images_dir is None:
+            recorded = summary.get("image_dir")
+            images_dir = Path(recorded) if recorded else root / "images"
+        if not Path(images_dir).is_dir():
+            raise LocalizeError(f"{images_dir}: the project's images are not there (pass images_dir)")
+        database = root / "database.db"
+        if not database.is_file():
+            raise LocalizeError(f"{root}: no COLMAP database (database.db)")
+        return cls(database, model_dir, Path(images_dir), summary)
+
+    @property
+    def run_options(self) -> dict[str, Any]:
+        """The options ``geomatch run`` recorded (empty for a service project: its caller knows)."""
+        options = self.summary.get("options")
+        return dict(options) if isinstance(options, dict) else {}
+
+    def frame(self) -> Any:
+        """The ENU frame the model is in, or None when it is not georeferenced."""
+        from .geo.geodesy import EnuFrame
+
+        origin = self.summary.get("origin")
+        if not self.summary.get("georeferenced") or not isinstance(origin, dict):
+            return None
+        return EnuFrame(float(origin["lat"]), float(origin["lon"]), float(origin["alt"]))
+
+
+def project_matcher(project: Project) -> Any:
+    """The matcher the project ran with (method, resize and matcher options of its summary), or
+    the defaults for a project that recorded none."""
+    from .matching.matcher import Matcher, config_from_options
+    from .options import cache_budget
+
+    recorded = project.run_options
+    budget = cache_budget()
+    config = config_from_options(
+        method=recorded.get("method", DEFAULTS["method"]),
+        resize=recorded.get("resize", DEFAULTS["resize"]),
+        device=recorded.get("device", DEFAULTS["device"]),
+        **{"cache_features_mb": budget.features_mb, "cache_anchors_mb": budget.anchors_mb},
+        **dict(recorded.get("matcher") or {}),
+    )
+    return Matcher(config)
+
+
+# -- one photo ----------------------------------------------------------------------------------
+QUERY = "\x00query"  # the photo's name in a planned pair: never a model image's name
+
+
+@dataclass
+class Evidence:
+    """What one photo's matching left: the pairs (for ``add``) and the 2D-3D correspondences."""
+
+    pairs: dict[str, Any]  # model image name -> steps.PairMatches
+    correspondences: Any  # sfm.absolute.Correspondences
+
+
+class Localizer:
+    """A project opened for localization: its model, observations, images and matcher, kept for
+    every photo of one call (the model images' features are computed once)."""
+
+    def __init__(
+        self,
+        project: Project,
+        options: LocalizeOptions,
+        matcher: Any = None,
+        aerial: Collection[str] | None = None,
+    ) -> None:
+        import pycolmap
+
+        from . import steps
+        from .sfm.absolute import Observations
+
+        self.project, self.options = project, options
+        self.matcher = matcher if matcher is not None else project_matcher(project)
+        self.rec = pycolmap.Reconstruction(str(project.model_dir))
+        self.observations = {im.name: Observations.of(im) for im in self.rec.images.values() if im.has_pose}
+        # images with too few observed points cannot lift enough matches to help
+        self.names = sorted(n for n, o in self.observations.items() if len(o.point3D_ids) >= 10)
+        self.images = steps.Images(project.images_dir)
+        self.metas = {
+            n: read_metadata(project.images_dir / n) for n in self.names if (project.images_dir / n).is_file()
+        }
+        self.names = [n for n in self.names if n in self.metas]
+        if aerial is None:
+            recorded = project.summary.get("aerial")
+            aerial = (
+                recorded
+                if isinstance(recorded, list)
+                else [n for n in self.names if self.metas[n].aerial_hint]
+            )
+        self.aerial = set(aerial) & set(self.names)
+        self.frame = project.frame()
+        self._descriptors: list[np.ndarray] | None = None
+
+    # -- candidates
+    def model_descriptors(self) -> list[np.ndarray]:
+        if self._descriptors is None:
+            self._descriptors = [self.local_descriptors(self.images[n]) for n in self.names]
+        return self._descriptors
+
+    def local_descriptors(self, image: np.ndarray) -> np.ndarray:
+        sparse = self.matcher.derive(method="sparse")
+        feats = sparse.features(image)[sparse.config.sparse].sparse
+        assert feats is not None
+        return np.asarray(feats.descriptors.float().cpu().numpy())
+
+    def candidates(self, image: np.ndarray, meta: ImageMeta, aerial_photo: bool) -> list[str]:
+        """The model images to match the photo with, best first: retrieval's top
+        ``max_candidates``, then the nearest cameras to the photo's GPS fix, then for a ground
+        photo of a project with aerial images the most similar aerial images."""
+        from .sfm.retrieval import vlad
+
+        opts = self.options
+        vectors = vlad([*self.model_descriptors(), self.local_descriptors(image)])
+        scores = vectors[:-1] @ vectors[-1]
+        ranked = [self.names[i] for i in np.argsort(-scores, kind="stable")]
+        chosen = ranked[: opts.max_candidates]
+        if self.frame is not None and meta.lat_lon is not None and opts.gps_candidates > 0:
+            lat, lon = meta.lat_lon
+            here = self.frame.from_geodetic(lat, lon, meta.altitude_m if meta.altitude_m is not None else 0.0)
+            centres = {
+                n: np.asarray(self.rec.find_image_with_name(n).projection_center(), np.float64)
+                for n in self.names
+            }
+            near = sorted(self.names, key=lambda n: float(np.linalg.norm(centres[n][:2] - here[:2])))
+            chosen += [n for n in near if n not in chosen][: opts.gps_candidates]
+        wants_aerial = not aerial_photo and self.aerial and opts.aerial_candidates > 0
+        if wants_aerial and not any(n in self.aerial for n in chosen):
+            chosen += [n for n in ranked if n in self.aerial][: opts.aerial_candidates]
+        return chosen
+
+    # -- matching and pose
+    def evidence(self, image: np.ndarray, chosen: Sequence[str], aerial_photo: bool) -> Evidence:
+        from . import steps
+        from .sfm import pairs as pairing
+        from .sfm.absolute import lift, merge
+
+        aerial = set(self.aerial) | ({QUERY} if aerial_photo else set())
+        tiling = str(self.project.run_options.get("tiling", DEFAULTS["tiling"]))
+        planned = pairing.finalize([(QUERY, n) for n in chosen], aerial, tiling)
+        resize = self.matcher.config.resize
+        pairs, parts = {}, []
+        for pair in planned:
+            name = pair.name1
+            model_image = self.images[name]
+            m = steps.match(self.matcher, pair, image, model_image, aerial_project=bool(aerial))
+            pairs[name] = m
+            order = np.argsort(-np.asarray(m.scores), kind="stable")
+            radius = steps.snap_radius(self.options.lift_radius, resize, max(model_image.shape[:2]))
+            parts.append(lift(m.keypoints0[order], m.keypoints1[order], self.observations[name], radius))
+        query_radius = steps.snap_radius(1.0, resize, max(image.shape[:2]))
+        return Evidence(pairs, merge(parts, query_radius))
+
+    def camera_for(self, meta: ImageMeta) -> tuple[Any, str]:
+        """The photo's intrinsics: a model camera calibrated on an image of the same device when
+        there is one (the mapper refined it), else its EXIF focal length, else a guess that the
+        pose estimation refines."""
+        import pycolmap
+
+        from .sfm.colmapdb import CAMERA_MODEL, default_focal
+
+        if meta.has_device:
+            for n in self.names:
+                if self.metas[n].device == meta.device:
+                    return pycolmap.Camera(
+                        self.rec.cameras[self.rec.find_image_with_name(n).camera_id]
+                    ), "model"
+        focal = meta.focal_px or default_focal(meta.width, meta.height)
+        cam = pycolmap.Camera.create_from_model_name(0, CAMERA_MODEL, focal, meta.width, meta.height)
+        return cam, "exif" if meta.focal_px else "estimated"
+
+    def localize(self, photo: Path) -> tuple[Localization, Evidence | None]:
+        from .sfm.absolute import estimate_pose
+
+        t0 = time.perf_counter()
+        photo = Path(photo)
+        image = read_image(photo)
+        meta = read_metadata(photo)
+        aerial_photo = bool(meta.aerial_hint)
+        chosen = self.candidates(image, meta, aerial_photo)
+        ev = self.evidence(image, chosen, aerial_photo)
+        corr = ev.correspondences
+        camera, focal_source = self.camera_for(meta)
+        resize = self.matcher.config.resize
+        from .steps import snap_radius
+
+        threshold = max(snap_radius(self.options.max_error, resize, max(image.shape[:2])), 1.0)
+        pose = None
+        if len(corr) >= 4:
+            xyz = np.array([self.rec.points3D[int(i)].xyz for i in corr.point3D_ids], np.float64)
+            pose = estimate_pose(corr.points2D, xyz, camera, threshold, focal_source == "estimated")
+        out = judge(photo.name, pose, corr, self.options, chosen)
+        out.focal_source = focal_source
+        if pose is not None and out.localized:
+            out.cam_from_world, out.center, out.camera = describe(pose)
+            if self.frame is not None:
+                from .geo.placement import wgs84
+
+                R = pose.cam_from_world.rotation.matrix().T
+                out.wgs84 = wgs84(self.frame, pose.centre, R)
+        out.seconds = time.perf_counter() - t0
+        return out, ev
+
+
+def describe(pose: Any) -> tuple[dict[str, list[float]], list[float], dict[str, Any]]:
+    """(cam_from_world as COLMAP writes it, centre, camera) of a pose."""
+    x, y, z, w = (float(v) for v in pose.cam_from_world.rotation.quat)
+    t = [float(v) for v in np.asarray(pose.cam_from_world.translation).reshape(3)]
+    cam = pose.camera
+    camera = {
+        "model": cam.model.name,
+        "width": int(cam.width),
+        "height": int(cam.height),
+        "params": [float(p) for p in cam.params],
+    }
+    return {"qvec": [w, x, y, z], "tvec": t}, [float(v) for v in pose.centre], camera
+
+
+def judge(name: str, pose: Any, corr: Any, opts: LocalizeOptions, chosen: Sequence[str]) -> Localization:
+    """Localized or not, and how confident, from the pose's evidence (thresholds: LocalizeOptions).
+
+    ``high``: enough inliers from at least two model images; ``low``: localized on less (one
+    image's matches, or few inliers): usable, but a user should check it."""
+    tried = len(corr)
+    base: dict[str, Any] = dict(
+        name=name,
+        cam_from_world=None,
+        center=None,
+        wgs84=None,
+        matches=tried,
+        camera=None,
+        seconds=0.0,
+        candidates=list(chosen),
+    )
+    if pose is None:
+        reason = (
+            "no match with the model's 3D points"
+            if tried < 4
+            else f"no camera pose agrees with its {tried} matches to the model's 3D points"
+        )
+        return Localization(
+            localized=False,
+            reason=reason + ": the photo does not seem to show this scene",
+            inliers=0,
+            reprojection_error_px=None,
+            confidence="none",
+            supporting_images=[],
+            **base,
+        )
+    inliers = pose.num_inliers
+    ratio = inliers / tried if tried else 0.0
+    support: dict[str, int] = {}
+    for n, ok in zip(corr.images, pose.inliers, strict=True):
+        if ok:
+            support[n] = support.get(n, 0) + 1
+    supporting = sorted(support, key=lambda n: -support[n])
+    reason = None
+    if inliers < opts.min_inliers:
+        reason = f"only {inliers} of {tried} matches to the model agree on a pose (needs {opts.min_inliers})"
+    elif ratio < opts.min_inlier_ratio:
+        reason = (
+            f"only {100 * ratio:.0f}% of its {tried} matches to the model agree on a pose "
+            f"(needs {100 * opts.min_inlier_ratio:.0f}%)"
+        )
+    strong = [n for n in supporting if support[n] >= opts.min_inliers // 4]
+    if reason is not None:
+        confidence = "none"
+    elif inliers >= opts.high_min_inliers and len(strong) >= opts.high_min_images:
+        confidence = "high"
+    else:
+        confidence = "low"
+    return Localization(
+        localized=reason is None,
+        reason=None if reason is None else reason + ": the photo does not seem to show this scene",
+        inliers=inliers,
+        reprojection_error_px=pose.reprojection_error_px,
+        confidence=confidence,
+        supporting_images=supporting,
+        inlier_ratio=ratio,
+        **base,
+    )
+
+
+# -- adding a photo to the project ---------------------------------------------------------------
+def add_to_project(project: Project, photo: Path, evidence: Evidence, matcher: Any, snap: float) -> int:
+    """The photo into the project's COLMAP database (its image row, keypoints and its verified
+    matches to the model images it was matched with) and into its images folder, so a later
+    reconstruct maps it (the mapper reads the photos: track refinement). Idempotent: an image and
+    a pair already there are left as they are. Returns the photo's image id."""
+    from . import steps
+    from .sfm.colmapdb import ColmapDatabase
+
+    photo = Path(photo)
+    dest = project.images_dir / photo.name
+    if not dest.exists():
+        shutil.copyfile(photo, dest)
+    elif dest.read_bytes() != photo.read_bytes():
+        raise LocalizeError(f"{photo.name}: the project has another image of that name")
+    meta = read_metadata(dest)
+    share = project.run_options.get("share_camera")
+    with ColmapDatabase(project.database) as db:
+        photo_id = db.add_image(photo.name, meta, share if isinstance(share, bool) else None)
+        for name, m in evidence.pairs.items():
+            if not db.db.exists_image(name) or name == photo.name:
+                continue
+            other = int(db.db.read_image_with_name(name).image_id)
+            steps.write(db, photo_id, other, m, snap, matcher.config.resize)
+    return photo_id
+
+
+# -- the API --------------------------------------------------------------------------------------
+def localize_photos(
+    project_dir: Path,
+    photos: Sequence[Path],
+    options: LocalizeOptions | None = None,
+    matcher: Any = None,
+    add: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    *,
+    model_dir: Path | None = None,
+    images_dir: Path | None = None,
+    aerial: Collection[str] | None = None,
+) -> list[Localization]:
+    """Each photo's pose in the project's model (one :class:`Localization` per photo, in order).
+
+    ``matcher``: the project's (a service passes its own, with its feature store); default: the
+    one the run recorded. ``add``: also put the photos into the project (:func:`add_to_project`).
+    ``progress(done, total)`` is called after each photo. ``model_dir`` / ``images_dir``: where
+    the model and the images are when the project's layout does not say (see the module's
+    docstring); ``aerial``: the model's aerial images, when neither the summary nor their
+    metadata says."""
+    project = Project.find(Path(project_dir), model_dir, images_dir)
+    localizer = Localizer(project, options or LocalizeOptions(), matcher, aerial)
+    snap = float(project.run_options.get("snap_radius", DEFAULTS["snap_radius"]))
+    results = []
+    for k, photo in enumerate(photos):
+        result, evidence = localizer.localize(Path(photo))
+        if add and evidence is not None:
+            add_to_project(project, Path(photo), evidence, localizer.matcher, snap)
+        results.append(result)
+        if progress is not None:
+            progress(k + 1, len(photos))
+    return results
+
+
+def localizations_json(results: Sequence[Localization]) -> dict[str, Any]:
+    """The one JSON document of ``geomatch localize --json``."""
+    return {
+        "photos": [r.to_json() for r in results],
+        "localized": sum(r.localized for r in results),
+        "total": len(results),
+    }
