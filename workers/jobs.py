@@ -1,8 +1,8 @@
 """The steps of a job, whatever runs them (Celery worker processes or the embedded threads).
 
 A match job is ``plan_match`` -> ``extract`` per image -> ``match_pair`` per pair; a reconstruct
-job is one ``reconstruct``; a localize job is one ``localize``. Every step may run twice (redelivery after a worker died, a
-duplicate dispatch) and must then do nothing twice:
+job is one ``reconstruct``, a localize job one ``localize``. Every step may run twice (redelivery
+after a worker died, a duplicate dispatch) and must then do nothing twice:
 
 - a pair already in the COLMAP database is not matched again, and ``write_pair`` is a no-op for
   a pair that is there (both checked under the project's writer lock);
@@ -20,7 +20,7 @@ import logging
 import shutil
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -274,22 +274,19 @@ def reconstruct(ctx: Context, job_id: str) -> str:
 
 
 # -- localize jobs ------------------------------------------------------------------------------
-class Cancelled(Exception):
-    """Raised from the progress callback into the library when the job stopped running."""
-
-
 def localize(ctx: Context, job_id: str) -> str:
     """Pose the job's photos against the project's model (``geomatch.localize``) and store one
     answer per photo as the job's result.
 
     Photos that are not added to the project live in the job's own folder, removed when the job
-    ends however it ends (here, or in ``on_failure``); added ones were stored as project images
-    by the request, and only then is the project's writer lock taken: the library writes them and
-    their matches into the COLMAP database. Without ``add`` the step only reads the project (the
-    model, the database, the images), so it runs beside match and reconstruct jobs. A rerun after
-    a redelivery starts over: the answer is the same, and an added photo's rows are written once
-    (the library checks what the database holds under the lock)."""
-    from geomatch.localize import localize_photos
+    ends however it ends (here, or in ``on_failure``). Added ones were stored as project images by
+    the request; each is written with its matches into the COLMAP database under the project's
+    writer lock, held for that write only (the matching before it takes seconds a photo, and a
+    Redis lock expires after GEOMATCH_LOCK_TIMEOUT). Without ``add`` the step only reads the
+    project, so it runs beside match and reconstruct jobs. A rerun after a redelivery starts over:
+    the answers are the same, and an added photo's rows are written once (``add_to_project``
+    leaves what the database holds)."""
+    from geomatch.localize import LocalizeOptions, Localizer, Project, add_to_project
 
     job = jobstate.claim(ctx.store, job_id)
     if job is None:
@@ -301,30 +298,30 @@ def localize(ctx: Context, job_id: str) -> str:
     folder = ctx.storage.images_dir(pid) if add else ctx.storage.localize_dir(pid, job_id)
     missing = [n for n in names if not (folder / n).is_file()]
     if missing:
-        raise PermanentError(f"the photos {', '.join(missing)} are gone (the project was changed meanwhile)")
+        raise PermanentError(f"the photos {', '.join(missing)} are gone (deleted from the project meanwhile)")
     opts = runtime.job_options({k: v for k, v in stored.items() if k in PROJECT_OPTIONS})
-
-    def progress(done: int, total: int) -> None:
-        if not jobstate.is_active(ctx.store, job_id):
-            raise Cancelled
-        jobstate.set_progress(ctx.store, job_id, done)
-
+    with ctx.store.session() as s:  # resolved by the match jobs: the model's aerial images
+        aerial = set(s.scalars(select(Image.name).where(Image.project_id == pid, Image.aerial.is_(True))))
     t0 = time.perf_counter()
-    try:
-        with ctx.locks.project(pid) if add else nullcontext():
-            results = localize_photos(
-                ctx.storage.project_dir(pid),
-                [folder / n for n in names],
-                matcher=runtime.matcher(ctx, opts),
-                add=add,
-                progress=progress,
-                model_dir=ctx.storage.model_dir(pid),
-                images_dir=ctx.storage.images_dir(pid),
-            )
-    except Cancelled:
-        _drop_photos(ctx, job_id)
-        return "cancelled"
-    answers = [r.to_json() for r in results]
+    project = Project.find(
+        ctx.storage.project_dir(pid),
+        model_dir=ctx.storage.model_dir(pid) / "sparse" / "0",
+        images_dir=ctx.storage.images_dir(pid),
+    )
+    localizer = Localizer(project, LocalizeOptions(), runtime.matcher(ctx, opts), aerial)
+    answers: list[dict[str, Any]] = []
+    for k, name in enumerate(names):
+        if not jobstate.is_active(ctx.store, job_id):
+            _drop_photos(ctx, job_id)
+            return "cancelled"
+        result, evidence = localizer.localize(folder / name)
+        if add and evidence is not None:
+            with ctx.locks.project(pid):
+                add_to_project(
+                    project, folder / name, evidence, localizer.matcher, float(opts["snap_radius"])
+                )
+        answers.append(result.to_json())
+        jobstate.set_progress(ctx.store, job_id, k + 1)
     jobstate.succeed(ctx.store, job_id, {"localizations": answers})
     _drop_photos(ctx, job_id)
     log.info(

@@ -313,7 +313,6 @@ class GrpcClient:
         reply = self.stub.MatchPair(requests(), timeout=timeout, metadata=self.metadata)
         return PairResult.from_message(reply)
 
-
     # -- localization ------------------------------------------------------------------------
     def localize(
         self,

@@ -183,7 +183,6 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
             raise
         return convert.pair_matches(matches)
 
-
     # -- localization ------------------------------------------------------------------------
     @rpc
     def Localize(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:

@@ -186,4 +186,3 @@ def localizations(job: JobView) -> list[dict[str, Any]] | None:
         return None
     found = job.result.get("localizations")
     return [dict(a) for a in found] if isinstance(found, list) else None
-
