@@ -302,6 +302,9 @@ class LocalizationOut(BaseModel):
     supporting_images: list[str] = Field(default_factory=list, description="model images it matched")
     camera: LocalizedCamera | None = None
     seconds: float | None = Field(None, description="time spent on this photo")
+    candidates: list[str] = Field(default_factory=list, description="model images it was matched with")
+    inlier_ratio: float | None = Field(None, description="inliers over the correspondences tried")
+    focal_source: str | None = Field(None, description="model | exif | estimated: where its focal came from")
 
 
 class LocalizeOut(BaseModel):

@@ -1,7 +1,7 @@
 """Localizing new photos against a project's model, on real processes: one embedded `geomatch serve`
 (uvicorn, the gRPC server and the in-process job runner over one service) whose project holds a
-model of one drone view and three ground views of the session's scene (GPS-tagged, so
-georeferenced); the fourth ground view, left out of the model, is localized over REST, over gRPC and from the web console in
+model of four ground views of a synthetic scene (GPS-tagged, so georeferenced); a fifth
+ground view, left out of the model, is localized over REST, over gRPC and from the web console in
 Chromium. A photo of no scene (noise) must come back "not localized". The errors: a project
 without a model, bad uploads, another tenant's project; none of them leaves anything behind.
 """
@@ -23,6 +23,7 @@ import pytest
 from PIL import Image
 
 from geomatch.geo.geodesy import EnuFrame
+from geomatch.synth.aerial import write_scene
 from service.grpcapi.client import ImageSource, to_dict
 from service.grpcapi.pb import pb2
 
@@ -30,17 +31,18 @@ from .grpc_harness import GrpcDeployment, error_of
 from .harness import upload, wait_job
 from .test_embedded import printed_key
 
-# the web console test's model (one drone view and three ground views at 320 px, incremental: it
-# registers at least three; three ground views alone leave the mappers without an initial pair)
-MODEL = ["aerial_00.png", "ground_00.png", "ground_01.png", "ground_02.png"]
-LEFT_OUT = "ground_03.png"
-RESIZE = 320
+# a walk of five ground views 30 degrees apart (GPS-tagged): the model is the first four, matched
+# with the sparse matcher at 480 px (ground pairs only: no tiled aerial pair, which costs minutes on
+# two cores), and the last, which overlaps the two before it, is left out to be localized
+SCENE_SEED = 1
+MODEL = ["ground_00.png", "ground_01.png", "ground_02.png", "ground_03.png"]
+LEFT_OUT = "ground_04.png"
+CONFIG = {"method": "sparse", "resize": 480}
 # a request answers synchronously within this: long enough for a shared CI machine, so the
 # synchronous path is what the tests see unless they ask for a job (wait=0)
 WAIT_S = 600
-# how far (metres) a localized camera may be from where the scene put it: the model is built from
-# three views at 320 px and georeferenced on their 0.5 m GPS fixes (test_e2e's own cameras are
-# within 2 m of the truth with six)
+# how far (metres) a localized camera may be from where the scene put it: the model is georeferenced
+# on four 0.5 m GPS fixes (test_e2e's own cameras are within 2 m of the truth with six)
 NEAR_M = 3.0
 
 
@@ -60,7 +62,14 @@ class Site:
 
 
 @pytest.fixture(scope="module")
-def site(tmp_path_factory: pytest.TempPathFactory, scene: Path) -> Iterator[Site]:
+def walk(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("walk")
+    write_scene(d, 0, len(MODEL) + 1, seed=SCENE_SEED, gps_noise=0.5)
+    return d
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory, walk: Path) -> Iterator[Site]:
     d = GrpcDeployment(
         tmp_path_factory.mktemp("localize"),
         None,
@@ -71,20 +80,19 @@ def site(tmp_path_factory: pytest.TempPathFactory, scene: Path) -> Iterator[Site
         d.start_grpc("serve")
         key = printed_key(d)
         with d.client(key) as c:
-            pid = c.post("/v1/projects", json={"name": "site", "config": {"resize": RESIZE}}).json()["id"]
-            model = build_model(c, pid, scene)
-            assert model["registered"] >= 3 and model["georeferenced"], model
+            pid = c.post("/v1/projects", json={"name": "site", "config": CONFIG}).json()["id"]
+            model = build_model(c, pid, walk)
+            assert model["registered"] == len(MODEL) and model["georeferenced"], model
             bare = c.post("/v1/projects", json={"name": "no model"}).json()["id"]
-            assert upload(c, bare, [scene / "images" / n for n in MODEL[:2]], "ground").status_code == 201
-        yield Site(d, key, pid, bare, scene)
+            assert upload(c, bare, [walk / "images" / n for n in MODEL[:2]], "ground").status_code == 201
+        yield Site(d, key, pid, bare, walk)
     finally:
         d.stop()
 
 
 def build_model(c: httpx.Client, pid: str, scene: Path) -> dict[str, Any]:
-    """Upload the model's images (capture auto: the drone view is recognised from its DJI XMP),
-    match and reconstruct; the model's summary."""
-    assert upload(c, pid, [scene / "images" / n for n in MODEL]).status_code == 201
+    """Upload the model's images, match and reconstruct; the model's summary."""
+    assert upload(c, pid, [scene / "images" / n for n in MODEL], "ground").status_code == 201
     accepted = c.post(f"/v1/projects/{pid}/match", json={"reconstruct": True, "mapper": "incremental"})
     recon = wait_job(c, accepted.json()["reconstruct_job_id"], timeout=1800)
     assert recon["state"] == "succeeded", recon
@@ -145,7 +153,7 @@ def test_rest_answers_with_the_pose_of_a_photo_left_out_of_the_model(site: Site)
         # the job routes read the same job: kind localize, the answers as its result
         job = c.get(f"/v1/jobs/{body['job_id']}").json()
         assert job["kind"] == "localize" and job["result"]["localizations"][0]["name"] == LEFT_OUT
-        assert job["options"]["add"] is False and job["options"]["resize"] == RESIZE  # the project's
+        assert job["options"]["add"] is False and job["options"]["method"] == "sparse"  # the project's
         # not added: the project is as it was, and the photo is gone from the server
         names = [i["name"] for i in c.get(f"/v1/projects/{site.pid}/images").json()["images"]]
         assert names == MODEL
@@ -201,7 +209,7 @@ def test_add_puts_the_photo_and_its_matches_into_the_project(site: Site, tmp_pat
     import pycolmap
 
     with site.client() as c:
-        pid = c.post("/v1/projects", json={"name": "add", "config": {"resize": RESIZE}}).json()["id"]
+        pid = c.post("/v1/projects", json={"name": "add", "config": CONFIG}).json()["id"]
         # the same model as the site's: its features are in the server's cache already
         build_model(c, pid, site.scene)
         r = localize(c, pid, [(LEFT_OUT, site.photo().read_bytes())], add="true", capture="ground")
@@ -264,3 +272,61 @@ def test_localize_refusals_leave_nothing_behind(site: Site) -> None:
     assert left_behind(site, site.pid) == [] and left_behind(site, site.bare) == []
     assert not list((site.d.home / "projects" / site.pid / "localize").glob("*"))
     assert site.d.wait_unstaged() == []
+
+
+@pytest.mark.browser
+def test_console_locates_a_photo(site: Site, tmp_path: Path) -> None:
+    """Through the page: the project's "Locate a photo" action takes the photo left out and a
+    photo of no scene; the first is drawn as a camera in the viewer beside the model's and written
+    out with its latitude and longitude, the second is listed as not localized with its reason."""
+    from .browser import chromium_path, require_playwright
+    from .test_console import Console, page_of, sign_in, wait_until
+
+    require_playwright()
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium_path(), args=["--no-sandbox"])
+        try:
+            with page_of(Console(site.d, site.key, browser)) as page:
+                sign_in(page, Console(site.d, site.key, browser))
+                page.goto(f"{site.d.url}/#/projects/{site.pid}")
+                page.wait_for_selector("#locate-card:not([hidden])")
+                wait_until(page, f"window.geomatchViewer && window.geomatchViewer.cameras === {len(MODEL)}")
+                assert page.get_attribute("#viewer", "data-located") == "0"
+                page.set_input_files(
+                    "#locate-input",
+                    [
+                        str(site.photo()),
+                        {"name": "noise.jpg", "mimeType": "image/jpeg", "buffer": noise_jpeg(9)},
+                    ],
+                )
+                wait_until(
+                    page,
+                    "['done', 'error'].includes(document.getElementById('locate-status').dataset.state)",
+                    timeout=15 * 60 * 1000,
+                )
+                assert page.get_attribute("#locate-status", "data-state") == "done", page.text_content(
+                    "#locate-status"
+                )
+                assert page.text_content("#locate-status") == "1 of 2 located"
+                placed = page.locator(f"#locate-results li[data-name='{LEFT_OUT}']")
+                assert placed.get_attribute("data-state") == "localized"
+                lat = float(placed.locator(".wgs84").get_attribute("data-lat") or "nan")
+                lon = float(placed.locator(".wgs84").get_attribute("data-lon") or "nan")
+                truth = truth_lat_lon(site.scene, LEFT_OUT)
+                assert metres_between(truth[:2], (lat, lon)) < NEAR_M
+                assert "lat " in placed.locator(".wgs84").text_content()
+                noise = page.locator("#locate-results li[data-name='noise.jpg']")
+                assert noise.get_attribute("data-state") == "not-localized"
+                assert noise.locator(".verdict").text_content() == "not localized"
+                assert noise.locator(".reason").text_content()
+                # the located camera is drawn, in its own colour, beside the model's
+                wait_until(page, "window.geomatchViewer.located === 1")
+                assert page.evaluate("window.geomatchViewer.cameras") == len(MODEL)
+                page.locator("#locate-card").scroll_into_view_if_needed()
+                page.screenshot(path=tmp_path / "located.png", full_page=True)
+        finally:
+            browser.close()
+    with site.client() as c:  # nothing was added to the project
+        assert [i["name"] for i in c.get(f"/v1/projects/{site.pid}/images").json()["images"]] == MODEL
