@@ -1,4 +1,4 @@
-"""The library's commands of ``geomatch``: match, synth, run, eval, demo, export.
+"""The library's commands of ``geomatch``: match, synth, run, eval, demo, export, localize.
 
 ``register`` adds them to a parser: the ``geomatch`` command (``geomatch_app.cli``) adds the service's
 beside them. ``python -m geomatch.cli`` runs the library's commands alone. Imports stay light
@@ -146,6 +146,50 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_localize(args: argparse.Namespace) -> int:
+    import json
+
+    from .localize import LocalizeError, localizations_json, localize_photos
+
+    missing = [str(p) for p in args.photos if not p.is_file()]
+    if missing:
+        print(f"geomatch: error: no such photo: {', '.join(missing)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        results = localize_photos(args.out, args.photos, add=args.add, images_dir=args.images)
+    except (LocalizeError, ValueError, OSError) as e:
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if args.json:
+        print(json.dumps(localizations_json(results), indent=2))
+        return 0
+    for r in results:
+        print(format_localization(r.to_json()))
+    if args.add:
+        print(f"added to {args.out}/database.db: run `geomatch run` on the images again to map them")
+    return 0
+
+
+def format_localization(r: Mapping[str, Any]) -> str:
+    """One photo's answer for a terminal: where it is, how sure, or why it was not placed."""
+    if not r["localized"]:
+        return f"{r['name']}: not localized ({r['reason']}) [{r['seconds']:.1f}s]"
+    c = r["center"]
+    lines = [
+        f"{r['name']}: localized, confidence {r['confidence']}: centre ({c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f}), "
+        f"{r['inliers']}/{r['matches']} inliers, reprojection error {r['reprojection_error_px']:.2f} px "
+        f"[{r['seconds']:.1f}s]"
+    ]
+    if r["wgs84"]:
+        g = r["wgs84"]
+        lines.append(
+            f"  lat {g['lat']:.7f} lon {g['lon']:.7f} alt {g['alt']:.2f} m, "
+            f"heading {g['heading_deg']:.1f} deg"
+        )
+    lines.append(f"  supported by {', '.join(r['supporting_images'])}")
+    return "\n".join(lines)
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -259,6 +303,22 @@ def register(sub: Any) -> None:
         "--images", type=Path, default=None, help="the run's images (default: the folder the run read)"
     )
     x.set_defaults(func=cmd_export)
+
+    lo = sub.add_parser(
+        "localize", help="place new photos in a run's model (pose, and WGS84 when georeferenced)"
+    )
+    lo.add_argument("out", type=Path, help="the run's output folder (of geomatch run), or a stored project")
+    lo.add_argument("photos", type=Path, nargs="+", metavar="PHOTO")
+    lo.add_argument("--json", action="store_true", help="print one JSON document instead of lines")
+    lo.add_argument(
+        "--add",
+        action="store_true",
+        help="also add the photos to the project (database and images folder) for the next run",
+    )
+    lo.add_argument(
+        "--images", type=Path, default=None, help="the project's images (default: the folder the run read)"
+    )
+    lo.set_defaults(func=cmd_localize)
 
     d = sub.add_parser("demo", help="synthetic air-to-ground scene -> run -> eval, in one command")
     d.add_argument("--out", type=Path, default=Path("geomatch-data/demo"))

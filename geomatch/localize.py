@@ -18,19 +18,22 @@ a project stored by the service (``database.db``, ``images/``, ``model/sparse/0`
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 import time
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .imageio import read_image
-from .metadata import ImageMeta, read_metadata
 from .options import DEFAULTS
+
+if TYPE_CHECKING:  # the API process reads the options and answers without torch or pycolmap
+    from .metadata import ImageMeta
+    from .sfm.absolute import Correspondences, Pose
 
 
 @dataclass
@@ -173,10 +176,12 @@ QUERY = "\x00query"  # the photo's name in a planned pair: never a model image's
 
 @dataclass
 class Evidence:
-    """What one photo's matching left: the pairs (for ``add``) and the 2D-3D correspondences."""
+    """What one photo's matching left: the pairs (for ``add``) and the 2D-3D correspondences
+    (merged, and per pair)."""
 
     pairs: dict[str, Any]  # model image name -> steps.PairMatches
-    correspondences: Any  # sfm.absolute.Correspondences
+    correspondences: Correspondences
+    parts: list[Correspondences]
 
 
 class Localizer:
@@ -201,6 +206,8 @@ class Localizer:
         self.observations = {im.name: Observations.of(im) for im in self.rec.images.values() if im.has_pose}
         # images with too few observed points cannot lift enough matches to help
         self.names = sorted(n for n, o in self.observations.items() if len(o.point3D_ids) >= 10)
+        from .metadata import read_metadata
+
         self.images = steps.Images(project.images_dir)
         self.metas = {
             n: read_metadata(project.images_dir / n) for n in self.names if (project.images_dir / n).is_file()
@@ -216,6 +223,7 @@ class Localizer:
         self.aerial = set(aerial) & set(self.names)
         self.frame = project.frame()
         self._descriptors: list[np.ndarray] | None = None
+        self._sparse: Any = None
 
     # -- candidates
     def model_descriptors(self) -> list[np.ndarray]:
@@ -224,22 +232,37 @@ class Localizer:
         return self._descriptors
 
     def local_descriptors(self, image: np.ndarray) -> np.ndarray:
-        sparse = self.matcher.derive(method="sparse")
+        if self._sparse is None:
+            # the plain pairs' own sparse matcher when they are matched by anchors alone (``auto``
+            # on a ground project: fewer keypoints), so the photo's and the model images'
+            # features serve retrieval and matching both (the photo's were extracted twice)
+            plain = self.matcher.for_pair(False, bool(self.aerial))
+            self._sparse = plain if plain.config.method == "sparse" else self.matcher.derive(method="sparse")
+        sparse = self._sparse
         feats = sparse.features(image)[sparse.config.sparse].sparse
         assert feats is not None
         return np.asarray(feats.descriptors.float().cpu().numpy())
 
-    def candidates(self, image: np.ndarray, meta: ImageMeta, aerial_photo: bool) -> list[str]:
-        """The model images to match the photo with, best first: retrieval's top
-        ``max_candidates``, then the nearest cameras to the photo's GPS fix, then for a ground
-        photo of a project with aerial images the most similar aerial images."""
+    def candidates(
+        self, image: np.ndarray, meta: ImageMeta, aerial_photo: bool
+    ) -> tuple[list[str], list[str]]:
+        """The model images to match the photo with, best first, in two stages: the plain pairs
+        (retrieval's top ``max_candidates`` of the images on the photo's side, air or ground,
+        then the nearest cameras to its GPS fix) and the tiled ones (for a ground photo of a
+        project with aerial images, the ``aerial_candidates`` most similar aerial images, or
+        the nearest to its fix). A tiled pair costs several matchings (five crops at most), so
+        the second stage runs only when the first does not localize the photo confidently."""
         from .sfm.retrieval import vlad
 
         opts = self.options
         vectors = vlad([*self.model_descriptors(), self.local_descriptors(image)])
         scores = vectors[:-1] @ vectors[-1]
         ranked = [self.names[i] for i in np.argsort(-scores, kind="stable")]
-        chosen = ranked[: opts.max_candidates]
+        tiles = not aerial_photo and bool(self.aerial)  # ground photo x aerial image: a tiled pair
+        same_side = [n for n in ranked if not tiles or n not in self.aerial]
+        other_side = [n for n in ranked if tiles and n in self.aerial]
+        plain = same_side[: opts.max_candidates]
+        tiled = other_side[: opts.aerial_candidates]
         if self.frame is not None and meta.lat_lon is not None and opts.gps_candidates > 0:
             lat, lon = meta.lat_lon
             here = self.frame.from_geodetic(lat, lon, meta.altitude_m if meta.altitude_m is not None else 0.0)
@@ -247,15 +270,20 @@ class Localizer:
                 n: np.asarray(self.rec.find_image_with_name(n).projection_center(), np.float64)
                 for n in self.names
             }
-            near = sorted(self.names, key=lambda n: float(np.linalg.norm(centres[n][:2] - here[:2])))
-            chosen += [n for n in near if n not in chosen][: opts.gps_candidates]
-        wants_aerial = not aerial_photo and self.aerial and opts.aerial_candidates > 0
-        if wants_aerial and not any(n in self.aerial for n in chosen):
-            chosen += [n for n in ranked if n in self.aerial][: opts.aerial_candidates]
-        return chosen
+
+            def near(names: list[str]) -> list[str]:
+                return sorted(names, key=lambda n: float(np.linalg.norm(centres[n][:2] - here[:2])))
+
+            plain += [n for n in near(same_side) if n not in plain][: opts.gps_candidates]
+            tiled += [n for n in near(other_side) if n not in tiled][: opts.aerial_candidates]
+        return plain, tiled
 
     # -- matching and pose
-    def evidence(self, image: np.ndarray, chosen: Sequence[str], aerial_photo: bool) -> Evidence:
+    def evidence(
+        self, image: np.ndarray, chosen: Sequence[str], aerial_photo: bool, into: Evidence | None = None
+    ) -> Evidence:
+        """The photo matched with ``chosen`` (pairs planned and tiled as ``geomatch run`` plans
+        them), the matches lifted to 2D-3D; added to ``into``'s when given."""
         from . import steps
         from .sfm import pairs as pairing
         from .sfm.absolute import lift, merge
@@ -264,7 +292,8 @@ class Localizer:
         tiling = str(self.project.run_options.get("tiling", DEFAULTS["tiling"]))
         planned = pairing.finalize([(QUERY, n) for n in chosen], aerial, tiling)
         resize = self.matcher.config.resize
-        pairs, parts = {}, []
+        pairs = dict(into.pairs) if into is not None else {}
+        parts = list(into.parts) if into is not None else []
         for pair in planned:
             name = pair.name1
             model_image = self.images[name]
@@ -274,7 +303,7 @@ class Localizer:
             radius = steps.snap_radius(self.options.lift_radius, resize, max(model_image.shape[:2]))
             parts.append(lift(m.keypoints0[order], m.keypoints1[order], self.observations[name], radius))
         query_radius = steps.snap_radius(1.0, resize, max(image.shape[:2]))
-        return Evidence(pairs, merge(parts, query_radius))
+        return Evidence(pairs, merge(parts, query_radius), parts)
 
     def camera_for(self, meta: ImageMeta) -> tuple[Any, str]:
         """The photo's intrinsics: a model camera calibrated on an image of the same device when
@@ -287,34 +316,41 @@ class Localizer:
         if meta.has_device:
             for n in self.names:
                 if self.metas[n].device == meta.device:
-                    return pycolmap.Camera(
-                        self.rec.cameras[self.rec.find_image_with_name(n).camera_id]
-                    ), "model"
+                    calibrated = self.rec.cameras[self.rec.find_image_with_name(n).camera_id]
+                    return copy.copy(calibrated), "model"
         focal = meta.focal_px or default_focal(meta.width, meta.height)
         cam = pycolmap.Camera.create_from_model_name(0, CAMERA_MODEL, focal, meta.width, meta.height)
         return cam, "exif" if meta.focal_px else "estimated"
 
     def localize(self, photo: Path) -> tuple[Localization, Evidence | None]:
-        from .sfm.absolute import estimate_pose
+        from .imageio import read_image
+        from .metadata import read_metadata
+        from .sfm.absolute import Correspondences
+        from .steps import snap_radius
 
         t0 = time.perf_counter()
         photo = Path(photo)
         image = read_image(photo)
         meta = read_metadata(photo)
         aerial_photo = bool(meta.aerial_hint)
-        chosen = self.candidates(image, meta, aerial_photo)
-        ev = self.evidence(image, chosen, aerial_photo)
-        corr = ev.correspondences
+        plain, tiled = self.candidates(image, meta, aerial_photo)
         camera, focal_source = self.camera_for(meta)
-        resize = self.matcher.config.resize
-        from .steps import snap_radius
-
-        threshold = max(snap_radius(self.options.max_error, resize, max(image.shape[:2])), 1.0)
+        threshold = max(
+            snap_radius(self.options.max_error, self.matcher.config.resize, max(image.shape[:2])), 1.0
+        )
+        ev: Evidence | None = None
+        out: Localization | None = None
         pose = None
-        if len(corr) >= 4:
-            xyz = np.array([self.rec.points3D[int(i)].xyz for i in corr.point3D_ids], np.float64)
-            pose = estimate_pose(corr.points2D, xyz, camera, threshold, focal_source == "estimated")
-        out = judge(photo.name, pose, corr, self.options, chosen)
+        matched: list[str] = []
+        for stage in (plain, tiled):
+            if not stage or (out is not None and out.confidence == "high"):
+                continue
+            ev = self.evidence(image, stage, aerial_photo, ev)
+            matched += stage
+            pose = self.pose(ev.correspondences, camera, threshold, focal_source == "estimated")
+            out = judge(photo.name, pose, ev.correspondences, self.options, matched)
+        if out is None:  # a model with no image to match
+            out = judge(photo.name, None, Correspondences.empty(), self.options, [])
         out.focal_source = focal_source
         if pose is not None and out.localized:
             out.cam_from_world, out.center, out.camera = describe(pose)
@@ -325,6 +361,14 @@ class Localizer:
                 out.wgs84 = wgs84(self.frame, pose.centre, R)
         out.seconds = time.perf_counter() - t0
         return out, ev
+
+    def pose(self, corr: Correspondences, camera: Any, threshold: float, estimate_focal: bool) -> Pose | None:
+        from .sfm.absolute import estimate_pose
+
+        if len(corr) < 4:
+            return None
+        xyz = np.array([self.rec.points3D[int(i)].xyz for i in corr.point3D_ids], np.float64)
+        return estimate_pose(corr.points2D, xyz, camera, threshold, estimate_focal)
 
 
 def describe(pose: Any) -> tuple[dict[str, list[float]], list[float], dict[str, Any]]:
@@ -379,7 +423,7 @@ def judge(name: str, pose: Any, corr: Any, opts: LocalizeOptions, chosen: Sequen
         if ok:
             support[n] = support.get(n, 0) + 1
     supporting = sorted(support, key=lambda n: -support[n])
-    reason = None
+    reason: str | None = None
     if inliers < opts.min_inliers:
         reason = f"only {inliers} of {tried} matches to the model agree on a pose (needs {opts.min_inliers})"
     elif ratio < opts.min_inlier_ratio:
@@ -413,6 +457,7 @@ def add_to_project(project: Project, photo: Path, evidence: Evidence, matcher: A
     reconstruct maps it (the mapper reads the photos: track refinement). Idempotent: an image and
     a pair already there are left as they are. Returns the photo's image id."""
     from . import steps
+    from .metadata import read_metadata
     from .sfm.colmapdb import ColmapDatabase
 
     photo = Path(photo)
@@ -426,9 +471,10 @@ def add_to_project(project: Project, photo: Path, evidence: Evidence, matcher: A
     with ColmapDatabase(project.database) as db:
         photo_id = db.add_image(photo.name, meta, share if isinstance(share, bool) else None)
         for name, m in evidence.pairs.items():
-            if not db.db.exists_image(name) or name == photo.name:
+            image = db.db.read_image_with_name(name) if db.db.exists_image(name) else None
+            if image is None or name == photo.name:
                 continue
-            other = int(db.db.read_image_with_name(name).image_id)
+            other = int(image.image_id)
             steps.write(db, photo_id, other, m, snap, matcher.config.resize)
     return photo_id
 

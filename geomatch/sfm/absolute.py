@@ -13,6 +13,7 @@ its inliers: COLMAP's own image registration, given correspondences the matcher 
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -53,6 +54,10 @@ class Correspondences:
     def __len__(self) -> int:
         return len(self.point3D_ids)
 
+    @classmethod
+    def empty(cls) -> Correspondences:
+        return cls(np.zeros((0, 2)), np.zeros(0, np.int64), [])
+
 
 def lift(query_xy: np.ndarray, model_xy: np.ndarray, obs: Observations, radius: float) -> Correspondences:
     """The matches (query point, model image point) whose model point lies within ``radius``
@@ -60,7 +65,7 @@ def lift(query_xy: np.ndarray, model_xy: np.ndarray, obs: Observations, radius: 
     best first is kept by :func:`merge`)."""
     query_xy = np.asarray(query_xy, np.float64).reshape(-1, 2)
     if not len(obs.point3D_ids) or not len(query_xy):
-        return Correspondences(np.zeros((0, 2)), np.zeros(0, np.int64), [])
+        return Correspondences.empty()
     dist, nn = obs.tree.query(
         np.asarray(model_xy, np.float64).reshape(-1, 2), k=1, distance_upper_bound=radius
     )
@@ -74,7 +79,7 @@ def merge(parts: Sequence[Correspondences], radius: float) -> Correspondences:
     through several model images would otherwise count several times in RANSAC's consensus and
     a photo point can only see one 3D point."""
     if not parts:
-        return Correspondences(np.zeros((0, 2)), np.zeros(0, np.int64), [])
+        return Correspondences.empty()
     xy = np.concatenate([p.points2D for p in parts]).reshape(-1, 2)
     ids = np.concatenate([p.point3D_ids for p in parts]).astype(np.int64)
     names = [n for p in parts for n in p.images]
@@ -152,7 +157,7 @@ def estimate_pose(
     est.ransac.random_seed = seed
     ref = pycolmap.AbsolutePoseRefinementOptions()
     ref.refine_focal_length = estimate_focal
-    camera = pycolmap.Camera(camera)  # the refinement writes the focal length into it
+    camera = copy.copy(camera)  # the refinement writes the focal length into it
     found = pycolmap.estimate_and_refine_absolute_pose(
         np.asarray(points2D, np.float64) + COLMAP_OFFSET, np.asarray(points3D, np.float64), camera, est, ref
     )
