@@ -297,7 +297,7 @@ def test_console_locates_a_photo(site: Site, tmp_path: Path) -> None:
                 page.set_input_files(
                     "#locate-input",
                     [
-                        str(site.photo()),
+                        {"name": LEFT_OUT, "mimeType": "image/png", "buffer": site.photo().read_bytes()},
                         {"name": "noise.jpg", "mimeType": "image/jpeg", "buffer": noise_jpeg(9)},
                     ],
                 )
