@@ -68,6 +68,9 @@ class Settings:
     # viewer's scene) running at once in all, GEOMATCH_HEAVY_TENANT_SLOTS: of one tenant
     heavy_slots: int = 8
     heavy_tenant_slots: int = 2
+    # GEOMATCH_LOCALIZE_WAIT_S: how long a localize request waits for its job before it answers
+    # 202 with the job instead of the poses (a waiting request holds a thread and a heavy slot)
+    localize_wait_s: float = 30.0
 
     @property
     def embedded(self) -> bool:
@@ -103,4 +106,5 @@ class Settings:
             rate_burst=max(1, _int("GEOMATCH_RATE_BURST", 500)),
             heavy_slots=max(1, _int("GEOMATCH_HEAVY_SLOTS", 8)),
             heavy_tenant_slots=max(1, _int("GEOMATCH_HEAVY_TENANT_SLOTS", 2)),
+            localize_wait_s=max(0.0, _float("GEOMATCH_LOCALIZE_WAIT_S", 30.0)),
         )

@@ -61,6 +61,20 @@ def mark_pair_done(store: MetadataStore, job_id: str, idx: int, matches: int, in
         return bool(flipped)
 
 
+def set_progress(store: MetadataStore, job_id: str, done: int) -> bool:
+    """A one-step job's own count of what it has done (a localize job's photos): moves only up,
+    and only while the job runs, so a late report never rewinds or revives a finished job."""
+    with store.session() as s:
+        return bool(
+            _changed(
+                s,
+                update(Job)
+                .where(Job.id == job_id, Job.state == "running", Job.done < done)
+                .values(done=done),
+            )
+        )
+
+
 def finish_if_complete(store: MetadataStore, job_id: str, result: dict[str, Any] | None = None) -> bool:
     with store.session() as s:
         return bool(

@@ -102,7 +102,7 @@ class Job(Base):
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     project_id: Mapped[str] = mapped_column(ForeignKey("projects.id", ondelete="CASCADE"), index=True)
     tenant_id: Mapped[str] = mapped_column(String(32), index=True)
-    kind: Mapped[str] = mapped_column(String(16))  # match | reconstruct
+    kind: Mapped[str] = mapped_column(String(16))  # match | reconstruct | localize
     state: Mapped[str] = mapped_column(String(16), default="queued", index=True)
     options: Mapped[dict[str, Any]] = mapped_column(default=dict)
     planned: Mapped[bool] = mapped_column(Boolean, default=False)

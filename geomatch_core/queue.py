@@ -15,8 +15,10 @@ MATCH_PAIR = "geomatch.match_pair"
 RECONSTRUCT = "geomatch.reconstruct"
 RENDER_PAIR = "geomatch.render_pair"
 MATCH_TWO = "geomatch.match_two"  # interactive: two uploaded images, no project (gRPC MatchPair)
+LOCALIZE = "geomatch.localize"  # new photos posed against a project's model: one step, one job
 
-ENTRY_STEP = {"match": PLAN_MATCH, "reconstruct": RECONSTRUCT}  # job kind -> its first step
+# job kind -> its first step
+ENTRY_STEP = {"match": PLAN_MATCH, "reconstruct": RECONSTRUCT, "localize": LOCALIZE}
 
 
 class JobQueue(Protocol):

@@ -6,6 +6,8 @@ Layout, one folder per project::
     projects/<id>/database.db          the COLMAP database (written by one writer at a time)
     projects/<id>/model/               sparse/0 ..., points.ply, summary.json, model.zip
     projects/<id>/pictures/            match pictures, rendered on first request
+    projects/<id>/localize/<job>/      photos of a localize job that are not added to the project,
+                                       kept until the job ends
     features/                          the workers' feature cache (safe to delete)
     tmp/                               uploads being validated; renamed into place when accepted
 
@@ -67,6 +69,14 @@ class Storage:
     def picture_path(self, project_id: str, name0: str, name1: str) -> Path:
         """Where the matches picture of a pair is kept (names hashed: any file name is safe)."""
         return self.pictures_dir(project_id) / picture_name(name0, name1)
+
+    def localize_dir(self, project_id: str, job_id: str) -> Path:
+        """The photos of a localize job that are not added to the project: inside the project, so
+        a deletion of the project takes them too, and beside its images on the same file system
+        (the upload staging renames them into place)."""
+        if not job_id.isalnum():
+            raise ValueError(f"bad job id {job_id!r}")
+        return self.project_dir(project_id) / "localize" / job_id
 
     def writer_lock_path(self, project_id: str) -> Path:
         return self.project_dir(project_id) / ".writer.lock"

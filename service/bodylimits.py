@@ -35,7 +35,7 @@ from geomatch_core.errors import DomainError, Unauthenticated
 from .httperrors import error_headers, status_of
 from .usecases import Service
 
-UPLOAD = re.compile(r"^/v1/projects/[^/]+/images/?$")
+UPLOAD = re.compile(r"^/v1/projects/[^/]+/(?:images|localize)/?$")  # multipart uploads of images
 PART_HEAD = 64 * 1024  # a multipart part's own headers, allowed on top of the file's bytes
 BODY_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 MiB = 1024 * 1024

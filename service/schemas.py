@@ -267,3 +267,55 @@ class SceneOut(BaseModel):
     xyz: list[float] = Field(description="x, y, z of each point, flat")
     rgb: list[int] = Field(description="r, g, b (0-255) of each point, flat")
     cameras: list[SceneCamera] = Field(description="the registered images")
+
+
+# -- localize ----------------------------------------------------------------------------------
+class Pose(BaseModel):
+    qvec: list[float] = Field(description="rotation world to camera as a unit quaternion w, x, y, z")
+    tvec: list[float] = Field(description="translation world to camera, model units")
+
+
+class Wgs84(BaseModel):
+    lat: float = Field(description="degrees north")
+    lon: float = Field(description="degrees east")
+    alt: float = Field(description="metres, the model's height reference")
+    heading_deg: float | None = Field(None, description="the view direction, degrees clockwise from north")
+
+
+class LocalizedCamera(BaseModel):
+    model: str = Field(description="COLMAP camera model, e.g. SIMPLE_RADIAL")
+    width: int
+    height: int
+    params: list[float] = Field(description="COLMAP's parameters of that model, pixels")
+
+
+class LocalizationOut(BaseModel):
+    """One photo's answer. ``localized`` false: no pose (``reason`` says why); the pose fields are
+    then null, never a guess."""
+
+    name: str
+    localized: bool
+    reason: str | None = Field(None, description="why not localized, or what lowered the confidence")
+    cam_from_world: Pose | None = None
+    center: list[float] | None = Field(None, description="camera centre in the model's frame")
+    wgs84: Wgs84 | None = Field(None, description="when the model is georeferenced")
+    inliers: int = Field(0, description="2D-3D correspondences the pose explains")
+    matches: int = Field(0, description="2D-3D correspondences tried")
+    reprojection_error_px: float | None = None
+    confidence: str = Field("none", description="high | low | none")
+    supporting_images: list[str] = Field(default_factory=list, description="model images it matched")
+    camera: LocalizedCamera | None = None
+    seconds: float | None = Field(None, description="time spent on this photo")
+    candidates: list[str] = Field(default_factory=list, description="model images it was matched with")
+    inlier_ratio: float | None = Field(None, description="inliers over the correspondences tried")
+    focal_source: str | None = Field(None, description="model | exif | estimated: where its focal came from")
+
+
+class LocalizeOut(BaseModel):
+    job_id: str = Field(description="GET /v1/jobs/{job_id} reads it (its result holds the answers)")
+    state: str = Field(description="queued | running | succeeded | failed | cancelled")
+    progress: Progress = Field(description="photos done of those sent")
+    error: str | None = None
+    localizations: list[LocalizationOut] | None = Field(
+        None, description="one per photo, in the order sent, once the job succeeded (200); null with 202"
+    )

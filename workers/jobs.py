@@ -1,8 +1,8 @@
 """The steps of a job, whatever runs them (Celery worker processes or the embedded threads).
 
 A match job is ``plan_match`` -> ``extract`` per image -> ``match_pair`` per pair; a reconstruct
-job is one ``reconstruct``. Every step may run twice (redelivery after a worker died, a
-duplicate dispatch) and must then do nothing twice:
+job is one ``reconstruct``, a localize job one ``localize``. Every step may run twice (redelivery
+after a worker died, a duplicate dispatch) and must then do nothing twice:
 
 - a pair already in the COLMAP database is not matched again, and ``write_pair`` is a no-op for
   a pair that is there (both checked under the project's writer lock);
@@ -17,6 +17,7 @@ steps only, so importing this module does not import torch.
 from __future__ import annotations
 
 import logging
+import shutil
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -25,11 +26,11 @@ from typing import Any
 
 from sqlalchemy import exists, select, update
 
-from geomatch.options import DEFAULTS
+from geomatch.options import DEFAULTS, PROJECT_OPTIONS
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
 from geomatch_core import jobstate
 from geomatch_core.models import Image, Job, JobPair
-from geomatch_core.queue import EXTRACT, MATCH_PAIR, RENDER_PAIR
+from geomatch_core.queue import EXTRACT, LOCALIZE, MATCH_PAIR, RENDER_PAIR
 
 from . import redact, runtime
 from .context import Context, PermanentError
@@ -272,6 +273,75 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     return "done"
 
 
+# -- localize jobs ------------------------------------------------------------------------------
+def localize(ctx: Context, job_id: str) -> str:
+    """Pose the job's photos against the project's model (``geomatch.localize``) and store one
+    answer per photo as the job's result.
+
+    Photos that are not added to the project live in the job's own folder, removed when the job
+    ends however it ends (here, or in ``on_failure``). Added ones were stored as project images by
+    the request; each is written with its matches into the COLMAP database under the project's
+    writer lock, held for that write only (the matching before it takes seconds a photo, and a
+    Redis lock expires after GEOMATCH_LOCK_TIMEOUT). Without ``add`` the step only reads the
+    project, so it runs beside match and reconstruct jobs. A rerun after a redelivery starts over:
+    the answers are the same, and an added photo's rows are written once (``add_to_project``
+    leaves what the database holds)."""
+    from geomatch.localize import LocalizeOptions, Localizer, Project, add_to_project
+
+    job = jobstate.claim(ctx.store, job_id)
+    if job is None:
+        _drop_photos(ctx, job_id)
+        return "skipped"
+    pid, stored = job.project_id, dict(job.options)
+    add = bool(stored.get("add"))
+    names = [str(n) for n in stored.get("photos", [])]
+    folder = ctx.storage.images_dir(pid) if add else ctx.storage.localize_dir(pid, job_id)
+    missing = [n for n in names if not (folder / n).is_file()]
+    if missing:
+        raise PermanentError(f"the photos {', '.join(missing)} are gone (deleted from the project meanwhile)")
+    opts = runtime.job_options({k: v for k, v in stored.items() if k in PROJECT_OPTIONS})
+    with ctx.store.session() as s:  # resolved by the match jobs: the model's aerial images
+        aerial = set(s.scalars(select(Image.name).where(Image.project_id == pid, Image.aerial.is_(True))))
+    t0 = time.perf_counter()
+    project = Project.find(
+        ctx.storage.project_dir(pid),
+        model_dir=ctx.storage.model_dir(pid) / "sparse" / "0",
+        images_dir=ctx.storage.images_dir(pid),
+    )
+    localizer = Localizer(project, LocalizeOptions(), runtime.matcher(ctx, opts), aerial)
+    answers: list[dict[str, Any]] = []
+    for k, name in enumerate(names):
+        if not jobstate.is_active(ctx.store, job_id):
+            _drop_photos(ctx, job_id)
+            return "cancelled"
+        result, evidence = localizer.localize(folder / name)
+        if add and evidence is not None:
+            with ctx.locks.project(pid):
+                add_to_project(
+                    project, folder / name, evidence, localizer.matcher, float(opts["snap_radius"])
+                )
+        answers.append(result.to_json())
+        jobstate.set_progress(ctx.store, job_id, k + 1)
+    jobstate.succeed(ctx.store, job_id, {"localizations": answers})
+    _drop_photos(ctx, job_id)
+    log.info(
+        "localized %d of %d photos in %.1fs (add=%s)",
+        sum(bool(a.get("localized")) for a in answers),
+        len(answers),
+        time.perf_counter() - t0,
+        add,
+        extra={"job_id": job_id, "project_id": pid},
+    )
+    return "done"
+
+
+def _drop_photos(ctx: Context, job_id: str) -> None:
+    """Remove a localize job's own photos (none for a job that added them to the project)."""
+    job = jobstate.get(ctx.store, job_id)
+    if job is not None:
+        shutil.rmtree(ctx.storage.localize_dir(job.project_id, job_id), ignore_errors=True)
+
+
 # -- interactive --------------------------------------------------------------------------------
 def render_pair(ctx: Context, project_id: str, name0: str, name1: str) -> dict[str, Any]:
     """Draw a matched pair from the COLMAP database: verified inliers red, other matches blue."""
@@ -327,6 +397,11 @@ def on_failure(ctx: Context, step: str, args: tuple[Any, ...], exc: BaseExceptio
     if jobstate.fail(ctx.store, job_id, f"{where}: {reason}"):
         log.error("job failed in %s: %s", where, exc, extra={"job_id": job_id})
         jobstate.release_followers(ctx.store, ctx.queue, job_id)
+    if step == LOCALIZE:
+        try:
+            _drop_photos(ctx, job_id)
+        except Exception as e:  # the store may be what failed the step
+            log.warning("could not remove the photos of job %s (%s)", job_id, e)
 
 
 def _project_dir(ctx: Context, job_id: str) -> Path | None:

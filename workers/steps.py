@@ -6,7 +6,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from geomatch_core.queue import EXTRACT, MATCH_PAIR, MATCH_TWO, PLAN_MATCH, RECONSTRUCT, RENDER_PAIR
+from geomatch_core.queue import (
+    EXTRACT,
+    LOCALIZE,
+    MATCH_PAIR,
+    MATCH_TWO,
+    PLAN_MATCH,
+    RECONSTRUCT,
+    RENDER_PAIR,
+)
 
 from . import jobs, pairmatch
 
@@ -15,6 +23,7 @@ STEPS: dict[str, Callable[..., Any]] = {
     EXTRACT: jobs.extract,
     MATCH_PAIR: jobs.match_pair,
     RECONSTRUCT: jobs.reconstruct,
+    LOCALIZE: jobs.localize,
     RENDER_PAIR: jobs.render_pair,
     MATCH_TWO: pairmatch.match_two,
 }

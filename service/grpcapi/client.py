@@ -11,6 +11,7 @@ downloads, and numpy arrays for MatchPair.
         r = c.submit_matching(p.id, pair_spec="exhaustive", reconstruct=True)
         for job in c.watch_job(r.reconstruct_job.id): ...
         info, path = c.download_model(p.id, Path("model.zip"))
+        answer = c.localize(p.id, [ImageSource.of("new.jpg", "ground")])  # .localizations, .job
 """
 
 from __future__ import annotations
@@ -324,6 +325,28 @@ class GrpcClient:
 
         reply = self.stub.MatchPair(requests(), timeout=timeout, metadata=self.metadata)
         return PairResult.from_message(reply)
+
+    # -- localization ------------------------------------------------------------------------
+    def localize(
+        self,
+        project_id: str,
+        photos: Iterable[ImageSource],
+        add: bool = False,
+        wait_s: float | None = None,
+        timeout: float | None = 600.0,
+    ) -> Any:
+        """One Localize stream: the LocalizeResponse (its ``job``, and one ``localizations`` entry
+        per photo when the job ended within the wait). A job still running is followed with
+        :meth:`wait`; its ``result`` then holds the answers (:func:`to_dict`)."""
+        options = pb2.LocalizeOptions(add=add)
+        if wait_s is not None:
+            options.wait_s = wait_s
+
+        def requests() -> Iterator[Any]:
+            yield pb2.LocalizeRequest(project_id=project_id, options=options)
+            yield from image_messages(pb2.LocalizeRequest, photos)
+
+        return self.stub.Localize(requests(), timeout=timeout, metadata=self.metadata)
 
 
 def to_dict(message: Any) -> dict[str, Any]:

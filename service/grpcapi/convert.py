@@ -21,7 +21,11 @@ from .pb import pb2
 CONFIG_FIELDS = options.PROJECT_OPTIONS  # ProjectConfig's fields, and SubmitMatchingRequest's but pairs
 PAIR_FIELDS = options.PAIR_OPTIONS  # MatchPairOptions' fields
 CAPTURE_ENUM = {"auto": pb2.CAPTURE_AUTO, "aerial": pb2.CAPTURE_AERIAL, "ground": pb2.CAPTURE_GROUND}
-JOB_KINDS = {"match": pb2.JOB_KIND_MATCH, "reconstruct": pb2.JOB_KIND_RECONSTRUCT}
+JOB_KINDS = {
+    "match": pb2.JOB_KIND_MATCH,
+    "reconstruct": pb2.JOB_KIND_RECONSTRUCT,
+    "localize": pb2.JOB_KIND_LOCALIZE,
+}
 JOB_STATES = {
     "queued": pb2.JOB_STATE_QUEUED,
     "running": pb2.JOB_STATE_RUNNING,
@@ -173,3 +177,45 @@ def pair_matches(m: PairMatches) -> pb2.MatchPairResponse:
         tiled=m.tiled,
         timings=m.timings,
     )
+
+
+def _floats(value: Any) -> list[float]:
+    return [float(x) for x in value] if isinstance(value, list | tuple) else []
+
+
+def localization(a: Mapping[str, Any]) -> pb2.Localization:
+    """One answer of a localize job's result (the library's ``Localization.to_json``)."""
+    msg = pb2.Localization(
+        name=str(a.get("name", "")),
+        localized=bool(a.get("localized")),
+        reason=str(a.get("reason") or ""),
+        center=_floats(a.get("center")),
+        inliers=int(a.get("inliers") or 0),
+        matches=int(a.get("matches") or 0),
+        confidence=str(a.get("confidence") or "none"),
+        supporting_images=[str(n) for n in a.get("supporting_images") or []],
+        seconds=float(a.get("seconds") or 0.0),
+    )
+    pose = a.get("cam_from_world")
+    if isinstance(pose, Mapping):
+        msg.cam_from_world.CopyFrom(pb2.Pose(qvec=_floats(pose.get("qvec")), tvec=_floats(pose.get("tvec"))))
+    geo = a.get("wgs84")
+    if isinstance(geo, Mapping):
+        msg.wgs84.CopyFrom(
+            pb2.GeoPosition(lat=float(geo["lat"]), lon=float(geo["lon"]), alt=float(geo.get("alt") or 0.0))
+        )
+        if geo.get("heading_deg") is not None:
+            msg.wgs84.heading_deg = float(geo["heading_deg"])
+    if a.get("reprojection_error_px") is not None:
+        msg.reprojection_error_px = float(a["reprojection_error_px"])
+    camera = a.get("camera")
+    if isinstance(camera, Mapping):
+        msg.camera.CopyFrom(
+            pb2.CameraIntrinsics(
+                model=str(camera.get("model", "")),
+                width=int(camera.get("width") or 0),
+                height=int(camera.get("height") or 0),
+                params=_floats(camera.get("params")),
+            )
+        )
+    return msg

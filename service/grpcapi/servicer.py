@@ -19,6 +19,7 @@ from geomatch_core.errors import InvalidRequest, Unavailable
 
 from ..paging import offset_of
 from ..usecases import Service
+from ..usecases.localize import localizations
 from ..usecases.views import Upload
 from . import convert
 from .framing import MAX_CHUNK, Messages, images
@@ -193,6 +194,33 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
                 )
             raise
         return convert.pair_matches(matches)
+
+    # -- localization ------------------------------------------------------------------------
+    @rpc
+    def Localize(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        with self.streams.open(tenant_id), self.idle.watch(context) as heard:
+            messages = Messages(request_iterator, context.is_active, heard)
+            first = messages.next()
+            if first is None or not first.project_id:
+                raise InvalidRequest("the first message of Localize must carry project_id")
+            add, wait = False, None
+            if first.WhichOneof("part") == "options":
+                add = first.options.add
+                wait = first.options.wait_s if first.options.HasField("wait_s") else None
+            elif first.WhichOneof("part") is not None:  # else a message that only names the project
+                messages.push_back(first)
+            settings = self.service.settings
+            photos = images(messages, settings.max_upload_bytes, first.project_id, settings.max_request_bytes)
+            # the answer must reach the client before its deadline: the job goes on regardless
+            remaining = context.time_remaining()
+            if remaining is not None:
+                left = max(0.0, remaining - 2 * DEADLINE_MARGIN_S)
+                wait = left if wait is None else min(wait, left)
+            job = self.service.localize(tenant_id, first.project_id, photos, add=add, wait_s=wait)
+        answers = localizations(job) or []
+        return pb2.LocalizeResponse(
+            job=convert.job(job), localizations=[convert.localization(a) for a in answers]
+        )
 
 
 def token_of(next_offset: int | None) -> str:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from . import images, jobs, outputs, projects
+from . import images, jobs, localize, outputs, projects
 from .deps import ERRORS
 
 
@@ -20,4 +20,5 @@ def build_router() -> APIRouter:
     v1.include_router(images.router)
     v1.include_router(jobs.router)
     v1.include_router(outputs.router())
+    v1.include_router(localize.router)
     return v1

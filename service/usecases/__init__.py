@@ -3,7 +3,7 @@
 Routers (REST and gRPC) translate requests into these calls and the typed errors of
 ``geomatch_core.errors`` into statuses. A use case validates everything before it stores or
 enqueues anything, so a rejected request leaves no trace. One module per concern (projects,
-images, jobs, outputs, pair tools; ``views`` what they take and give, ``base`` what they share);
+images, jobs, outputs, pair tools, localize; ``views`` what they take and give, ``base`` what they share);
 :class:`Service` is all of them over one set of parts.
 """
 
@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from .. import auth
 from .images import ImageUseCases
 from .jobs import JobUseCases
+from .localize import LocalizeUseCases
 from .outputs import OutputUseCases
 from .pairtools import PairToolUseCases
 from .projects import ProjectUseCases
@@ -30,7 +31,10 @@ class Readiness:
     serving: bool = True
 
 
-class Service(ProjectUseCases, ImageUseCases, JobUseCases, OutputUseCases, PairToolUseCases):
+# LocalizeUseCases first: it builds on ImageUseCases and JobUseCases, which must follow it
+class Service(
+    LocalizeUseCases, ProjectUseCases, ImageUseCases, JobUseCases, OutputUseCases, PairToolUseCases
+):
     def authenticate(self, key: str | None) -> str:
         """The tenant id of an API key (Unauthenticated otherwise), one request of its rate
         (RateLimited past it): every REST request and gRPC call is authenticated once, here."""

@@ -66,7 +66,7 @@ def world(
 
 def bodies(template: str, method: str) -> dict[str, Any]:
     """A request body the route takes, so that the id is what it stops at."""
-    if method == "post" and template.endswith("/images"):
+    if method == "post" and template.endswith(("/images", "/localize")):
         return {"files": [("files", ("c.png", png(9), "image/png"))]}
     if method == "post":  # match, reconstruct
         return {"json": {}}
@@ -145,4 +145,5 @@ def test_every_grpc_method_answers_not_found_for_an_id_no_resource_can_have(worl
         "WatchJob",
         "CancelJob",
         "GetModel",
+        "Localize",
     }

@@ -407,3 +407,77 @@ def test_the_job_list_filters_by_the_states_jobs_have() -> None:
     hint = typing.get_type_hints(list_jobs, include_extras=True)["state"]
     literal = typing.get_args(typing.get_args(hint)[0])[0]
     assert typing.get_args(literal) == JOB_STATES
+
+
+def test_localize_progress_moves_up_only_while_running(store: MetadataStore) -> None:
+    """A localize job counts its photos itself: a late or repeated report (a redelivered step
+    starting over) never rewinds the count, and none moves a finished job."""
+    job_id = _match_job(store, 0)
+    with store.session() as s:
+        job = s.get(Job, job_id)
+        assert job is not None
+        job.kind, job.total = "localize", 3
+    assert not jobstate.set_progress(store, job_id, 1)  # queued: not yet
+    assert jobstate.claim(store, job_id) is not None
+    assert jobstate.set_progress(store, job_id, 2)
+    assert not jobstate.set_progress(store, job_id, 1)
+    assert jobstate.succeed(store, job_id, {"localizations": []})
+    assert not jobstate.set_progress(store, job_id, 3)
+    job = jobstate.get(store, job_id)
+    assert job is not None and (job.state, job.done) == ("succeeded", 3)
+
+
+@pytest.mark.unit
+def test_localization_answers_keep_every_field_over_rest_and_grpc() -> None:
+    """The library's answers, placed and not, as the REST schema and the gRPC message carry them:
+    nothing of a pose is invented for a photo that was not localized."""
+    from geomatch.localize import Localization
+    from service.grpcapi import convert
+    from service.schemas import LocalizationOut
+
+    placed = Localization(
+        name="new.jpg",
+        localized=True,
+        reason=None,
+        cam_from_world={"qvec": [1.0, 0.0, 0.0, 0.0], "tvec": [1.0, 2.0, 3.0]},
+        center=[-1.0, -2.0, -3.0],
+        wgs84={"lat": 47.1, "lon": 8.5, "alt": 410.0, "heading_deg": 93.5},
+        inliers=120,
+        matches=300,
+        reprojection_error_px=0.8,
+        confidence="high",
+        supporting_images=["a.png", "b.png"],
+        camera={"model": "SIMPLE_RADIAL", "width": 640, "height": 480, "params": [576.0, 320.0, 240.0, 0.0]},
+        seconds=2.5,
+        candidates=["a.png", "b.png", "c.png"],
+        inlier_ratio=0.4,
+        focal_source="model",
+    ).to_json()
+    lost = Localization(
+        name="cup.png",
+        localized=False,
+        reason="no match with the model's 3D points",
+        cam_from_world=None,
+        center=None,
+        wgs84=None,
+        inliers=0,
+        matches=2,
+        reprojection_error_px=None,
+        confidence="none",
+        supporting_images=[],
+        camera=None,
+        seconds=1.0,
+    ).to_json()
+    assert LocalizationOut.model_validate(placed).model_dump() == placed
+    assert LocalizationOut.model_validate(lost).model_dump() == lost
+    m = convert.localization(placed)
+    assert (m.name, m.localized, m.confidence, m.inliers, m.matches) == ("new.jpg", True, "high", 120, 300)
+    assert list(m.cam_from_world.qvec) == [1.0, 0.0, 0.0, 0.0] and list(m.center) == [-1.0, -2.0, -3.0]
+    assert (m.wgs84.lat, m.wgs84.lon, m.wgs84.heading_deg) == (47.1, 8.5, 93.5)
+    assert m.camera.model == "SIMPLE_RADIAL" and list(m.camera.params) == [576.0, 320.0, 240.0, 0.0]
+    assert m.reprojection_error_px == 0.8 and list(m.supporting_images) == ["a.png", "b.png"]
+    n = convert.localization(lost)
+    assert not n.localized and n.reason == lost["reason"] and n.confidence == "none"
+    for field in ("cam_from_world", "wgs84", "camera", "reprojection_error_px"):
+        assert not n.HasField(field), field
+    assert list(n.center) == []

@@ -119,3 +119,10 @@ export async function watchJob(jobId, onJob, signal) {
     }
   }
 }
+
+// A multipart form (photos): the response's status too, since 200 and 202 mean different things.
+export async function postForm(path, form, signal) {
+  const response = await fetch(`/v1${path}`, { method: "POST", headers: auth(), body: form, signal });
+  if (!response.ok) throw await failure(response);
+  return { status: response.status, body: await response.json() };
+}

@@ -1,8 +1,10 @@
-// The console's pages: key entry, projects, one project (upload, images, jobs, pairs, model).
+// The console's pages: key entry, projects, one project (upload, images, jobs, pairs, model; the
+// "Locate a photo" action is locate.js).
 // Every string that comes from the server (names, messages) goes into the page as text
 // (textContent, text nodes), never as HTML: a file may be named "<img src=x onerror=...>.jpg".
 
 import * as api from "./api.js";
+import { bindLocate, resetLocate, showLocate } from "./locate.js";
 import { Viewer } from "./viewer.js";
 
 const $ = (id) => document.getElementById(id);
@@ -128,6 +130,7 @@ async function openProject(id) {
   $("match-caption").textContent = "Choose a pair to see its matches (verified red, others blue).";
   $("camera-image").hidden = true;
   $("camera-caption").textContent = "Click a camera (orange) to see its image.";
+  resetLocate();
   await refreshProject();
   await resume();
 }
@@ -458,9 +461,11 @@ async function loadModel() {
     if (!p.has_model) {
       $("model-summary").textContent = "No model yet: start a match with reconstruct.";
       viewer.clear();
+      showLocate(false);
       return;
     }
   }
+  showLocate(true);
   const summary = await api.get(`/projects/${pid()}/model?format=json`);
   state.registered = new Set(summary.registered_names || []);
   $("model-summary").textContent =
@@ -527,6 +532,7 @@ function start() {
   $("cancel-job").addEventListener("click", cancelJob);
   for (const b of document.querySelectorAll("[data-download]")) b.addEventListener("click", download);
   bindUpload();
+  bindLocate({ viewer, projectId: () => state.project.id, signal: () => state.controller.signal, fail });
   window.addEventListener("hashchange", route);
   loadChoices().catch(fail);
   route();

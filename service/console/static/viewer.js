@@ -1,5 +1,6 @@
 // A small point-cloud viewer on a 2D canvas: coloured points (z-buffered, written as pixels),
-// camera frusta, orbit controls (drag, wheel, keys), click a camera to pick it. No WebGL: it
+// camera frusta (the model's orange, located photos' cyan), orbit controls (drag, wheel, keys),
+// click a camera to pick it. No WebGL: it
 // draws the same on any browser, a headless one included, and needs no dependency.
 //
 // After each frame it publishes what it drew (canvas data-points / data-cameras and
@@ -41,9 +42,10 @@ export class Viewer {
     this.onPick = onPick;
     this.scene = null;
     this.selected = -1;
+    this.located = []; // cameras of located photos (setLocated), drawn apart from the model's
     this.yaw = 0.6;
     this.pitch = 0.5;
-    this.stats = { points: 0, cameras: 0, drawnPoints: 0, frames: 0 };
+    this.stats = { points: 0, cameras: 0, drawnPoints: 0, located: 0, frames: 0 };
     this.publish();
     this.bind();
     new ResizeObserver(() => this.draw()).observe(canvas);
@@ -52,7 +54,8 @@ export class Viewer {
   clear() {
     this.scene = null;
     this.selected = -1;
-    this.stats = { points: 0, cameras: 0, drawnPoints: 0, frames: this.stats.frames };
+    this.located = [];
+    this.stats = { points: 0, cameras: 0, drawnPoints: 0, located: 0, frames: this.stats.frames };
     this.draw();
     this.publish();
   }
@@ -92,8 +95,16 @@ export class Viewer {
     let spacing = 0;
     for (let i = 1; i < cams.length; i++) spacing += Math.hypot(...sub(cams[i].center, cams[i - 1].center));
     spacing = cams.length > 1 ? spacing / (cams.length - 1) : radius;
-    this.frusta = cams.map((c) => frustum(c, Math.min(spacing * 0.3, radius * 0.2)));
+    this.depth = Math.min(spacing * 0.3, radius * 0.2);
+    this.frusta = cams.map((c) => frustum(c, this.depth));
     this.fit([...all, ...this.frusta.flatMap((fr) => fr.corners)]);
+    this.draw();
+  }
+
+  // Cameras of photos located against the model (same shape as the scene's cameras), drawn in
+  // their own colour on top of the model's and not pickable: they have no image in the project.
+  setLocated(cameras) {
+    this.located = cameras;
     this.draw();
   }
 
@@ -204,7 +215,29 @@ export class Viewer {
       for (const p of corners) ctx.lineTo(p[0], p[1]);
       ctx.stroke();
     });
-    this.stats = { points, cameras, drawnPoints: drawn, frames: this.stats.frames + 1 };
+    let located = 0;
+    ctx.lineWidth = Math.max(2, 2 * dpr);
+    ctx.strokeStyle = "#3ee0ff";
+    for (const cam of this.located) {
+      const fr = frustum(cam, this.depth);
+      const c = this.project(v, fr.centre, w, h, f);
+      const corners = fr.corners.map((p) => this.project(v, p, w, h, f));
+      if (!c || corners.some((p) => !p)) continue;
+      located++;
+      ctx.beginPath();
+      for (const p of corners) {
+        ctx.moveTo(c[0], c[1]);
+        ctx.lineTo(p[0], p[1]);
+      }
+      ctx.moveTo(corners[3][0], corners[3][1]);
+      for (const p of corners) ctx.lineTo(p[0], p[1]);
+      ctx.stroke();
+      ctx.fillStyle = "#3ee0ff";
+      ctx.beginPath();
+      ctx.arc(c[0], c[1], 4 * dpr, 0, 2 * Math.PI);
+      ctx.fill();
+    }
+    this.stats = { points, cameras, drawnPoints: drawn, located, frames: this.stats.frames + 1 };
     this.publish();
   }
 
@@ -212,6 +245,7 @@ export class Viewer {
     this.canvas.dataset.points = String(this.stats.points);
     this.canvas.dataset.cameras = String(this.stats.cameras);
     this.canvas.dataset.drawnPoints = String(this.stats.drawnPoints);
+    this.canvas.dataset.located = String(this.stats.located);
     window.geomatchViewer = { ...this.stats, cameraPoint: (i) => this.cameraPoint(i) };
   }
 
