@@ -69,11 +69,7 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
     def UploadImages(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
         with self.streams.open(tenant_id), self.idle.watch(context) as heard:
             messages = Messages(request_iterator, context.is_active, heard)
-            first = messages.next()
-            if first is None or not first.project_id:
-                raise InvalidRequest("the first message of UploadImages must carry project_id")
-            if first.WhichOneof("part") is not None:  # else a message that only names the project
-                messages.push_back(first)
+            first = _first_message(messages, "UploadImages")
             settings = self.service.settings
             uploads = images(
                 messages, settings.max_upload_bytes, first.project_id, settings.max_request_bytes
@@ -200,15 +196,11 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
     def Localize(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
         with self.streams.open(tenant_id), self.idle.watch(context) as heard:
             messages = Messages(request_iterator, context.is_active, heard)
-            first = messages.next()
-            if first is None or not first.project_id:
-                raise InvalidRequest("the first message of Localize must carry project_id")
+            first = _first_message(messages, "Localize", options="options")
             add, wait = False, None
             if first.WhichOneof("part") == "options":
                 add = first.options.add
                 wait = first.options.wait_s if first.options.HasField("wait_s") else None
-            elif first.WhichOneof("part") is not None:  # else a message that only names the project
-                messages.push_back(first)
             settings = self.service.settings
             photos = images(messages, settings.max_upload_bytes, first.project_id, settings.max_request_bytes)
             # the answer must reach the client before its deadline: the job goes on regardless
@@ -221,6 +213,19 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
         return pb2.LocalizeResponse(
             job=convert.job(job), localizations=[convert.localization(a) for a in answers]
         )
+
+
+def _first_message(messages: Messages, method: str, options: str | None = None) -> Any:
+    """The first message of an upload stream, which names the project. A file part it carries
+    is put back for the file reader; a message that only names the project, or carries the
+    call's ``options`` part, is the caller's."""
+    first = messages.next()
+    if first is None or not first.project_id:
+        raise InvalidRequest(f"the first message of {method} must carry project_id")
+    part = first.WhichOneof("part")
+    if part is not None and part != options:
+        messages.push_back(first)
+    return first
 
 
 def token_of(next_offset: int | None) -> str:

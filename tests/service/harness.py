@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 import redis
 
 GEOMATCH = [sys.executable, "-m", "geomatch_app"]  # the `geomatch` command (geomatch_app.cli:main)
@@ -186,6 +187,33 @@ def postgres_database() -> Iterator[str | None]:
     finally:
         with psycopg.connect(POSTGRES_ADMIN, autocommit=True) as c:
             c.execute(f"DROP DATABASE {name} WITH (FORCE)")
+
+
+def noise_png(seed: int, side: int = 32) -> bytes:
+    """A small PNG of random pixels: a valid upload whose bytes differ per seed (names that clash
+    with other bytes are conflicts), and nothing a matcher could match."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    buf = io.BytesIO()
+    pixels = np.random.default_rng(seed).integers(0, 256, (side, side, 3), dtype=np.uint8)
+    Image.fromarray(pixels).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+@contextlib.contextmanager
+def metadata_database(store: str) -> Iterator[str]:
+    """The DATABASE_URL a deployment of the parametrised ``store`` gets: "" (the default SQLite
+    file) or a fresh PostgreSQL database; skips the test when no PostgreSQL answers."""
+    if store != "postgresql":
+        yield ""
+        return
+    with postgres_database() as url:
+        if url is None:
+            pytest.skip("no PostgreSQL on 127.0.0.1:5432")
+        yield url
 
 
 @dataclass

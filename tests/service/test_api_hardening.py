@@ -8,7 +8,6 @@ the memory that validating one upload costs the API process."""
 
 from __future__ import annotations
 
-import contextlib
 import re
 import struct
 import threading
@@ -20,7 +19,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from .harness import Deployment, postgres_database, upload, wait_job
+from .harness import Deployment, metadata_database, upload, wait_job
 
 pytestmark = pytest.mark.service
 
@@ -37,10 +36,7 @@ def server(
         d: Deployment = request.getfixturevalue("deployment")
         yield d, d.client(request.getfixturevalue("key_a"))
         return
-    database = postgres_database() if request.param == "redis-postgres" else contextlib.nullcontext("")
-    with database as url:
-        if url is None:
-            pytest.skip("no PostgreSQL on 127.0.0.1:5432")
+    with metadata_database("postgresql" if request.param == "redis-postgres" else "sqlite") as url:
         env = {"DATABASE_URL": url} if url else {}
         d = Deployment(tmp_path_factory.mktemp(request.param), redis_url if url else None, **env)
         try:

@@ -11,20 +11,17 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import io
 import threading
 from collections.abc import Callable, Iterator
 
 import grpc
 import httpx
-import numpy as np
 import pytest
-from PIL import Image
 
 from service.grpcapi.client import GrpcClient, ImageSource
 
 from .grpc_harness import GrpcDeployment
-from .harness import postgres_database
+from .harness import metadata_database, noise_png
 
 pytestmark = pytest.mark.service
 
@@ -32,25 +29,14 @@ ROUNDS = 8
 MATCHES = 4
 
 
-def png(seed: int) -> bytes:
-    """A small image of its own bytes (the upload check takes anything from 16x16 up)."""
-    rng = np.random.default_rng(seed)
-    buf = io.BytesIO()
-    Image.fromarray(rng.integers(0, 256, (32, 32, 3), dtype=np.uint8)).save(buf, format="PNG")
-    return buf.getvalue()
-
-
-IMAGES = [png(i) for i in range(3)]
+IMAGES = [noise_png(i) for i in range(3)]
 
 
 @pytest.fixture(scope="module", params=["sqlite", "postgresql"])
 def dep(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory, redis_url: str
 ) -> Iterator[tuple[GrpcDeployment, str]]:
-    database = postgres_database() if request.param == "postgresql" else contextlib.nullcontext("")
-    with database as url:
-        if url is None:
-            pytest.skip("no PostgreSQL on 127.0.0.1:5432")
+    with metadata_database(request.param) as url:
         env = {"DATABASE_URL": url} if url else {}
         d = GrpcDeployment(tmp_path_factory.mktemp(f"delete-race-{request.param}"), redis_url, **env)
         try:

@@ -28,7 +28,6 @@ Three checks are tuned, for reasons no schema can carry (see ``CONFIG``):
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import re
@@ -43,7 +42,7 @@ from urllib.parse import urlsplit
 import httpx
 import pytest
 
-from .harness import Deployment, postgres_database, serving
+from .harness import Deployment, metadata_database, serving
 
 pytestmark = pytest.mark.service
 
@@ -89,10 +88,7 @@ def api(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory, redis_url: str
 ) -> Iterator[tuple[Deployment, str]]:
     """The server over each metadata store: PostgreSQL refuses some text SQLite keeps (NUL)."""
-    database = postgres_database() if request.param == "postgresql" else contextlib.nullcontext("")
-    with database as url:
-        if url is None:
-            pytest.skip("no PostgreSQL on 127.0.0.1:5432")
+    with metadata_database(request.param) as url:
         env = {"DATABASE_URL": url} if url else {}
         root = tmp_path_factory.mktemp(f"fuzz-rest-{request.param}")
         # no rate limit: the fuzzer sends ~90 requests a second, and whether a request meets the

@@ -6,25 +6,15 @@ One `geomatch serve` in Redis mode with no worker (no job runs here)."""
 
 from __future__ import annotations
 
-import io
 import re
 import socket
 from collections.abc import Iterator
 
-import numpy as np
 import pytest
-from PIL import Image
 
-from .harness import Deployment
+from .harness import Deployment, noise_png
 
 pytestmark = pytest.mark.service
-
-
-def png(seed: int) -> bytes:
-    buf = io.BytesIO()
-    pixels = np.random.default_rng(seed).integers(0, 256, (32, 32, 3), dtype=np.uint8)
-    Image.fromarray(pixels).save(buf, format="PNG")
-    return buf.getvalue()
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +33,7 @@ def test_responses_carry_nosniff_no_store_on_tenant_data_and_no_server_banner(
     d, key = server
     with d.client(key) as c, d.client(None) as anonymous:
         pid = c.post("/v1/projects", json={"name": "headers"}).json()["id"]
-        files = [("files", (f"{i}.png", png(i), "image/png")) for i in range(2)]
+        files = [("files", (f"{i}.png", noise_png(i), "image/png")) for i in range(2)]
         assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
         job = c.post(f"/v1/projects/{pid}/match", json={}).json()["job_id"]
         assert c.delete(f"/v1/jobs/{job}").json()["state"] == "cancelled"  # its event stream ends

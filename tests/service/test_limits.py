@@ -12,7 +12,6 @@ projects and made 2777 requests in 15 s unchecked.
 
 from __future__ import annotations
 
-import io
 import os
 import select
 import socket
@@ -24,28 +23,19 @@ from pathlib import Path
 from typing import Any
 
 import grpc
-import numpy as np
 import pytest
-from PIL import Image
 
 from service.grpcapi.client import GrpcClient, ImageSource
 from service.grpcapi.limits import STREAMS
 from service.grpcapi.pb import pb2
 
 from .grpc_harness import GrpcDeployment, error_of
-from .harness import Deployment
+from .harness import Deployment, noise_png
 
 pytestmark = pytest.mark.service
 
 MiB = 1024 * 1024
 GiB = 1024 * MiB
-
-
-def png(seed: int, side: int = 32) -> bytes:
-    buf = io.BytesIO()
-    pixels = np.random.default_rng(seed).integers(0, 256, (side, side, 3), dtype=np.uint8)
-    Image.fromarray(pixels).save(buf, format="PNG")
-    return buf.getvalue()
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +66,7 @@ def key(dep: GrpcDeployment) -> str:
 def project(dep: GrpcDeployment, key: str) -> str:
     with dep.client(key) as c:
         pid: str = c.post("/v1/projects", json={"name": "limits"}).json()["id"]
-        files = [("files", (f"{i}.png", png(i), "image/png")) for i in range(2)]
+        files = [("files", (f"{i}.png", noise_png(i), "image/png")) for i in range(2)]
         assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
     return pid
 
@@ -258,7 +248,7 @@ def test_a_valid_key_over_a_limit_gets_413_early(dep: GrpcDeployment, key: str, 
         )
         assert r.status_code == 413 and "over 1 MiB" in r.json()["detail"], r.text
         # under the limits the same routes still work
-        files = [("files", (f"ok{i}.png", png(10 + i), "image/png")) for i in range(3)]
+        files = [("files", (f"ok{i}.png", noise_png(10 + i), "image/png")) for i in range(3)]
         assert c.post(f"/v1/projects/{project}/images", files=files).status_code == 201
 
 
@@ -272,7 +262,7 @@ def test_a_grpc_upload_stream_is_bounded_over_all_its_images(
     paths = []
     for i in range(5):
         path = tmp_path / f"big{i}.png"
-        path.write_bytes(png(200 + i, side))
+        path.write_bytes(noise_png(200 + i, side))
         assert 1.8 * MiB < path.stat().st_size < 2 * MiB
         paths.append(path)
     g = dep.grpc_client(key)
@@ -320,7 +310,7 @@ def test_lists_come_in_pages(dep: GrpcDeployment) -> None:
             )
         )
         assert code == grpc.StatusCode.INVALID_ARGUMENT
-        files = [("files", (f"{i}.png", png(i), "image/png")) for i in range(3)]
+        files = [("files", (f"{i}.png", noise_png(i), "image/png")) for i in range(3)]
         assert c.post(f"/v1/projects/{made[0]}/images", files=files).status_code == 201
         r = c.get(f"/v1/projects/{made[0]}/images?limit=2")
         assert [i["name"] for i in r.json()["images"]] == ["0.png", "1.png"]
@@ -377,7 +367,7 @@ def test_three_tenants_holding_idle_streams_cannot_lock_out_a_fourth(
     keys = [dep.create_key(f"streams-{i}") for i in range(4)]
     release = threading.Event()
     image = tmp_path / "a.png"
-    image.write_bytes(png(99))
+    image.write_bytes(noise_png(99))
     clients = [dep.grpc_client(k) for k in keys]
     try:
         pids = [g.create_project("streams").id for g in clients]
@@ -424,13 +414,13 @@ def test_quotas_of_a_tenant(small: Deployment) -> None:
         pids = [c.post("/v1/projects", json={"name": f"q{i}"}).json()["id"] for i in range(3)]
         r = c.post("/v1/projects", json={"name": "q3"})
         assert r.status_code == 403 and "quota is 3" in r.json()["detail"], r.text
-        files = [("files", (f"{i}.png", png(i), "image/png")) for i in range(2)]
+        files = [("files", (f"{i}.png", noise_png(i), "image/png")) for i in range(2)]
         assert c.post(f"/v1/projects/{pids[0]}/images", files=files).status_code == 201
-        files = [("files", (f"{i}.png", png(10 + i), "image/png")) for i in range(2)]
+        files = [("files", (f"{i}.png", noise_png(10 + i), "image/png")) for i in range(2)]
         r = c.post(f"/v1/projects/{pids[1]}/images", files=files)
         assert r.status_code == 403 and "images" in r.json()["detail"], r.text
         assert c.get(f"/v1/projects/{pids[1]}/images").json()["images"] == []
-        big = [("files", ("big.png", png(5, side=700), "image/png"))]  # ~1.4 MiB of noise
+        big = [("files", ("big.png", noise_png(5, side=700), "image/png"))]  # ~1.4 MiB of noise
         r = c.post(f"/v1/projects/{pids[1]}/images", files=big)
         assert r.status_code == 403 and "bytes" in r.json()["detail"], r.text
         assert c.delete(f"/v1/projects/{pids[2]}").status_code == 204  # room for one again

@@ -8,21 +8,17 @@ later is tested too. One `geomatch serve` (HTTP and gRPC) per store, Redis mode 
 
 from __future__ import annotations
 
-import contextlib
-import io
 import re
 from collections.abc import Iterator
 from typing import Any
 
 import grpc
-import numpy as np
 import pytest
-from PIL import Image
 
 from service.grpcapi.pb import SERVICE, pb2
 
 from .grpc_harness import GrpcDeployment
-from .harness import postgres_database
+from .harness import metadata_database, noise_png
 
 pytestmark = pytest.mark.service
 
@@ -32,22 +28,12 @@ NAMES = ("a.png", "b.png")
 PARAM = re.compile(r"\{(\w+)\}")
 
 
-def png(seed: int) -> bytes:
-    buf = io.BytesIO()
-    pixels = np.random.default_rng(seed).integers(0, 256, (32, 32, 3), dtype=np.uint8)
-    Image.fromarray(pixels).save(buf, format="PNG")
-    return buf.getvalue()
-
-
 @pytest.fixture(scope="module", params=["postgresql", "sqlite"])
 def world(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory, redis_url: str
 ) -> Iterator[dict[str, Any]]:
     """A server, a key and the valid ids the other parameters of a path take."""
-    database = postgres_database() if request.param == "postgresql" else contextlib.nullcontext("")
-    with database as url:
-        if url is None:
-            pytest.skip("no PostgreSQL on 127.0.0.1:5432")
+    with metadata_database(request.param) as url:
         env = {"DATABASE_URL": url} if url else {}
         d = GrpcDeployment(tmp_path_factory.mktemp(f"ids-{request.param}"), redis_url, **env)
         try:
@@ -55,7 +41,7 @@ def world(
             key = d.create_key("ids")
             with d.client(key) as c:
                 pid = c.post("/v1/projects", json={"name": "ids"}).json()["id"]
-                files = [("files", (n, png(i), "image/png")) for i, n in enumerate(NAMES)]
+                files = [("files", (n, noise_png(i), "image/png")) for i, n in enumerate(NAMES)]
                 assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
                 job = c.post(f"/v1/projects/{pid}/match", json={}).json()["job_id"]
             good = {"project_id": pid, "job_id": job, "name": NAMES[0], "name0": NAMES[0], "name1": NAMES[1]}
@@ -67,7 +53,7 @@ def world(
 def bodies(template: str, method: str) -> dict[str, Any]:
     """A request body the route takes, so that the id is what it stops at."""
     if method == "post" and template.endswith(("/images", "/localize")):
-        return {"files": [("files", ("c.png", png(9), "image/png"))]}
+        return {"files": [("files", ("c.png", noise_png(9), "image/png"))]}
     if method == "post":  # match, reconstruct
         return {"json": {}}
     return {}

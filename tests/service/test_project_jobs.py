@@ -8,29 +8,18 @@ queued until cancelled, so what each list holds is known exactly."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 from collections.abc import Iterator
 from typing import Any
 
 import grpc
-import numpy as np
 import pytest
-from PIL import Image
 
 from service.grpcapi.pb import pb2
 
 from .grpc_harness import GrpcDeployment, error_of
-from .harness import postgres_database
+from .harness import metadata_database, noise_png
 
 pytestmark = pytest.mark.service
-
-
-def png(seed: int) -> bytes:
-    buf = io.BytesIO()
-    pixels = np.random.default_rng(seed).integers(0, 256, (32, 32, 3), dtype=np.uint8)
-    Image.fromarray(pixels).save(buf, format="PNG")
-    return buf.getvalue()
 
 
 @pytest.fixture(scope="module", params=["sqlite", "postgresql"])
@@ -39,10 +28,7 @@ def world(
 ) -> Iterator[dict[str, Any]]:
     """A server; a project with two images and four jobs, started in this order: match A, match B
     (with the reconstruct it queues behind it), match C, which was then cancelled."""
-    database = postgres_database() if request.param == "postgresql" else contextlib.nullcontext("")
-    with database as url:
-        if url is None:
-            pytest.skip("no PostgreSQL on 127.0.0.1:5432")
+    with metadata_database(request.param) as url:
         env = {"DATABASE_URL": url} if url else {}
         d = GrpcDeployment(tmp_path_factory.mktemp(f"jobs-{request.param}"), redis_url, **env)
         try:
@@ -50,7 +36,7 @@ def world(
             key = d.create_key("jobs")
             with d.client(key) as c:
                 pid = c.post("/v1/projects", json={"name": "jobs"}).json()["id"]
-                files = [("files", (f"{i}.png", png(i), "image/png")) for i in range(2)]
+                files = [("files", (f"{i}.png", noise_png(i), "image/png")) for i in range(2)]
                 assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
                 a = c.post(f"/v1/projects/{pid}/match", json={}).json()["job_id"]
                 b = c.post(f"/v1/projects/{pid}/match", json={"reconstruct": True}).json()

@@ -19,6 +19,19 @@ const norm = (a) => {
   return [a[0] / n, a[1] / n, a[2] / n];
 };
 
+// A camera drawn as a pyramid: lines from its centre to the image's four corners, and the
+// image's outline.
+function strokeFrustum(ctx, c, corners) {
+  ctx.beginPath();
+  for (const p of corners) {
+    ctx.moveTo(c[0], c[1]);
+    ctx.lineTo(p[0], p[1]);
+  }
+  ctx.moveTo(corners[3][0], corners[3][1]);
+  for (const p of corners) ctx.lineTo(p[0], p[1]);
+  ctx.stroke();
+}
+
 // A camera's frustum in world coordinates: its centre and the four image corners at `depth`.
 function frustum(cam, depth) {
   const r = cam.rotation; // world to camera, rows: world = R^T * x_cam + C
@@ -206,14 +219,7 @@ export class Viewer {
       if (!c || corners.some((p) => !p)) return;
       cameras++;
       ctx.strokeStyle = i === this.selected ? "#ffffff" : "#ff9d2e";
-      ctx.beginPath();
-      for (const p of corners) {
-        ctx.moveTo(c[0], c[1]);
-        ctx.lineTo(p[0], p[1]);
-      }
-      ctx.moveTo(corners[3][0], corners[3][1]);
-      for (const p of corners) ctx.lineTo(p[0], p[1]);
-      ctx.stroke();
+      strokeFrustum(ctx, c, corners);
     });
     let located = 0;
     ctx.lineWidth = Math.max(2, 2 * dpr);
@@ -224,14 +230,7 @@ export class Viewer {
       const corners = fr.corners.map((p) => this.project(v, p, w, h, f));
       if (!c || corners.some((p) => !p)) continue;
       located++;
-      ctx.beginPath();
-      for (const p of corners) {
-        ctx.moveTo(c[0], c[1]);
-        ctx.lineTo(p[0], p[1]);
-      }
-      ctx.moveTo(corners[3][0], corners[3][1]);
-      for (const p of corners) ctx.lineTo(p[0], p[1]);
-      ctx.stroke();
+      strokeFrustum(ctx, c, corners);
       ctx.fillStyle = "#3ee0ff";
       ctx.beginPath();
       ctx.arc(c[0], c[1], 4 * dpr, 0, 2 * Math.PI);
