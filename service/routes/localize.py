@@ -11,6 +11,10 @@ from ..usecases.localize import localizations
 from ..usecases.views import JobView, Upload
 from .deps import Svc, Tenant
 
+# the form's default wait: longer than any server allows, so the server's setting decides. Not
+# None: a multipart form has no null, and a schema that says the field may be null invites one
+WAIT_AS_LONG_AS_ALLOWED = 86400.0
+
 router = APIRouter(tags=["localize"])
 
 
@@ -56,13 +60,13 @@ def localize(
         Literal["aerial", "ground", "auto"], Form(description="auto: EXIF/XMP decides")
     ] = "auto",
     wait: Annotated[
-        float | None,
+        float,
         Form(
             ge=0,
             description="seconds to wait for the answer before answering 202 with the job; "
-            "at most, and by default, the server's GEOMATCH_LOCALIZE_WAIT_S",
+            "cut to the server's GEOMATCH_LOCALIZE_WAIT_S, so the default waits that long",
         ),
-    ] = None,
+    ] = WAIT_AS_LONG_AS_ALLOWED,
 ) -> LocalizeOut:
     """Where was each photo taken: its pose in the model's frame, and on the map when the model is
     georeferenced. 200 when the job ended within the wait (its state says how: `succeeded` with
