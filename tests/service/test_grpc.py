@@ -60,6 +60,7 @@ METHODS = {
     "GetJob",
     "WatchJob",
     "CancelJob",
+    "Localize",
     "GetModel",
     "MatchPair",
 }
