@@ -11,14 +11,13 @@ keypoints, nor its tracks, nor its pose (its matches to the model are made afres
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
-from .alignment import align
-from .metrics import scene_extent
+from .metrics import align_cameras, rotation_angle_deg, scene_extent
 
 
 def without_image(model: Path, name: str | Collection[str], dest: Path) -> Path:
@@ -34,14 +33,6 @@ def without_image(model: Path, name: str | Collection[str], dest: Path) -> Path:
     return dest
 
 
-def _poses(rec: pycolmap.Reconstruction) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    out = {}
-    for im in rec.images.values():
-        if im.has_pose:
-            out[im.name] = (im.cam_from_world().rotation.matrix(), np.asarray(im.projection_center()))
-    return out
-
-
 def pose_error(
     model: pycolmap.Reconstruction,
     gt: pycolmap.Reconstruction,
@@ -55,25 +46,16 @@ def pose_error(
     extent) of a camera localized in ``model`` (cam_from_world rotation ``R``, ``centre``), after
     the robust alignment of the model's OTHER cameras to the ground truth (eval/alignment.py), so
     the camera judged does not pull the alignment its way. None when no alignment is found."""
-    est: Mapping[str, tuple[np.ndarray, np.ndarray]] = _poses(model)
-    ref = _poses(gt)
-    common = sorted(n for n in set(est) & set(ref) if n != name)
+    truth = gt.find_image_with_name(name)
+    if truth is None or not truth.has_pose:
+        return None
     extent = scene_extent(gt)
-    if len(common) < 3 or name not in ref:
+    aligned = align_cameras(model, gt, max_rotation_deg, max_position_share * extent, leave_out=(name,))
+    if aligned is None:
         return None
-    found = align(
-        np.array([est[n][0] for n in common]),
-        np.array([est[n][1] for n in common]),
-        np.array([ref[n][0] for n in common]),
-        np.array([ref[n][1] for n in common]),
-        max_rotation_deg,
-        max_position_share * extent,
-    )
-    if found is None:
-        return None
+    found = aligned[1]
     c = found.scale * found.rotation @ np.asarray(centre, np.float64) + found.translation
-    position = float(np.linalg.norm(c - ref[name][1]))
+    position = float(np.linalg.norm(c - np.asarray(truth.projection_center())))
     R_gt_frame = np.asarray(R) @ found.rotation.T  # cam_from_gt = cam_from_model @ model_from_gt
-    cos = (np.trace(R_gt_frame @ ref[name][0].T) - 1) / 2
-    rotation = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    rotation = rotation_angle_deg(R_gt_frame @ truth.cam_from_world().rotation.matrix().T)
     return rotation, position, 100 * position / extent

@@ -26,6 +26,7 @@ Fewer than 3 registered images cannot be aligned: such a model has no correct ca
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from itertools import combinations
 from typing import Any
 
@@ -33,7 +34,7 @@ import numpy as np
 import pycolmap
 
 from ..sfm.mapping import sfm_stats
-from .alignment import align
+from .alignment import Alignment, align
 
 AUC_THRESHOLDS = (3.0, 5.0, 10.0)
 MAX_ROTATION_ERROR_DEG = 3.0
@@ -103,16 +104,23 @@ def scene_extent(gt: pycolmap.Reconstruction) -> float:
     return float(np.linalg.norm(centres.max(0) - centres.min(0)))
 
 
-def camera_errors(
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """The angle of a rotation matrix, in degrees."""
+    return _angle_deg(R)
+
+
+def align_cameras(
     rec: pycolmap.Reconstruction,
     gt: pycolmap.Reconstruction,
     max_rotation_deg: float,
     max_position: float,
-) -> dict[str, tuple[float, float]] | None:
-    """Rotation error (deg) and position error (ground-truth units) of every registered camera that
-    the ground truth knows, after the robust alignment of alignment.py; None when none exists."""
+    leave_out: Collection[str] = (),
+) -> tuple[list[str], Alignment] | None:
+    """The robust alignment (alignment.py) of the registered cameras the ground truth knows, but
+    those in ``leave_out``, with their names in its order; None for fewer than three or no fit.
+    Leaving a camera out keeps it from pulling the alignment it is judged by."""
     est, ref = _poses(rec), _poses(gt)
-    common = sorted(set(est) & set(ref))
+    common = sorted((set(est) & set(ref)) - set(leave_out))
     if len(common) < 3 or max_position <= 0:
         return None
     found = align(
@@ -123,8 +131,21 @@ def camera_errors(
         max_rotation_deg,
         max_position,
     )
-    if found is None:
+    return None if found is None else (common, found)
+
+
+def camera_errors(
+    rec: pycolmap.Reconstruction,
+    gt: pycolmap.Reconstruction,
+    max_rotation_deg: float,
+    max_position: float,
+) -> dict[str, tuple[float, float]] | None:
+    """Rotation error (deg) and position error (ground-truth units) of every registered camera that
+    the ground truth knows, after the robust alignment of alignment.py; None when none exists."""
+    aligned = align_cameras(rec, gt, max_rotation_deg, max_position)
+    if aligned is None:
         return None
+    common, found = aligned
     return {
         n: (float(r), float(p))
         for n, r, p in zip(common, found.rotation_errors_deg, found.position_errors, strict=True)
