@@ -58,9 +58,11 @@ class MetadataStore:
         """One transaction: committed on success, rolled back on any exception.
 
         A server database that cannot be reached (down, restarting, the connection dropped
-        mid-transaction) raises ``Unavailable``: nothing of the transaction was committed and a
-        retry may succeed (the pool pings connections before use, so the next session after a
-        restart reconnects). SQLite's own errors (a full disk, a lock) pass through as they are."""
+        mid-transaction) raises ``Unavailable``: a retry may succeed (the pool pings connections
+        before use, so the next session after a restart reconnects). A connection lost during
+        COMMIT leaves the outcome unknown (the commit may have landed, its acknowledgement lost):
+        callers keep what a landed commit would need and make their retries idempotent. SQLite's
+        own errors (a full disk, a lock) pass through as they are."""
         try:
             with self._sessions() as s, s.begin():
                 yield s

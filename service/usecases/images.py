@@ -19,6 +19,7 @@ from geomatch_core.errors import (
     InvalidRequest,
     NotFound,
     QuotaExceeded,
+    Unavailable,
 )
 from geomatch_core.models import Image, Project
 
@@ -65,6 +66,7 @@ class ImageUseCases(UseCases):
             self._project(s, tenant_id, project_id)
         staged: list[Staged] = []
         moved: list[Path] = []
+        committing = False
         try:
             seen: set[str] = set()
             for up in uploads:
@@ -81,6 +83,7 @@ class ImageUseCases(UseCases):
                 with self.store.session() as s:
                     self._project(s, tenant_id, project_id)
                     views = self._register(s, tenant_id, project_id, staged, capture, moved)
+                    committing = True
             # a concurrent upload took a name or the bytes first (or a delete took the project:
             # upload_images answers NotFound for that)
             except IntegrityError:
@@ -96,6 +99,14 @@ class ImageUseCases(UseCases):
                 path.unlink(missing_ok=True)
             if e.errno in (errno.ENOSPC, errno.EDQUOT):
                 raise InsufficientStorage(_FULL) from None
+            raise
+        except Unavailable:
+            # a connection lost during COMMIT leaves its outcome unknown: the rows may be in the
+            # database, so their files stay (a file without a row is harmless and a retry
+            # re-registers it; a listed image without its bytes would fail every job that reads it)
+            if not committing:
+                for path in moved:
+                    path.unlink(missing_ok=True)
             raise
         except BaseException:
             for path in moved:
@@ -130,6 +141,7 @@ class ImageUseCases(UseCases):
         for st in staged:
             same = by_sha.get(st.sha256)
             if same is not None:  # the same bytes again: idempotent, whatever the name
+                self._restore_missing(project_id, same, st)
                 views.append(image_view(same, created=False))
                 continue
             if st.name in by_name:
@@ -159,6 +171,17 @@ class ImageUseCases(UseCases):
             os.replace(st.path, dest)
             moved.append(dest)
         return [image_view(by_sha[v.sha256], created=v.created) for v in views]
+
+    def _restore_missing(self, project_id: str, img: Image, st: Staged) -> None:
+        """A retry heals a row whose file is gone: the bytes are the same (same sha256), so the
+        staged copy takes the missing file's place. A row can outlive its file when an earlier
+        request's commit reached the database but its acknowledgement was lost with the
+        connection, and the request's cleanup removed the file it had moved into place."""
+        dest = self.storage.images_dir(project_id) / img.name
+        if dest.is_file() and dest.stat().st_size == img.size_bytes:
+            return
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(st.path, dest)
 
     def _within_image_quotas(self, s: Session, tenant_id: str, new: list[Staged]) -> None:
         """QuotaExceeded when the new images would take the tenant past ``quota_images`` or

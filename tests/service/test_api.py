@@ -216,6 +216,23 @@ def test_reupload_is_idempotent_and_name_clash_is_409(
     assert state(deployment, project) == before
 
 
+def test_reupload_restores_a_listed_image_whose_file_is_gone(
+    deployment: Deployment, a: httpx.Client, scene: Path
+) -> None:
+    """A commit whose acknowledgement is lost with the database connection leaves a listed image
+    whose request was answered 503; the client's retry of the same bytes must leave the file in
+    place, or every job reading that image fails."""
+    pid = a.post("/v1/projects", json={"name": "lost-file"}).json()["id"]
+    src = scene / "images" / "ground_01.png"
+    assert upload(a, pid, [src]).status_code == 201
+    stored = deployment.home / "projects" / pid / "images" / src.name
+    stored.unlink()
+    r = upload(a, pid, [src])
+    assert r.status_code == 201 and r.json()["images"][0]["created"] is False, r.text
+    assert stored.read_bytes() == src.read_bytes()
+    assert a.get(f"/v1/projects/{pid}/images/{src.name}").status_code == 200
+
+
 # -- bad requests ----------------------------------------------------------------------------------
 def test_unknown_project_and_job_are_404(a: httpx.Client) -> None:
     missing = "0123456789abcdef0123456789abcdef"
