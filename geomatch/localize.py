@@ -159,10 +159,12 @@ class Project:
         return EnuFrame(float(origin["lat"]), float(origin["lon"]), float(origin["alt"]))
 
 
-def project_matcher(project: Project) -> Any:
+def project_matcher(project: Project, features: Path | None = None) -> Any:
     """The matcher the project ran with (method, resize and matcher options of its summary), or
-    the defaults for a project that recorded none."""
-    from .matching.matcher import Matcher, config_from_options
+    the defaults for a project that recorded none; it reads the features in ``features`` (default:
+    the run folder's own ``features/``) and writes none."""
+    from . import steps
+    from .matching.matcher import config_from_options
     from .options import cache_budget
 
     recorded = project.run_options
@@ -176,7 +178,11 @@ def project_matcher(project: Project) -> Any:
         **dict(recorded.get("matcher") or {}),  # the run's further matcher and optimizer options
     }
     config = config_from_options(**options)
-    return Matcher(config)
+    # a run's folder keeps its features: the model images are read, not extracted again (and
+    # the folder is left as it is: a photo's own features are not written into it)
+    folder = Path(features) if features is not None else project.database.parent / "features"
+    store = steps.run_feature_store(folder, writable=False) if folder.is_dir() else None
+    return steps.stored(config, store)
 
 
 # -- one photo ----------------------------------------------------------------------------------

@@ -89,6 +89,23 @@ MIN_POSE_INLIERS = 30
 CACHE_MB = 1536
 
 
+# GEOMATCH_RUN_FEATURES_MB: the on-disk feature store of a run's folder (``OUT/features``), in MiB;
+# 0 turns it off (the service's store is GEOMATCH_FEATURE_CACHE_MB, in its storage). A run keeps
+# its features so that ``geomatch localize OUT`` and a resumed run read them instead of running the
+# networks again: a new photo is then matched against the model without re-extracting the model's
+# images, which is most of a cold localization's time.
+RUN_FEATURES_MB = 4096
+
+
+def run_feature_store_bytes() -> int:
+    raw = os.environ.get("GEOMATCH_RUN_FEATURES_MB", "").strip()
+    try:
+        mb = float(raw) if raw else RUN_FEATURES_MB
+    except ValueError:
+        raise OptionError(f"GEOMATCH_RUN_FEATURES_MB must be a number of MiB, got {raw!r}") from None
+    return max(0, int(mb * 1024 * 1024))
+
+
 @dataclass(frozen=True)
 class CacheBudget:
     """How one GEOMATCH_CACHE_MB is shared by a job's in-memory caches, in MiB: decoded images

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from . import steps
 from .geo import gps as gpsfix
-from .matching.matcher import Matcher, config_from_options
+from .matching.matcher import config_from_options
 from .metadata import read_metadata
 from .options import DEFAULTS, cache_budget, parse_plan, resolve
 from .sfm import mapping
@@ -106,7 +106,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         device=opts.device,
         **{"cache_features_mb": budget.features_mb, "cache_anchors_mb": budget.anchors_mb, **opts.matcher},
     )
-    matcher = Matcher(config)
+    matcher = steps.stored(config, steps.run_feature_store(out / "features"))
     images = steps.Images(image_dir, budget.images_mb)
     planned = steps.plan(
         image_dir,

@@ -60,9 +60,13 @@ class FeatureStore:
     """Content-addressed feature files. Safe for many processes: files appear by atomic rename,
     and a file that cannot be read back is a miss, not an error."""
 
-    def __init__(self, root: str | Path, max_bytes: int | None = None) -> None:
+    def __init__(self, root: str | Path, max_bytes: int | None = None, writable: bool = True) -> None:
         self.root = Path(root)
         self.max_bytes = max_bytes  # None: unbounded; 0: the store is off
+        # read-only: a reader of someone else's folder (localizing against a run) takes its
+        # features and leaves the folder as it found it, file times included
+        self.writable = writable
+        self.hits = 0  # features read back, for every matcher sharing the store
 
     @property
     def enabled(self) -> bool:
@@ -83,11 +87,13 @@ class FeatureStore:
             feats = _from_state(state)
         except Exception:  # a torn or foreign file: recompute (and overwrite) rather than fail the task
             return None
-        os.utime(path)  # least recently used goes first when pruning
+        if self.writable:
+            os.utime(path)  # least recently used goes first when pruning
+        self.hits += 1
         return feats
 
     def save(self, path: Path, feats: ImageFeatures) -> None:
-        if not self.enabled:
+        if not self.enabled or not self.writable:
             return
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
@@ -201,12 +207,24 @@ class StoredFeaturesMatcher(Matcher):
         return out
 
 
+def run_feature_store(root: Path, writable: bool = True) -> FeatureStore | None:
+    """The feature store a run keeps in its output folder (``OUT/features``, bounded in bytes),
+    or None when GEOMATCH_RUN_FEATURES_MB is 0."""
+    from .options import run_feature_store_bytes
+
+    cap = run_feature_store_bytes()
+    return FeatureStore(root, cap, writable) if cap > 0 else None
+
+
+def stored(config: MatcherConfig, store: FeatureStore | None) -> Matcher:
+    return StoredFeaturesMatcher(config, store) if store is not None else Matcher(config)
+
+
 def build_matcher(store: FeatureStore | None = None, **options: Any) -> Matcher:
     """A matcher from pipeline-style options (``method``, ``resize``, ``device``, optimizer fields)."""
     from .matching.matcher import config_from_options
 
-    config = config_from_options(**options)
-    return StoredFeaturesMatcher(config, store) if store is not None else Matcher(config)
+    return stored(config_from_options(**options), store)
 
 
 # -- input -------------------------------------------------------------------------------------

@@ -99,6 +99,17 @@ def test_left_out_photo_is_localized(answers: list[Localization], reduced: Path,
     assert 0.0 <= loc.wgs84["heading_deg"] < 360.0
 
 
+def test_the_model_images_features_come_from_the_runs_folder(
+    answers: list[Localization], run_matcher: Any, small_run: Path
+) -> None:
+    """``geomatch localize`` runs in a process of its own, after the run: the model images' features
+    are read from the run's folder (extracting them again was most of a cold photo's time), and the
+    folder is not written to (the session's check of ``small_run`` sees every file time)."""
+    store = run_matcher.store
+    assert store.root == small_run / "features" and not store.writable
+    assert store.hits >= 3, store.hits  # retrieval reads every model image, matching its candidates
+
+
 def test_other_scene_is_not_localized(answers: list[Localization]) -> None:
     loc = answers[1]
     assert loc.name == "coffee.png"
