@@ -22,16 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import resource
-import subprocess
-import sys
 import time
 from itertools import combinations
 from pathlib import Path
 
-from common import parse_value
+from common import parse_args_or_run_row, parse_method, run_rows
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_SET = HERE.parent.parent / "shared" / "data" / "real" / "sacre_coeur"
@@ -72,8 +69,7 @@ def worker(args: argparse.Namespace) -> None:
 
     device = resolve_device(args.device)
     pairs = _load_pairs(args.images, args.pairs)
-    method, *kvs = args.method.split()
-    options = {k: parse_value(v) for k, v in (kv.split("=", 1) for kv in kvs)}
+    method, options = parse_method(args.method)
     m = Matcher(config_from_options(method=method, resize=args.size, device=str(device), **options))
     m.match(*pairs[0])  # networks loaded and run once, not timed
     m.clear_caches()
@@ -150,26 +146,11 @@ def main() -> None:
     ap.add_argument("--device", default="auto")
     ap.add_argument("--plot", type=Path, default=HERE / "out" / "gpu_throughput.png")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--size", type=int, default=640, help=argparse.SUPPRESS)
-    ap.add_argument("--method", default="geo", help=argparse.SUPPRESS)
-    args = ap.parse_args()
-    if args.worker:
-        worker(args)
-        return
-    rows = []
-    for size in (int(s) for s in args.sizes.split(",")):
-        for method in args.methods.split(","):
-            cmd = [sys.executable, __file__, "--worker", "--size", str(size), "--method", method]
-            cmd += ["--pairs", str(args.pairs), "--device", args.device]
-            if args.images:
-                cmd += ["--images", args.images]
-            res = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
-            line = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
-            if res.returncode or not line:
-                sys.exit(f"worker failed for {size}/{method}:\n{res.stderr[-3000:]}")
-            rows.append(json.loads(line[0][7:]))
-            print(json.dumps(rows[-1]), flush=True)
+    args = parse_args_or_run_row(ap, worker)
+    extra = ["--pairs", str(args.pairs), "--device", args.device]
+    if args.images:
+        extra += ["--images", args.images]
+    rows = run_rows(__file__, args.sizes, args.methods, extra)
     print(f"\n{rows[0]['device']}; images: {args.images or 'warped package photos'}\n")
     cols = [*STAGES, "other"]
     head = ["px", "method", "pairs", "pairs/s", *cols, "extractions", "peak RSS MB", "CUDA peak MB"]

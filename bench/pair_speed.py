@@ -16,15 +16,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import resource
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from common import parse_value
+from common import parse_args_or_run_row, parse_method, run_rows
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_PAIR = HERE.parent.parent / "shared" / "data" / "real" / "lightglue_pair"
@@ -46,8 +43,7 @@ def worker(args: argparse.Namespace) -> None:
     if args.method == PEER:
         peer_worker(a, b, args)
         return
-    method, *options = args.method.split()
-    overrides = {k: parse_value(v) for k, v in (o.split("=", 1) for o in options)}
+    method, overrides = parse_method(args.method)
     m = Matcher(MatcherConfig(method=method, resize=args.size, device=args.device, **overrides))
     m.match(a, b)  # load the networks (not timed: a worker loads them once)
     m.clear_caches()
@@ -103,28 +99,13 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--size", type=int, default=640, help=argparse.SUPPRESS)
-    ap.add_argument("--method", default="geo", help=argparse.SUPPRESS)
-    args = ap.parse_args()
-    if args.worker:
-        worker(args)
-        return
+    args = parse_args_or_run_row(ap, worker)
     if args.images is None and DEFAULT_PAIR.is_dir():
         args.images = [str(p) for p in sorted(DEFAULT_PAIR.iterdir())[:2]]
-    rows = []
-    for size in (int(s) for s in args.sizes.split(",")):
-        for method in args.methods.split(","):
-            cmd = [sys.executable, __file__, "--worker", "--size", str(size), "--method", method]
-            cmd += ["--repeat", str(args.repeat), "--device", args.device]
-            if args.images:
-                cmd += ["--images", *args.images]
-            res = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
-            line = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
-            if res.returncode or not line:
-                sys.exit(f"worker failed for {size}/{method}:\n{res.stderr[-2000:]}")
-            rows.append(json.loads(line[0][7:]))
-            print(json.dumps(rows[-1]), flush=True)
+    extra = ["--repeat", str(args.repeat), "--device", args.device]
+    if args.images:
+        extra += ["--images", *args.images]
+    rows = run_rows(__file__, args.sizes, args.methods, extra)
     print(
         f"\npair: {args.images or 'warped scikit-image retina'}; device {args.device}; "
         f"stage times are medians of {args.repeat} warm runs (features cached)\n"

@@ -18,7 +18,26 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from service.grpcapi.client import GrpcClient
 
-from .harness import Deployment, free_port
+from .harness import Deployment, free_port, metadata_database
+
+# every method of geomatch.v1.Matching, as the server must serve them (reflection lists them)
+SERVED_METHODS = {
+    "CreateProject",
+    "GetProject",
+    "ListProjects",
+    "DeleteProject",
+    "UploadImages",
+    "ListImages",
+    "SubmitMatching",
+    "SubmitReconstruction",
+    "ListJobs",
+    "GetJob",
+    "WatchJob",
+    "CancelJob",
+    "Localize",
+    "GetModel",
+    "MatchPair",
+}
 
 
 class GrpcDeployment(Deployment):
@@ -113,6 +132,18 @@ def running_grpc(
         yield d
     finally:
         d.stop()
+
+
+@contextlib.contextmanager
+def serving_on_store(root: Path, redis_url: str, store: str) -> Iterator[GrpcDeployment]:
+    """`geomatch serve` (REST and gRPC in one process) over the parametrised metadata ``store``
+    (``metadata_database``), in Redis mode with no worker: jobs stay queued, so what a test
+    finds in the store is exactly what it made."""
+    with (
+        metadata_database(store) as url,
+        running_grpc(root, redis_url, "serve", **({"DATABASE_URL": url} if url else {})) as d,
+    ):
+        yield d
 
 
 def code_of(call: Any) -> grpc.StatusCode:

@@ -203,6 +203,15 @@ def noise_png(seed: int, side: int = 32) -> bytes:
     return buf.getvalue()
 
 
+def noise_project(c: httpx.Client, name: str, images: tuple[str, ...] = ("0.png", "1.png")) -> str:
+    """A project holding a noise image under each of ``images``: enough for a match job that no
+    worker needs to run, or for the routes that take an image's name."""
+    pid = str(c.post("/v1/projects", json={"name": name}).json()["id"])
+    files = [("files", (n, noise_png(i), "image/png")) for i, n in enumerate(images)]
+    assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
+    return pid
+
+
 @contextlib.contextmanager
 def metadata_database(store: str) -> Iterator[str]:
     """The DATABASE_URL a deployment of the parametrised ``store`` gets: "" (the default SQLite

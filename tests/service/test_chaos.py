@@ -54,6 +54,20 @@ def assert_uploads_intact(d: Deployment, c: httpx.Client, pid: str, accepted: di
         assert sha(images / name) == digest, name
 
 
+def serve_two_accepted(
+    d: Deployment, scene: Path, tenant: str
+) -> tuple[str, httpx.Client, str, dict[str, str]]:
+    """Start ``d``'s server and give ``tenant`` a project with the first two ground images: (key,
+    client, project id, the accepted uploads' sha256 by name) for a test that then breaks the server."""
+    d.start_server()
+    key = d.create_key(tenant)
+    c = d.client(key)
+    pid = c.post("/v1/projects", json={"name": tenant}).json()["id"]
+    first = [scene / "images" / n for n in GROUND[:2]]
+    assert upload(c, pid, first, "ground").status_code == 201
+    return key, c, pid, {p.name: sha(p) for p in first}
+
+
 def integrity(db: Path) -> str:
     with contextlib.closing(sqlite3.connect(db)) as con:
         return str(con.execute("PRAGMA integrity_check").fetchone()[0])
@@ -64,13 +78,7 @@ def test_full_storage_refuses_upload_with_507_and_keeps_nothing(tmp_path_factory
     root = tmp_path_factory.mktemp("enospc-upload")
     d = Deployment(root, None, GEOMATCH_TEST_FILL_LIMIT=str(50 * 1024 * 1024))
     try:
-        d.start_server()
-        key = d.create_key("full")
-        c = d.client(key)
-        pid = c.post("/v1/projects", json={"name": "full"}).json()["id"]
-        first = [scene / "images" / n for n in GROUND[:2]]
-        assert upload(c, pid, first, "ground").status_code == 201
-        accepted = {p.name: sha(p) for p in first}
+        key, c, pid, accepted = serve_two_accepted(d, scene, "full")
         d.stop()
         # the disk is now full but for a few bytes: the next upload cannot be stored
         d.env["GEOMATCH_TEST_FILL_LIMIT"] = str(disk_usage(d.home) + 1000)
@@ -116,13 +124,7 @@ def test_api_killed_during_upload_keeps_accepted_uploads_only(
 ) -> None:
     d = Deployment(tmp_path_factory.mktemp("api-kill-upload"), redis_url)
     try:
-        d.start_server()
-        key = d.create_key("apikill")
-        c = d.client(key)
-        pid = c.post("/v1/projects", json={"name": "apikill"}).json()["id"]
-        first = [scene / "images" / n for n in GROUND[:2]]
-        assert upload(c, pid, first, "ground").status_code == 201
-        accepted = {p.name: sha(p) for p in first}
+        key, c, pid, accepted = serve_two_accepted(d, scene, "apikill")
 
         # a multipart body sent slowly, the server killed half-way through it
         req = c.build_request(

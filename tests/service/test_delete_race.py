@@ -20,8 +20,8 @@ import pytest
 
 from service.grpcapi.client import GrpcClient, ImageSource
 
-from .grpc_harness import GrpcDeployment
-from .harness import metadata_database, noise_png
+from .grpc_harness import GrpcDeployment, serving_on_store
+from .harness import noise_png, noise_project
 
 pytestmark = pytest.mark.service
 
@@ -29,21 +29,16 @@ ROUNDS = 8
 MATCHES = 4
 
 
-IMAGES = [noise_png(i) for i in range(3)]
+THIRD = noise_png(2)  # the upload racing the deletion (noise_project holds images 0 and 1)
 
 
 @pytest.fixture(scope="module", params=["sqlite", "postgresql"])
 def dep(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory, redis_url: str
 ) -> Iterator[tuple[GrpcDeployment, str]]:
-    with metadata_database(request.param) as url:
-        env = {"DATABASE_URL": url} if url else {}
-        d = GrpcDeployment(tmp_path_factory.mktemp(f"delete-race-{request.param}"), redis_url, **env)
-        try:
-            d.start_grpc("serve")
-            yield d, d.create_key("racer")
-        finally:
-            d.stop()
+    root = tmp_path_factory.mktemp(f"delete-race-{request.param}")
+    with serving_on_store(root, redis_url, request.param) as d:
+        yield d, d.create_key("racer")
 
 
 def race(calls: dict[str, Callable[[], object]]) -> dict[str, object]:
@@ -66,17 +61,15 @@ def race(calls: dict[str, Callable[[], object]]) -> dict[str, object]:
 
 def project_with_images(c: httpx.Client, round_: int) -> tuple[str, str]:
     """A project with two images and one queued match job (something to cancel)."""
-    pid = c.post("/v1/projects", json={"name": f"race {round_}"}).json()["id"]
-    files = [("files", (f"{i}.png", IMAGES[i], "image/png")) for i in range(2)]
-    assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
+    pid = noise_project(c, f"race {round_}")
     r = c.post(f"/v1/projects/{pid}/match", json={})
     assert r.status_code == 202, r.text
-    return str(pid), str(r.json()["job_id"])
+    return pid, str(r.json()["job_id"])
 
 
 def rest_calls(clients: list[httpx.Client], pid: str, job: str) -> dict[str, Callable[[], object]]:
     """What races the deletion over HTTP, one client each."""
-    third = [("files", ("2.png", IMAGES[2], "image/png"))]
+    third = [("files", ("2.png", THIRD, "image/png"))]
     calls: dict[str, Callable[[], object]] = {
         "delete": lambda: clients[0].delete(f"/v1/projects/{pid}"),
         "upload": lambda: clients[1].post(f"/v1/projects/{pid}/images", files=third),
@@ -96,7 +89,7 @@ def grpc_calls(g: GrpcClient, pid: str, job: str) -> dict[str, Callable[[], obje
     """What races the deletion over gRPC, on one channel (calls multiplex over it)."""
     calls: dict[str, Callable[[], object]] = {
         "delete": lambda: g.delete_project(pid),
-        "upload": lambda: g.upload(pid, [ImageSource("2.png", data=IMAGES[2])], timeout=60),
+        "upload": lambda: g.upload(pid, [ImageSource("2.png", data=THIRD)], timeout=60),
         "reconstruct": lambda: g.submit_reconstruction(pid),
         "cancel": lambda: g.cancel_job(job),
         "get": lambda: g.get_project(pid),

@@ -35,7 +35,7 @@ from service.grpcapi.client import GrpcClient, ImageSource, to_dict
 from service.grpcapi.pb import pb2
 
 from ..small_scene import PAIRS  # the measured pair list (tests/small_scene.py)
-from .grpc_harness import GrpcDeployment, code_of, error_of
+from .grpc_harness import SERVED_METHODS, GrpcDeployment, code_of, error_of
 from .test_api import bad_files
 
 pytestmark = pytest.mark.service
@@ -47,23 +47,6 @@ pytestmark = pytest.mark.service
 RESIZE, METHOD = 480, "sparse"
 PAIR_RESIZE = 320
 MiB = 1024 * 1024
-METHODS = {
-    "CreateProject",
-    "GetProject",
-    "ListProjects",
-    "DeleteProject",
-    "UploadImages",
-    "ListImages",
-    "SubmitMatching",
-    "SubmitReconstruction",
-    "ListJobs",
-    "GetJob",
-    "WatchJob",
-    "CancelJob",
-    "Localize",
-    "GetModel",
-    "MatchPair",
-}
 
 
 @pytest.fixture(scope="module")
@@ -407,7 +390,7 @@ def test_reflection_lets_a_client_without_generated_code_call(dep: GrpcDeploymen
         assert {"geomatch.v1.Matching", "grpc.health.v1.Health"} <= services
         pool = descriptor_pool.DescriptorPool(db)
         svc = pool.FindServiceByName("geomatch.v1.Matching")
-        assert {m.name for m in svc.methods} == METHODS
+        assert {m.name for m in svc.methods} == SERVED_METHODS
         upload = svc.methods_by_name["UploadImages"]
         assert upload.client_streaming and not upload.server_streaming
         assert svc.methods_by_name["WatchJob"].server_streaming

@@ -12,7 +12,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from .harness import Deployment, noise_png
+from .harness import Deployment, noise_project
 
 pytestmark = pytest.mark.service
 
@@ -32,9 +32,7 @@ def test_responses_carry_nosniff_no_store_on_tenant_data_and_no_server_banner(
 ) -> None:
     d, key = server
     with d.client(key) as c, d.client(None) as anonymous:
-        pid = c.post("/v1/projects", json={"name": "headers"}).json()["id"]
-        files = [("files", (f"{i}.png", noise_png(i), "image/png")) for i in range(2)]
-        assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
+        pid = noise_project(c, "headers")
         job = c.post(f"/v1/projects/{pid}/match", json={}).json()["job_id"]
         assert c.delete(f"/v1/jobs/{job}").json()["state"] == "cancelled"  # its event stream ends
         tenant_data = {

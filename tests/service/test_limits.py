@@ -30,7 +30,7 @@ from service.grpcapi.limits import STREAMS
 from service.grpcapi.pb import pb2
 
 from .grpc_harness import GrpcDeployment, error_of
-from .harness import Deployment, noise_png
+from .harness import Deployment, noise_png, noise_project
 
 pytestmark = pytest.mark.service
 
@@ -65,10 +65,7 @@ def key(dep: GrpcDeployment) -> str:
 @pytest.fixture(scope="module")
 def project(dep: GrpcDeployment, key: str) -> str:
     with dep.client(key) as c:
-        pid: str = c.post("/v1/projects", json={"name": "limits"}).json()["id"]
-        files = [("files", (f"{i}.png", noise_png(i), "image/png")) for i in range(2)]
-        assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
-    return pid
+        return noise_project(c, "limits")
 
 
 # -- request bodies ------------------------------------------------------------------------------

@@ -16,8 +16,8 @@ import pytest
 
 from service.grpcapi.pb import pb2
 
-from .grpc_harness import GrpcDeployment, error_of
-from .harness import metadata_database, noise_png
+from .grpc_harness import error_of, serving_on_store
+from .harness import noise_project
 
 pytestmark = pytest.mark.service
 
@@ -28,24 +28,16 @@ def world(
 ) -> Iterator[dict[str, Any]]:
     """A server; a project with two images and four jobs, started in this order: match A, match B
     (with the reconstruct it queues behind it), match C, which was then cancelled."""
-    with metadata_database(request.param) as url:
-        env = {"DATABASE_URL": url} if url else {}
-        d = GrpcDeployment(tmp_path_factory.mktemp(f"jobs-{request.param}"), redis_url, **env)
-        try:
-            d.start_grpc("serve")
-            key = d.create_key("jobs")
-            with d.client(key) as c:
-                pid = c.post("/v1/projects", json={"name": "jobs"}).json()["id"]
-                files = [("files", (f"{i}.png", noise_png(i), "image/png")) for i in range(2)]
-                assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
-                a = c.post(f"/v1/projects/{pid}/match", json={}).json()["job_id"]
-                b = c.post(f"/v1/projects/{pid}/match", json={"reconstruct": True}).json()
-                cancelled = c.post(f"/v1/projects/{pid}/match", json={}).json()["job_id"]
-                assert c.delete(f"/v1/jobs/{cancelled}").json()["state"] == "cancelled"
-            newest_first = [cancelled, b["reconstruct_job_id"], b["job_id"], a]
-            yield {"d": d, "key": key, "pid": pid, "jobs": newest_first}
-        finally:
-            d.stop()
+    with serving_on_store(tmp_path_factory.mktemp(f"jobs-{request.param}"), redis_url, request.param) as d:
+        key = d.create_key("jobs")
+        with d.client(key) as c:
+            pid = noise_project(c, "jobs")
+            a = c.post(f"/v1/projects/{pid}/match", json={}).json()["job_id"]
+            b = c.post(f"/v1/projects/{pid}/match", json={"reconstruct": True}).json()
+            cancelled = c.post(f"/v1/projects/{pid}/match", json={}).json()["job_id"]
+            assert c.delete(f"/v1/jobs/{cancelled}").json()["state"] == "cancelled"
+        newest_first = [cancelled, b["reconstruct_job_id"], b["job_id"], a]
+        yield {"d": d, "key": key, "pid": pid, "jobs": newest_first}
 
 
 def test_rest_lists_a_projects_jobs_newest_first_in_pages(world: dict[str, Any]) -> None:

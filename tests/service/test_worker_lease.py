@@ -16,6 +16,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import pycolmap
 import pytest
 import redis
@@ -30,13 +31,17 @@ RESUMED_WITHIN_S = 120  # after the kill; the lease is 30 s
 
 
 @contextlib.contextmanager
-def two_workers(root: Path, redis_url: str) -> Iterator[Deployment]:
+def two_workers(root: Path, redis_url: str, scene: Path) -> Iterator[tuple[Deployment, httpx.Client, str]]:
+    """A server, two workers and a project holding the four ground images (client, project id)."""
     d = Deployment(root, redis_url, GEOMATCH_LOCK_TIMEOUT="15")
     try:
         d.start_server()
         d.start_worker()
         d.start_worker()
-        yield d
+        c = d.client(d.create_key("lease"))
+        pid = c.post("/v1/projects", json={"name": "lease"}).json()["id"]
+        assert upload(c, pid, [scene / "images" / n for n in GROUND], "ground").status_code == 201
+        yield d, c, pid
     finally:
         d.stop()
 
@@ -81,11 +86,8 @@ def survivors_reaped(d: Deployment) -> bool:
 def test_busy_worker_killed_mid_match_the_other_finishes(
     tmp_path_factory: pytest.TempPathFactory, redis_url: str, scene: Path, tmp_path: Path
 ) -> None:
-    with two_workers(tmp_path_factory.mktemp("lease-match"), redis_url) as d:
+    with two_workers(tmp_path_factory.mktemp("lease-match"), redis_url, scene) as (d, c, pid):
         r = redis.Redis.from_url(redis_url)
-        c = d.client(d.create_key("lease"))
-        pid = c.post("/v1/projects", json={"name": "lease"}).json()["id"]
-        assert upload(c, pid, [scene / "images" / n for n in GROUND], "ground").status_code == 201
         answer = c.post(f"/v1/projects/{pid}/match", json={"resize": 320, "reconstruct": True}).json()
         job_id, follower = answer["job_id"], answer["reconstruct_job_id"]
         wait_job(c, job_id, timeout=300, until=lambda j: j["progress"]["done"] >= 1)
@@ -105,11 +107,8 @@ def test_busy_worker_killed_mid_match_the_other_finishes(
 def test_busy_worker_killed_mid_reconstruct_the_other_finishes(
     tmp_path_factory: pytest.TempPathFactory, redis_url: str, scene: Path, tmp_path: Path
 ) -> None:
-    with two_workers(tmp_path_factory.mktemp("lease-reconstruct"), redis_url) as d:
+    with two_workers(tmp_path_factory.mktemp("lease-reconstruct"), redis_url, scene) as (d, c, pid):
         r = redis.Redis.from_url(redis_url)
-        c = d.client(d.create_key("lease"))
-        pid = c.post("/v1/projects", json={"name": "lease"}).json()["id"]
-        assert upload(c, pid, [scene / "images" / n for n in GROUND], "ground").status_code == 201
         job_id = c.post(f"/v1/projects/{pid}/match", json={"resize": 320}).json()["job_id"]
         assert wait_job(c, job_id, timeout=600)["state"] == "succeeded", d.logs()
 
