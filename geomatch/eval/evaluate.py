@@ -116,9 +116,7 @@ def evaluate_run(out: Path, gt: Path) -> EvalResult:
     s = json.loads(summary.read_text()) if summary.is_file() else {}
     if (out / "database.db").is_file():
         graph = s.get("view_graph") or {}
-        dropped = [
-            d["pair"] for key in ("dropped", "tree_dropped", "match_dropped") for d in graph.get(key, [])
-        ]
+        dropped = [d["pair"] for d in graph.get("dropped", []) + graph.get("tree_dropped", [])]
         metrics["pairs"] = pairtruth.summary(pairtruth.judge_pairs(out / "database.db", gt_rec, dropped))
     if s:
         metrics["run"] = {k: v for k, v in s.items() if k in ("method", "timings")}

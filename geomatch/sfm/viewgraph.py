@@ -30,14 +30,6 @@ and 35 inliers, many of them wrong) and 70 of the 76 wrong ones beyond 35 deg.
 What it does not see: a wrong pair whose rotation is right (the same facade seen twice, shifted
 by a window) passes, since rotations alone cannot tell.
 
-Opt-in (``filter_database(match_check=True)``, not the default): a soft vote for the tree's
-rotations, which keeps castle-P19's right pairs that a drifting tree drops, with the match check
-(:func:`match_inconsistent_pairs`), which drops the look-alike pairs of right rotation that such a
-tree dropped by accident: a match of a pair, carried on to a third image by the kept pairs on both
-sides, must land on one point there. On castle-P19 it dropped every wrong pair and 2-3 right ones
-(44 and 22 today), but the mapped models were 0.1-0.2 AUC@10 lower, and on fountain-P11 the soft
-tree dropped more right pairs (docs/benchmarks.md).
-
 Relative rotations come from the verified inliers: an essential matrix on normalised coordinates
 (each image's COLMAP camera, distortion included), RANSAC, then the cheirality check.
 """
@@ -67,15 +59,6 @@ MIN_PAIRS = 2
 # deg off, the few right pairs beyond 10 deg had under 40 inliers, most of them wrong
 TREE_DEG = 10.0
 TREE_DEG_PER_HOP = 0.5
-# the match check (:func:`match_inconsistent_pairs`): a pair's match and the kept pairs through a
-# third image agree when they land within this many pixels of each other there (the writer snaps
-# a pair's matches onto the image's keypoints within a pixel or two, so right ones mostly land on
-# the same keypoint)
-MATCH_RADIUS_PX = 3.0
-MATCH_MIN_SHARED = 5  # matches of the pair that both other pairs of a triangle carry: fewer say nothing
-# a pair goes when, weighted by its triangles' weaker other pair, fewer of its shared matches agree:
-# on castle-P19 right pairs agreed 0.85-1.0, the look-alike pairs with right rotations 0.02-0.22
-MATCH_MIN_AGREE = 0.5
 
 
 @dataclass
@@ -85,8 +68,6 @@ class ViewGraphReport:
     dropped: list[tuple[str, str, int, int]] = field(default_factory=list)  # (name0, name1, bad, loops)
     # the tree check's drops: (name0, name1, degrees off the tree's rotation, tree path length)
     tree_dropped: list[tuple[str, str, float, int]] = field(default_factory=list)
-    # the match check's drops: (name0, name1, weighted share of agreeing matches, triangles)
-    match_dropped: list[tuple[str, str, float, int]] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -97,15 +78,11 @@ class ViewGraphReport:
                 {"pair": [a, b], "degrees": round(deg, 2), "hops": hops}
                 for a, b, deg, hops in self.tree_dropped
             ],
-            "match_dropped": [
-                {"pair": [a, b], "agreeing": round(share, 3), "triangles": n}
-                for a, b, share, n in self.match_dropped
-            ],
         }
 
     def dropped_pairs(self) -> list[tuple[str, str]]:
         """Every pair either check kept from the mapper."""
-        return [(a, b) for a, b, *_ in (*self.dropped, *self.tree_dropped, *self.match_dropped)]
+        return [(a, b) for a, b, *_ in self.dropped] + [(a, b) for a, b, *_ in self.tree_dropped]
 
 
 def candidate_rotations(
@@ -255,13 +232,11 @@ def tree_inconsistent_pairs(
     support: Mapping[tuple[int, int], int],
     base_deg: float = TREE_DEG,
     per_hop_deg: float = TREE_DEG_PER_HOP,
-    soft: bool = False,
 ) -> list[tuple[tuple[int, int], float, int]]:
     """The pairs of ``rotations`` {(i, j): candidate R_ij, i < j} that disagree with the maximum
     spanning tree by ``support`` (module docstring), each with its angle to the tree's rotation
     and the tree path length. Tree pairs are never returned, and an image keeps ``MIN_PAIRS``
-    pairs (the most inconsistent go first). ``soft``: the tree pairs' candidates are voted for by
-    how tightly their triangles close (:func:`voted_candidate`)."""
+    pairs (the most inconsistent go first)."""
     edges = dict(rotations)
 
     def rot(a: int, b: int) -> list[np.ndarray]:
@@ -270,7 +245,7 @@ def tree_inconsistent_pairs(
     nbrs = _neighbours(edges)
     tree: dict[int, list[tuple[int, np.ndarray]]] = {}
     for a, b in spanning_tree(edges, support):
-        R = voted_candidate(a, b, rot, nbrs, support, soft)
+        R = _voted_candidate(a, b, rot, nbrs, support)
         tree.setdefault(a, []).append((b, R))
         tree.setdefault(b, []).append((a, R.T))
     absolute: dict[int, np.ndarray] = {}
@@ -317,90 +292,6 @@ def tree_inconsistent_pairs(
     return sorted(out)
 
 
-@dataclass
-class PairMatches:
-    """What the match check reads: each verified pair's inlier matches {(i, j): (n, 2) keypoint
-    indices, column 0 in image i, i < j} and each image's keypoints (n, 2) in pixels."""
-
-    matches: Mapping[tuple[int, int], np.ndarray]
-    keypoints: Mapping[int, np.ndarray]
-
-
-def match_inconsistent_pairs(
-    pm: PairMatches,
-    support: Mapping[tuple[int, int], int],
-    pairs: Iterable[tuple[int, int]],
-    keep: Set[tuple[int, int]] = frozenset(),
-    radius_px: float = MATCH_RADIUS_PX,
-    min_shared: int = MATCH_MIN_SHARED,
-    min_agree: float = MATCH_MIN_AGREE,
-) -> list[tuple[tuple[int, int], float, int]]:
-    """The pairs among ``pairs`` (i < j; those the rotation checks kept) whose matches the other
-    pairs contradict, each with its weighted share of agreeing matches and its number of triangles.
-
-    Why matches and not rotations or translations: views of look-alike facades facing the same
-    way have the right relative rotation, and where the facades repeat along the cameras' path
-    the matches' epipolar geometry is that of the right pose moved along its own baseline: on
-    castle-P19 the four such pairs (0000-0009, 0000-0010, 0001-0011, 0002-0011, 88-214 inliers)
-    have a translation direction 0.5-9 deg from the surveyed one, and in the triangles of kept
-    pairs (c_b - c_a = (c_k - c_a) - (c_k - c_b)) it lies 0.05-0.48 deg (weighted median) from
-    the cone of the other two directions, inside the 0.25-1.74 deg of the right pairs: a
-    translation-direction test cannot see them. Their matches can: a match (p, q) of pair (a, b)
-    is a track; where pairs (a, k) and (b, k) carry p and q on to a third image k, a right match
-    lands on one point of k from both sides, a look-alike match on two (facade A's window from
-    a, facade B's from b). On castle-P19, per pair and weighted as below, 0.85-1.0 of the right
-    pairs' shared matches agreed, 0.02-0.22 of the wrong ones'.
-
-    A triangle counts when at least ``min_shared`` of the pair's matches go on through both other
-    pairs, with the inliers of its weaker other pair as weight (a wrong weak pair through k says
-    little about (a, b)); its share is the fraction of them landing within ``radius_px`` of each
-    other. A pair goes when the weighted share is below ``min_agree``, the least agreeing first,
-    and ``keep`` pairs (the spanning tree's) never go; an image keeps ``MIN_PAIRS`` pairs."""
-    kept = sorted(pairs)
-    nbrs = _neighbours(kept)
-    lookup: dict[tuple[int, int], np.ndarray] = {}
-
-    def carried(x: int, y: int) -> np.ndarray:
-        """For each keypoint of x, its match in y through pair (x, y), -1 where none."""
-        if (x, y) not in lookup:
-            m = pm.matches[_key(x, y)]
-            if x > y:
-                m = m[:, ::-1]
-            table = np.full(len(pm.keypoints[x]), -1, np.int64)
-            table[m[:, 0]] = m[:, 1]
-            lookup[(x, y)] = table
-        return lookup[(x, y)]
-
-    judged: list[tuple[tuple[int, int], float, int]] = []
-    for a, b in kept:
-        if (a, b) in keep:
-            continue
-        m = pm.matches[(a, b)]
-        total = agree = 0.0
-        triangles = 0
-        for k in sorted(nbrs[a] & nbrs[b]):
-            ka, kb = carried(a, k)[m[:, 0]], carried(b, k)[m[:, 1]]
-            both = (ka >= 0) & (kb >= 0)
-            if both.sum() < min_shared:
-                continue
-            kp = pm.keypoints[k]
-            gap = np.linalg.norm(kp[ka[both]] - kp[kb[both]], axis=1)
-            weight = min(support.get(_key(a, k), 0), support.get(_key(b, k), 0))
-            total += weight
-            agree += weight * float(np.mean(gap <= radius_px))
-            triangles += 1
-        if total > 0 and agree / total < min_agree:
-            judged.append(((a, b), agree / total, triangles))
-    out: list[tuple[tuple[int, int], float, int]] = []
-    for (a, b), share, n in sorted(judged, key=lambda j: (j[1], support.get(j[0], 0))):
-        if len(nbrs[a]) <= MIN_PAIRS or len(nbrs[b]) <= MIN_PAIRS:
-            continue
-        nbrs[a].discard(b)
-        nbrs[b].discard(a)
-        out.append(((a, b), share, n))
-    return sorted(out)
-
-
 def _neighbours(pairs: Iterable[tuple[int, int]]) -> dict[int, set[int]]:
     nbrs: dict[int, set[int]] = {}
     for a, b in pairs:
@@ -409,13 +300,12 @@ def _neighbours(pairs: Iterable[tuple[int, int]]) -> dict[int, set[int]]:
     return nbrs
 
 
-def voted_candidate(
+def _voted_candidate(
     a: int,
     b: int,
     rot: Callable[[int, int], list[np.ndarray]],
     nbrs: Mapping[int, set[int]],
     support: Mapping[tuple[int, int], int],
-    soft: bool = False,
 ) -> np.ndarray:
     """The candidate rotation of tree pair (a, b) whose closed triangles carry the most support,
     the least closing error among ties. A flat or distant scene's pair admits several rotations
@@ -425,28 +315,18 @@ def voted_candidate(
     close them less tightly. A triangle counts with the inliers of its weaker other pair: on the
     service tests' aerial scene (480 px) a ground pair's 46 deg homography closed a triangle with
     two wrong 54- and 57-inlier pairs, and its right pose one with two right 323- and 446-inlier
-    pairs; counted alike, the error tie-break chose the wrong one and turned every image behind it.
-
-    ``soft``: a triangle counts ``1 - error / LOOP_DEG`` of its weight (nothing beyond
-    ``LOOP_DEG``) instead of all of it within ``LOOP_DEG``. On castle-P19's flat facades the wrong
-    homography decompositions close as many triangles within ``LOOP_DEG`` as the right pose, only
-    less tightly: counted 0 or 1, 9 of the tree's 18 pairs (750-1544 inliers) took a rotation 3-13
-    deg off and the tree dropped 44 right pairs; counted softly every tree pair is within 0.5 deg
-    of the surveyed rotation and 2 right pairs (32 and 33 inliers) go. It does not help where the
-    wrong candidates close their triangles tightly through the other pairs' wrong candidates: on
-    fountain-P11 (`sparse`) the soft tree took 3 decompositions about 11.5 deg off instead of 2
-    and dropped 28 right pairs instead of 16. Hence not the default (``judge``'s ``matches``)."""
+    pairs; counted alike, the error tie-break chose the wrong one and turned every image behind it."""
     cands = rot(a, b)
     if len(cands) == 1:
         return cands[0]
-    votes = [0.0] * len(cands)
+    votes = [0] * len(cands)
     error = [0.0] * len(cands)
     for k in nbrs[a] & nbrs[b]:
         ak, bk = rot(a, k), rot(b, k)
         weight = min(support.get(_key(a, k), 0), support.get(_key(b, k), 0))
         for i, c in enumerate(cands):
             e = loop_error([c], bk, ak)
-            votes[i] += weight * (max(0.0, 1.0 - e / LOOP_DEG) if soft else float(e <= LOOP_DEG))
+            votes[i] += weight * (e <= LOOP_DEG)
             error[i] += min(e, 4 * LOOP_DEG)
     return cands[min(range(len(cands)), key=lambda i: (-votes[i], error[i], i))]
 
@@ -474,9 +354,8 @@ def _weakest_in_broken(
 
 def _rotations(
     db: pycolmap.Database, min_inliers: int
-) -> tuple[dict[tuple[int, int], list[np.ndarray]], dict[tuple[int, int], int], PairMatches]:
-    """Candidate rotations, inlier counts and inlier matches of the verified pairs, keyed (i, j)
-    with i < j."""
+) -> tuple[dict[tuple[int, int], list[np.ndarray]], dict[tuple[int, int], int]]:
+    """Candidate rotations and inlier counts of the verified pairs, keyed (i, j) with i < j."""
     images = {im.image_id: im for im in db.read_all_images()}
     cameras = {c.camera_id: c for c in db.read_all_cameras()}
     keypoints: dict[int, np.ndarray] = {}
@@ -488,7 +367,6 @@ def _rotations(
 
     out: dict[tuple[int, int], list[np.ndarray]] = {}
     inliers: dict[tuple[int, int], int] = {}
-    matches: dict[tuple[int, int], np.ndarray] = {}
     pair_ids, geometries = db.read_two_view_geometries()
     for pid, g in zip(pair_ids, geometries, strict=True):
         if len(g.inlier_matches) < min_inliers:
@@ -499,9 +377,7 @@ def _rotations(
             key = _key(a, b)
             out[key] = rs if a < b else [R.T for R in rs]
             inliers[key] = len(g.inlier_matches)
-            m = np.asarray(g.inlier_matches, np.int64)
-            matches[key] = m if a < b else m[:, ::-1]
-    return out, inliers, PairMatches(matches, keypoints)
+    return out, inliers
 
 
 def judge(
@@ -510,34 +386,18 @@ def judge(
     loop_deg: float = LOOP_DEG,
     loops: bool = True,
     tree: bool = True,
-    matches: PairMatches | None = None,
-) -> tuple[
-    list[tuple[tuple[int, int], float, int]],
-    list[tuple[tuple[int, int], int, int]],
-    int,
-    list[tuple[tuple[int, int], float, int]],
-]:
+) -> tuple[list[tuple[tuple[int, int], float, int]], list[tuple[tuple[int, int], int, int]], int]:
     """The pairs the tree check drops (pair, degrees, hops), then those the loop check drops
-    (pair, broken loops, loops), the number of loops it saw, and the pairs the match check drops
-    (pair, agreeing share, triangles). With ``matches`` (and ``tree``) the tree votes softly
-    (:func:`voted_candidate`) and the match check (:func:`match_inconsistent_pairs`) judges the
-    pairs the tree check kept: the soft vote keeps the right pairs a drifting tree dropped, and
-    with them the look-alike pairs of right rotation that it dropped by accident, which only the
-    matches tell. The loop check judges the pairs both kept, and counts a loop through a pair they
-    dropped only against pairs weaker than that one (:func:`inconsistent_pairs`). It never drops a
-    pair of the spanning tree: where repeated structure makes many pairs wrong (76 of 171 on a
-    19-photo courtyard), the loops through right neighbour pairs break too, and the loop check
-    alone dropped such a pair with 722 inliers, which left seven cameras attached by a wrong pair
-    only. An image keeps ``MIN_PAIRS`` pairs over all the checks."""
+    (pair, broken loops, loops), and the number of loops it saw. The loop check judges the pairs
+    the tree check kept, and counts a loop through a pair the tree check dropped only against
+    pairs weaker than that one (:func:`inconsistent_pairs`). It never drops a pair of the spanning
+    tree: where repeated structure makes many pairs wrong (76 of 171 on a 19-photo courtyard), the
+    loops through right neighbour pairs break too, and the loop check alone dropped such a pair
+    with 722 inliers, which left seven cameras attached by a wrong pair only. An image keeps
+    ``MIN_PAIRS`` pairs over both checks."""
     pairs_of = Counter(i for pair in rotations for i in pair)
-    soft = matches is not None
-    tree_drop = tree_inconsistent_pairs(rotations, inliers, soft=soft) if tree else []
+    tree_drop = tree_inconsistent_pairs(rotations, inliers) if tree else []
     gone = {pair for pair, _, _ in tree_drop}
-    match_drop: list[tuple[tuple[int, int], float, int]] = []
-    if matches is not None and tree:
-        kept = [pair for pair in rotations if pair not in gone]
-        match_drop = match_inconsistent_pairs(matches, inliers, kept, set(spanning_tree(rotations, inliers)))
-        gone |= {pair for pair, _, _ in match_drop}
     pairs_of.subtract(i for pair in gone for i in pair)
     loop_drop: list[tuple[tuple[int, int], int, int]] = []
     seen = 0
@@ -549,7 +409,7 @@ def judge(
                 continue
             loop_drop.append(((a, b), bad, n))
             pairs_of.subtract((a, b))
-    return tree_drop, loop_drop, seen, match_drop
+    return tree_drop, loop_drop, seen
 
 
 def filter_database(
@@ -558,26 +418,19 @@ def filter_database(
     loop_deg: float = LOOP_DEG,
     loops: bool = True,
     tree: bool = True,
-    match_check: bool = False,  # measured, not adopted: see the module docstring
 ) -> ViewGraphReport:
     """Mark the pairs :func:`judge` drops as DEGENERATE (no inliers) in ``database``, which must
     be the mapper's private copy: the project's database keeps every verified pair, so a later
-    reconstruct with more images judges them again. ``match_check``: the soft tree vote and the
-    match check (:func:`judge`)."""
+    reconstruct with more images judges them again."""
     db = pycolmap.Database.open(database)
     try:
-        rotations, inliers, matches = _rotations(db, min_inliers)
+        rotations, inliers = _rotations(db, min_inliers)
         names = {im.image_id: im.name for im in db.read_all_images()}
-        tree_drop, loop_drop, seen, match_drop = judge(
-            rotations, inliers, loop_deg, loops, tree, matches if match_check else None
-        )
+        tree_drop, loop_drop, seen = judge(rotations, inliers, loop_deg, loops, tree)
         report = ViewGraphReport(pairs=len(rotations), loops=seen)
         for (a, b), deg, hops in tree_drop:
             _degenerate(db, a, b)
             report.tree_dropped.append((names[a], names[b], deg, hops))
-        for (a, b), share, n in match_drop:
-            _degenerate(db, a, b)
-            report.match_dropped.append((names[a], names[b], share, n))
         for (a, b), bad, n in loop_drop:
             _degenerate(db, a, b)
             report.dropped.append((names[a], names[b], bad, n))
