@@ -45,6 +45,10 @@ class LocalizeOptions:
     # Herz-Jesus-P8 and fountain-P11 had 500-900 inliers, and each further pair costs one more
     # match (~1 s per pair there, ~3 s per photo in all)
     max_candidates: int = 4
+    # the plain candidates are matched best first: this many, then the others only when those
+    # did not localize the photo confidently (two model images are what "high" needs, and a
+    # photo that two of its best matches place confidently is rarely moved by more)
+    first_candidates: int = 2
     # added when the photo has a GPS fix and the model is georeferenced: its nearest cameras
     gps_candidates: int = 2
     # for a ground photo of a project with aerial images: the most similar aerial images, matched
@@ -357,7 +361,8 @@ class Localizer:
         out: Localization | None = None
         pose = None
         matched: list[str] = []
-        for stage in (plain, tiled):
+        first = max(1, self.options.first_candidates)
+        for stage in (plain[:first], plain[first:], tiled):
             if not stage or (out is not None and out.confidence == "high"):
                 continue
             ev = self.evidence(image, stage, aerial_photo, ev)
