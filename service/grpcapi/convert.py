@@ -195,6 +195,9 @@ def localization(a: Mapping[str, Any]) -> pb2.Localization:
         confidence=str(a.get("confidence") or "none"),
         supporting_images=[str(n) for n in a.get("supporting_images") or []],
         seconds=float(a.get("seconds") or 0.0),
+        candidates=[str(n) for n in a.get("candidates") or []],
+        inlier_ratio=float(a.get("inlier_ratio") or 0.0),
+        focal_source=str(a.get("focal_source") or ""),
     )
     pose = a.get("cam_from_world")
     if isinstance(pose, Mapping):

@@ -190,6 +190,9 @@ def test_grpc_localize(site: Site) -> None:
         [answer] = reply.localizations
         assert answer.name == LEFT_OUT and answer.localized and answer.confidence in ("high", "low")
         assert len(answer.cam_from_world.qvec) == 4 and answer.HasField("wgs84")
+        # what the REST answer says of how it was found, the gRPC one says too
+        assert set(answer.supporting_images) <= set(answer.candidates) and answer.candidates
+        assert 0.25 <= answer.inlier_ratio <= 1 and answer.focal_source in ("model", "exif", "estimated")
         lat, lon, _ = truth_lat_lon(site.scene, LEFT_OUT)
         assert metres_between((lat, lon), (answer.wgs84.lat, answer.wgs84.lon)) < NEAR_M
         # wait_s 0: the job at once, its answers in its result once it succeeded
