@@ -15,8 +15,8 @@ ground truth; the full run's error for the same photo beside it (aligned the sam
 Synthetic air-to-ground scenes (``--seeds`` tuning, ``--test-seeds`` test): each ground photo is
 localized against the aerial + ground model without it, and against the model without any ground
 image (every ground frame deregistered: what the aerial images alone hold of the model). The full
-runs' plan is :func:`synthetic_pairs` (one tiled pair per ground image): a tiled pair costs
-minutes on 2 busy CPU cores.
+runs are ``geomatch run`` with its default plan (every pair; a ground x aerial pair tiled), as a
+user re-runs a project.
 
 Success = localized (any confidence) with rotation error <= 1 deg and position error <= 1 % of
 the scene extent. Every photo is localized cold, as a new ``geomatch localize`` process does it:
@@ -238,24 +238,6 @@ def aerial_only(run: Path, ground: list[str]) -> Path:
     return without_image(run / "sparse" / "0", ground, run.parent / "aerial-model")
 
 
-def synthetic_pairs(seed: int, aerial: int, ground: int) -> list[tuple[str, str]]:
-    """The synthetic full run's plan: every ground pair, every aerial pair, and each ground image
-    with its nearest aerial image (horizontal distance, a GPS stand-in): one tiled pair per ground
-    image, since a tiled pair costs minutes on 2 busy CPU cores (the small scene of
-    tests/small_scene.py registers fully from such a plan)."""
-    from geomatch.synth.aerial import Scene
-
-    cams = Scene(seed).cameras(aerial, ground, 640, 480)
-    air = [c for c in cams if c.aerial]
-    grd = [c for c in cams if not c.aerial]
-    pairs = [(a.name, b.name) for i, a in enumerate(air) for b in air[i + 1 :]]
-    pairs += [(a.name, b.name) for i, a in enumerate(grd) for b in grd[i + 1 :]]
-    for g in grd:
-        nearest = min(air, key=lambda a: float(np.linalg.norm(a.centre[:2] - g.centre[:2])))
-        pairs.append((nearest.name, g.name))
-    return pairs
-
-
 def synthetic(seed: int, split: str, args: argparse.Namespace) -> list[dict[str, Any]]:
     from geomatch.synth.aerial import write_scene
 
@@ -265,9 +247,7 @@ def synthetic(seed: int, split: str, args: argparse.Namespace) -> list[dict[str,
         write_scene(scene, args.aerial, args.ground, seed)
     aerial = (scene / "aerial.txt").read_text().split()
     run = root / "full"
-    plan = root / "pairs.txt"
-    plan.write_text("".join(f"{a} {b}\n" for a, b in synthetic_pairs(seed, args.aerial, args.ground)))
-    wall = full_run(scene / "images", run, ["--aerial-list", str(scene / "aerial.txt"), "--pairs", str(plan)])
+    wall = full_run(scene / "images", run, ["--aerial-list", str(scene / "aerial.txt")])
     registered = json.loads((run / "summary.json").read_text())["registered_names"]
     ground = sorted(n for n in registered if n not in aerial)
     out = []
