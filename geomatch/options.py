@@ -97,13 +97,17 @@ CACHE_MB = 1536
 RUN_FEATURES_MB = 4096
 
 
-def run_feature_store_bytes() -> int:
-    raw = os.environ.get("GEOMATCH_RUN_FEATURES_MB", "").strip()
+def env_mib(name: str, default: float) -> float:
+    """A MiB setting from the environment (``default`` when unset); a clear error when not a number."""
+    raw = os.environ.get(name, "").strip()
     try:
-        mb = float(raw) if raw else RUN_FEATURES_MB
+        return float(raw) if raw else default
     except ValueError:
-        raise OptionError(f"GEOMATCH_RUN_FEATURES_MB must be a number of MiB, got {raw!r}") from None
-    return max(0, int(mb * 1024 * 1024))
+        raise OptionError(f"{name} must be a number of MiB, got {raw!r}") from None
+
+
+def run_feature_store_bytes() -> int:
+    return max(0, int(env_mib("GEOMATCH_RUN_FEATURES_MB", RUN_FEATURES_MB) * 1024 * 1024))
 
 
 @dataclass(frozen=True)
@@ -122,11 +126,7 @@ def cache_budget(total_mb: float | None = None, matchers: int = 1) -> CacheBudge
     """The split of ``total_mb`` (default: GEOMATCH_CACHE_MB, else :data:`CACHE_MB`) for a job
     that keeps up to ``matchers`` matchers (distinct option sets), each with its own caches."""
     if total_mb is None:
-        raw = os.environ.get("GEOMATCH_CACHE_MB", "").strip()
-        try:
-            total_mb = float(raw) if raw else CACHE_MB
-        except ValueError:
-            raise OptionError(f"GEOMATCH_CACHE_MB must be a number of MiB, got {raw!r}") from None
+        total_mb = env_mib("GEOMATCH_CACHE_MB", CACHE_MB)
     total_mb = max(64.0, total_mb)
     per_matcher = 5 / 6 * total_mb / max(1, matchers)
     return CacheBudget(total_mb / 6, 0.8 * per_matcher, 0.2 * per_matcher)

@@ -178,14 +178,13 @@ class StoredFeaturesMatcher(Matcher):
     def __init__(self, config: MatcherConfig, store: FeatureStore) -> None:
         super().__init__(config)
         self.store = store
-        self.disk_hits = 0
 
     def derive(self, **overrides: Any) -> Matcher:
         """As :meth:`Matcher.derive`, still reading and writing the same store."""
         other = super().derive(**overrides)
         stored = StoredFeaturesMatcher.__new__(StoredFeaturesMatcher)
         stored.__dict__.update(other.__dict__)
-        stored.store, stored.disk_hits = self.store, 0
+        stored.store = self.store
         return stored
 
     def features(self, image: np.ndarray, key: str | None = None) -> dict[str, ImageFeatures]:
@@ -200,7 +199,6 @@ class StoredFeaturesMatcher(Matcher):
                 missing.add(name)  # computed below, then written (over a torn file, if any)
                 continue
             self.put_features(key, name, dense, feats, image)
-            self.disk_hits += 1
         out = super().features(image, key)
         for name in missing:
             self.store.save(paths[name], out[name])

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from .metrics import align_cameras, rotation_angle_deg, scene_extent
+from ..sfm.viewgraph import rotation_angle
+from .metrics import align_cameras, scene_extent
 
 
 def without_image(model: Path, name: str | Collection[str], dest: Path) -> Path:
@@ -57,5 +58,5 @@ def pose_error(
     c = found.scale * found.rotation @ np.asarray(centre, np.float64) + found.translation
     position = float(np.linalg.norm(c - np.asarray(truth.projection_center())))
     R_gt_frame = np.asarray(R) @ found.rotation.T  # cam_from_gt = cam_from_model @ model_from_gt
-    rotation = rotation_angle_deg(R_gt_frame @ truth.cam_from_world().rotation.matrix().T)
+    rotation = rotation_angle(R_gt_frame @ truth.cam_from_world().rotation.matrix().T)
     return rotation, position, 100 * position / extent

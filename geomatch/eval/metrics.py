@@ -34,6 +34,7 @@ import numpy as np
 import pycolmap
 
 from ..sfm.mapping import sfm_stats
+from ..sfm.viewgraph import rotation_angle
 from .alignment import Alignment, align
 
 AUC_THRESHOLDS = (3.0, 5.0, 10.0)
@@ -54,10 +55,6 @@ def auc(errors: list[float] | np.ndarray, thresholds: tuple[float, ...]) -> list
         r = np.concatenate([recall[:last], [recall[last - 1]]])
         out.append(float(np.trapezoid(r, x=e) / t))
     return out
-
-
-def _angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
 def _dir_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -88,7 +85,7 @@ def relative_pose_errors(rec: pycolmap.Reconstruction, gt: pycolmap.Reconstructi
         (Ea, sa), (Eb, sb) = est[a], est[b]
         R_gt, t_gt = Rb @ Ra.T, tb - Rb @ Ra.T @ ta
         R_es, t_es = Eb @ Ea.T, sb - Eb @ Ea.T @ sa
-        errs.append(max(_angle_deg(R_es.T @ R_gt), _dir_angle_deg(t_es, t_gt)))
+        errs.append(max(rotation_angle(R_es.T @ R_gt), _dir_angle_deg(t_es, t_gt)))
     return np.asarray(errs, np.float64)
 
 
@@ -102,11 +99,6 @@ def scene_extent(gt: pycolmap.Reconstruction) -> float:
     if len(centres) < 2:
         return 0.0
     return float(np.linalg.norm(centres.max(0) - centres.min(0)))
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """The angle of a rotation matrix, in degrees."""
-    return _angle_deg(R)
 
 
 def align_cameras(

@@ -263,7 +263,7 @@ def test_features_are_computed_once_across_processes(tmp_path: Path, astronaut_p
     assert len(files) == 4 and {p.parts[0].split("-")[0] for p in files} == {"aliked", "disk+dense"}
     second = steps.build_matcher(store, method="geo", resize=320, device="cpu")
     r2 = second.match(a, b)
-    assert second.extract_calls == 0 and second.disk_hits == 4  # type: ignore[attr-defined]  # with a store: StoredFeaturesMatcher
+    assert second.extract_calls == 0 and store.hits == 4  # every feature read back from disk
     np.testing.assert_array_equal(r1.keypoints0, r2.keypoints0)
     np.testing.assert_array_equal(r1.keypoints1, r2.keypoints1)
     other_resolution = steps.build_matcher(store, method="geo", resize=256, device="cpu")
