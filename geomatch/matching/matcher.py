@@ -108,12 +108,13 @@ class MatcherConfig:
     min_anchor_support: int = 15
     # geo: a pair whose anchors alone fit an F with at least this many inliers is answered by the
     # anchors, as ``sparse`` would answer it (no dense rounds, no least-squares matching); 0: the
-    # full method on every pair. The rounds add matches where the anchors are few; where they are
-    # many, on the real tuning photos (castle-P19's neighbours have 750-1550), the rounds and the
-    # least-squares step tied or cost the anchors 0.1-0.2 AUC@10 at twice their time. Tiled aerial
-    # x ground pairs always get the full method (Matcher.for_pair): that is where it was measured
-    # to register views the anchors lose.
-    anchors_suffice: int = 300
+    # full method on every pair. The rounds are for pairs whose anchors are too few to trust.
+    # Measured on real photos with the view-graph drops held fixed (castle-P19): rounds on the
+    # pairs with 50-299 anchor inliers cost 0.07 AUC@10, and most of those pairs are look-alike
+    # facades to which the rounds add ~20 % more matches under their wrong F; from 50 down they cost
+    # 0.01. Tiled aerial x ground pairs always get the full method (Matcher.for_pair): that is where
+    # it was measured to register views the anchors lose.
+    anchors_suffice: int = 50
     # least-squares matching of the final points in B (geomatch.features.subpixel): "auto" does it for the
     # methods that optimise (the paper's refinement stage, anchors included), "lsm" for any
     # method, "off" never
