@@ -44,7 +44,11 @@ def worker(args: argparse.Namespace) -> None:
         peer_worker(a, b, args)
         return
     method, overrides = parse_method(args.method)
-    m = Matcher(MatcherConfig(method=method, resize=args.size, device=args.device, **overrides))
+    # the pair as `geomatch run` matches a plain pair of a ground-only project: under auto, the
+    # light anchors (Matcher.for_pair); every other method is itself
+    m = Matcher(MatcherConfig(method=method, resize=args.size, device=args.device, **overrides)).for_pair(
+        tiled=False
+    )
     m.match(a, b)  # load the networks (not timed: a worker loads them once)
     m.clear_caches()
     t0 = time.perf_counter()
