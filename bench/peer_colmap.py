@@ -32,8 +32,10 @@ MAX_FEATURES = 8192
 MAX_IMAGE_SIZE = 1600
 
 
-def run_peer(images: Path, out: Path, threads: int = -1) -> dict[str, Any]:
-    """SIFT extraction, exhaustive matching and incremental mapping; returns the summary."""
+def run_peer(images: Path, out: Path, threads: int = -1, matcher: str = "exhaustive") -> dict[str, Any]:
+    """SIFT extraction, exhaustive (or ``spatial``: COLMAP's GPS neighbours, its defaults of 50
+    neighbours within 100 m, from the pose priors extraction reads from EXIF GPS) matching and
+    incremental mapping; returns the summary."""
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     db = out / "database.db"
@@ -46,7 +48,10 @@ def run_peer(images: Path, out: Path, threads: int = -1) -> dict[str, Any]:
     with colmap_log(False):
         pycolmap.extract_features(db, images, extraction_options=extraction)
         t1 = time.perf_counter()
-        pycolmap.match_exhaustive(db)
+        if matcher == "spatial":
+            pycolmap.match_spatial(db)
+        else:
+            pycolmap.match_exhaustive(db)
         t2 = time.perf_counter()
         work = out / ".mapping"
         work.mkdir()
@@ -60,7 +65,12 @@ def run_peer(images: Path, out: Path, threads: int = -1) -> dict[str, Any]:
         rec.write_binary(str(d))
     shutil.rmtree(work, ignore_errors=True)
     n_images = sum(1 for p in images.iterdir() if p.is_file())
-    summary: dict[str, Any] = {"method": "colmap-sift", "models": len(ranked), "timings": timings}
+    summary: dict[str, Any] = {
+        "method": "colmap-sift",
+        "matcher": matcher,
+        "models": len(ranked),
+        "timings": timings,
+    }
     if ranked:
         summary.update(sfm_stats(ranked[0], n_images))
     else:
@@ -141,8 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("out", type=Path)
     ap.add_argument("--gt", type=Path, help="ground-truth COLMAP model: print geomatch eval's table")
     ap.add_argument("--threads", type=int, default=-1, help="SIFT threads (-1: all cores)")
+    ap.add_argument("--matcher", choices=("exhaustive", "spatial"), default="exhaustive")
     args = ap.parse_args(argv)
-    s = run_peer(args.images, args.out, args.threads)
+    s = run_peer(args.images, args.out, args.threads, args.matcher)
     t = s["timings"]
     print(
         f"COLMAP SIFT: {s['registered']}/{s['images']} registered, {s['points3D']} points; "

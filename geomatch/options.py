@@ -72,7 +72,7 @@ TILING = ("auto", "on", "off")
 CAMERAS = ("auto", "per-image")
 CAPTURES = ("aerial", "ground", "auto")  # how an uploaded image was taken (auto: EXIF/XMP decides)
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
-PAIR_SPEC_HELP = "exhaustive | sequential:K | retrieval:K | gps:K | a union such as gps:K+retrieval:K"
+PAIR_SPEC_HELP = "auto | exhaustive | sequential:K | retrieval:K | gps:K | a union such as gps:K+retrieval:K"
 
 # COLMAP registers an image from 30 PnP inliers, a count made for sparse SIFT matches. With dense
 # matches a genuinely overlapping image has hundreds of 2D-3D correspondences, while a repeated
@@ -219,7 +219,7 @@ _OPTIONS: tuple[Option, ...] = (
     Option("theta_c", float, 0.2, "final mutual-NN threshold"),
     Option("memory_budget_mb", float, 256.0, "working memory of one streamed block, MiB"),
     # the pipeline (geomatch run, match jobs)
-    Option("pairs", str, "exhaustive", PAIR_SPEC_HELP),
+    Option("pairs", str, "auto", PAIR_SPEC_HELP),
     Option("tiling", str, "auto", "tile aerial x ground pairs (auto: those pairs only)", choices=TILING),
     Option(
         "snap_radius",
@@ -295,7 +295,7 @@ def given(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Any]:
 
 
 # -- the pair-spec grammar ---------------------------------------------------------------------
-_SPEC = re.compile(r"(exhaustive)|(sequential|retrieval|gps):(\d+)")
+_SPEC = re.compile(r"(exhaustive|auto)|(sequential|retrieval|gps):(\d+)")
 
 
 def parse_plan(spec: str) -> list[tuple[str, int]]:
@@ -307,8 +307,9 @@ def parse_plan(spec: str) -> list[tuple[str, int]]:
     rather than refusing what the schema allows."""
     parts = [parse_spec(p) for p in spec.strip().split("+")] if spec.strip() else [parse_spec(spec)]
     kinds = [k for k, _ in parts]
-    if len(parts) > 1 and "exhaustive" in kinds:
-        raise PairSpecError(f"bad pair spec {spec!r}: exhaustive stands alone, not in a union")
+    for alone in ("exhaustive", "auto"):
+        if len(parts) > 1 and alone in kinds:
+            raise PairSpecError(f"bad pair spec {spec!r}: {alone} stands alone, not in a union")
     largest: dict[str, int] = {}
     for kind, k in parts:
         largest[kind] = max(k, largest.get(kind, 0))
@@ -316,13 +317,16 @@ def parse_plan(spec: str) -> list[tuple[str, int]]:
 
 
 def parse_spec(spec: str) -> tuple[str, int]:
-    """``exhaustive`` -> ("exhaustive", 0); ``sequential:K`` / ``retrieval:K`` / ``gps:K`` ->
-    (kind, K >= 1). One part of a plan (:func:`parse_plan` reads unions)."""
+    """``exhaustive`` -> ("exhaustive", 0); ``auto`` -> ("auto", 0) (pairs.auto_plan decides);
+    ``sequential:K`` / ``retrieval:K`` / ``gps:K`` -> (kind, K >= 1). One part of a plan
+    (:func:`parse_plan` reads unions)."""
     m = _SPEC.fullmatch(spec.strip())
     if not m:
-        raise PairSpecError(f"bad pair spec {spec!r}: use exhaustive, sequential:K, retrieval:K or gps:K")
+        raise PairSpecError(
+            f"bad pair spec {spec!r}: use auto, exhaustive, sequential:K, retrieval:K or gps:K"
+        )
     if m.group(1):
-        return "exhaustive", 0
+        return m.group(1), 0
     k = int(m.group(3))
     if k < 1:
         raise PairSpecError(f"bad pair spec {spec!r}: K must be at least 1")

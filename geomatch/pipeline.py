@@ -95,8 +95,9 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         parse_plan(opts.pairs)  # a bad spec fails before any work
     names = steps.list_images(image_dir)
     metas = {n: read_metadata(image_dir / n) for n in names}
-    aerial = steps.aerial_set(steps.captures(names, opts.aerial_names, opts.aerial_glob), metas)
     fixes = gpsfix.fixes(names, metas) if opts.georeference else None
+    captured = steps.captures(names, opts.aerial_names, opts.aerial_glob)
+    aerial = steps.aerial_set(captured, metas, fixes.enu if fixes is not None else None)
     out.mkdir(parents=True, exist_ok=True)
 
     budget = cache_budget()  # GEOMATCH_CACHE_MB, as a worker's job thread

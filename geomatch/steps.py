@@ -25,6 +25,7 @@ from __future__ import annotations
 import fnmatch
 import hashlib
 import json
+import logging
 import os
 import tempfile
 import time
@@ -40,13 +41,13 @@ import torch
 from tqdm import tqdm
 
 from .features.base import DenseFeatures, ImageFeatures, SparseFeatures
-from .geo import gps
+from .geo import gps, survey
 from .geo.gps import GpsFixes
 from .geometry import estimate_fundamental, fundamental_from_matches
 from .imageio import image_key, read_image
 from .lru import ByteLRU
 from .matching.matcher import Matcher, MatcherConfig, MatchResult
-from .matching.rotation import best_turn, points_back, quarter_turn
+from .matching.rotation import PROBE_MARGIN, best_turn, points_back, quarter_turn
 from .matching.tiling import SELECT_MIN_PROBE, Crop, TiledMatches, five_crops, match_tiled, select_crops
 from .metadata import ImageMeta
 from .options import DEFAULTS, IMAGE_SUFFIXES
@@ -54,6 +55,8 @@ from .sfm import pairs as pairing
 from .sfm.colmapdb import ColmapDatabase, PairWrite
 from .sfm.pairs import Pair
 from .sfm.retrieval import vlad
+
+log = logging.getLogger(__name__)
 
 
 class FeatureStore:
@@ -288,10 +291,29 @@ def captures(
     return {n: "auto" for n in names}
 
 
-def aerial_set(captures: Mapping[str, str], metas: Mapping[str, ImageMeta]) -> set[str]:
+def aerial_set(
+    captures: Mapping[str, str],
+    metas: Mapping[str, ImageMeta],
+    enu: Mapping[str, np.ndarray] | None = None,
+) -> set[str]:
     """The aerial images: those captured ``aerial``, and those ``auto`` whose EXIF/XMP says so
-    (silent metadata means ground). ``metas`` is read for the ``auto`` images only."""
-    return {n for n, c in captures.items() if c == "aerial" or (c == "auto" and metas[n].aerial_hint)}
+    (silent metadata means ground). ``metas`` is read for the ``auto`` images only.
+
+    A drone survey whose camera writes GPS but no XMP (a compact camera on a drone) says nothing
+    per photo, but its track does: when every image is ``auto``, none says it is on the ground,
+    none says it is aerial, and the GPS fixes (``enu``) in capture order trace a survey flight
+    (geomatch.geo.survey.is_survey_track), every image of the project is aerial. ``--aerial``
+    (a glob or list, even one that matches nothing) decides instead."""
+    out = {n for n, c in captures.items() if c == "aerial" or (c == "auto" and metas[n].aerial_hint)}
+    if (
+        not out
+        and enu
+        and all(c == "auto" for c in captures.values())
+        and all(metas[n].aerial_hint is None for n in captures)
+        and survey.is_survey_track(list(captures), enu)
+    ):
+        return set(captures)
+    return out
 
 
 def plan(
@@ -309,10 +331,12 @@ def plan(
 ) -> list[Pair]:
     """The pairs to match (``pairs_list``, else ``spec``, a union of its parts), tiled where
     ``tiling`` says, in a cache-friendly order: all pairs of one aerial image (its five crops)
-    together. ``retrieval:K`` needs ``matcher`` (global descriptors come from its sparse
-    features); ``gps:K`` pairs by the ``fixes`` (images without one: see pairs.gps_neighbours),
-    by look point, and by shared ground where ``metas`` give both images a footprint
-    (gps.plan_points, gps.footprints)."""
+    together. With ``matcher`` the plain pairs with an aerial side get their quarter turn once per
+    image (:func:`image_turns`), else each pair probes its own. ``retrieval:K`` needs ``matcher``
+    (global descriptors come from its sparse features); ``gps:K`` pairs by the ``fixes`` (images
+    without one: see pairs.gps_neighbours), by look point, and by shared ground where ``metas``
+    give both images a footprint (gps.plan_points, gps.footprints); ``auto`` is exhaustive or
+    ``gps:K`` by the project's size and fixes (pairs.auto_plan)."""
     gps_enu: Mapping[str, np.ndarray] = {}
     footprints: Mapping[str, np.ndarray] | None = None
     if fixes is not None:
@@ -323,6 +347,8 @@ def plan(
         raw = pairing.explicit(pairs_list, names)
     else:
         parts = pairing.parse_plan(spec)
+        if parts == [("auto", 0)]:
+            parts = pairing.auto_plan(names, gps_enu)
         kinds = {kind for kind, _ in parts}
         raw = []
         for kind, k in parts:
@@ -339,7 +365,106 @@ def plan(
                 raw += pairing.nearest_neighbours(descriptors, names, k)
                 raw += pairing.cross_view(names, aerial)
     planned = pairing.finalize(raw, aerial, tiling)
+    if matcher is not None and any(p.rotate and not p.tiled for p in planned):
+        # ranked as a plain pair of two aerial photos is first matched (auto: the guided seed)
+        probe = matcher.for_pair(tiled=False, aerial_project=True, aerial_pair=True)
+        guided = probe.config.light_first and probe.config.guided_keypoints > 0
+        turns = image_turns(
+            planned,
+            probe.turn_score,
+            images or Images(image_dir),
+            gps_enu,
+            progress,
+            sure=TURN_SURE_SEED if guided else TURN_SURE,
+        )
+        planned = pairing.with_turns(planned, turns)
     return sorted(planned, key=lambda p: (not p.tiled, p.name0 if p.aerial_first else p.name1, p.key))
+
+
+# an image's turn is decided on its first probed pair when a turn scores at least TURN_SURE
+# LightGlue matches (a wrong turn gets 10-75 on the real surveys) or TURN_SURE_SEED inliers of the
+# guided matcher's seed F, else when TURN_VOTES pairs agree on a turn with PROBE_MARGIN times the
+# runner-up's score; at most TURN_PROBES of its pairs to images already decided are probed
+TURN_SURE = 100
+TURN_SURE_SEED = 50
+TURN_VOTES = 2
+TURN_PROBES = 3
+TURN_MIN_MATCHES = 20  # fewer probe matches on the best turn: the pair does not vote
+
+
+def image_turns(
+    planned: Sequence[Pair],
+    score: Callable[[np.ndarray, np.ndarray], int],
+    images: Images,
+    enu: Mapping[str, np.ndarray],
+    progress: bool = False,
+    sure: int = TURN_SURE,
+) -> dict[str, int]:
+    """Each aerial photo's quarter turn (np.rot90) into one frame for the project, decided once
+    per image instead of once per pair: the image with the most planned partners is the frame;
+    every other one is scored (``score``: Matcher.turn_score) at the four turns against its nearest
+    partners already decided (GPS distance, else plan order). A pair then matches at the
+    two images' relative turn, unprobed. An image whose probes do not settle keeps the per-pair
+    probe on its pairs.
+
+    Why not the photos' own headings (DJI XMP gimbal yaw, or the direction of travel between
+    GPS fixes): on the real surveys they do not say how the pixels are turned. brighton_beach's
+    XMP says its return lines were flown 180 deg round, but their photos are not turned at all
+    (112 F-inliers at no turn, 9 at a half turn); caliterra's return lines are turned by a half
+    turn on some pairs and a quarter turn on others (the camera yaws against the track)."""
+    partners: dict[str, list[Pair]] = {}
+    for p in planned:
+        if p.rotate and not p.tiled:
+            partners.setdefault(p.name0, []).append(p)
+            partners.setdefault(p.name1, []).append(p)
+    if not partners:
+        return {}
+
+    def distance(p: Pair) -> float:
+        if p.name0 in enu and p.name1 in enu:
+            return float(np.linalg.norm(np.asarray(enu[p.name0])[:2] - np.asarray(enu[p.name1])[:2]))
+        return float("inf")
+
+    root = max(sorted(partners), key=lambda n: len(partners[n]))
+    turns = {root: 0}
+    tried: set[tuple[str, str]] = set()
+    probed: dict[str, int] = {}  # pairs probed per image: at most TURN_PROBES
+    votes: dict[str, dict[int, int]] = {n: {} for n in partners}
+    bar = tqdm(total=len(partners) - 1, desc="quarter turns", disable=not progress, leave=False)
+    while True:
+        # the undecided image nearest to a decided one goes next, against that partner: the
+        # frame grows outwards from the root through the pairs most likely to overlap
+        options = [
+            (distance(p), p.key, n, p)
+            for n in partners
+            if n not in turns and probed.get(n, 0) < TURN_PROBES
+            for p in partners[n]
+            if p.key not in tried and (p.name1 if p.name0 == n else p.name0) in turns
+        ]
+        if not options:
+            break
+        _, _, n, p = min(options)
+        probed[n] = probed.get(n, 0) + 1
+        tried.add(p.key)
+        known = p.name1 if p.name0 == n else p.name0
+        # upright first (the turn its partner has), then the half turn of a line flown back:
+        # a turn with TURN_SURE matches is the answer without trying the rest
+        counts = [0, 0, 0, 0]
+        for t in (0, 2, 1, 3):
+            counts[t] = score(images[known], quarter_turn(images[n], t))
+            if counts[t] >= sure:
+                break
+        best, runner_up = sorted(counts, reverse=True)[:2]
+        log.debug("turn probe %s -> %s: %s", known, n, counts)
+        if best < TURN_MIN_MATCHES or (best < sure and best < PROBE_MARGIN * max(runner_up, 1)):
+            continue
+        t = (turns[known] + int(np.argmax(counts))) % 4
+        votes[n][t] = votes[n].get(t, 0) + 1
+        if best >= sure or votes[n][t] >= TURN_VOTES:
+            turns[n] = t
+            bar.update()
+    bar.close()
+    return turns
 
 
 def global_descriptors(
@@ -425,7 +550,7 @@ def match(
     shared by runs (benchmarks, variants), keyed by the pixels, the plan and the matcher's config.
     Under ``auto`` the pair and whether its project has aerial images decide the method
     (:meth:`Matcher.for_pair`)."""
-    matcher = matcher.for_pair(pair.tiled, aerial_project)
+    matcher = matcher.for_pair(pair.tiled, aerial_project, aerial_pair=pair.rotate)
     sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
     path = None
     if cache:
@@ -437,6 +562,7 @@ def match(
                     pair.tiled,
                     pair.aerial_first,
                     pair.rotate,
+                    pair.turn,
                     matcher.config,
                 )
             ).encode()
@@ -472,7 +598,7 @@ def _match_turned(
         if pair.aerial_first:
             return points_back(t.keypoints0, turns, w, h), t.keypoints1, t.scores, None, len(crops)
         return t.keypoints0, points_back(t.keypoints1, turns, w, h), t.scores, None, len(crops)
-    turns = best_turn(matcher, image0, image1) if pair.rotate else 0
+    turns = pair.turn if pair.turn is not None else (best_turn(matcher, image0, image1) if pair.rotate else 0)
     r = matcher.match(image0, quarter_turn(image1, turns))
     if not turns:
         return r.keypoints0, r.keypoints1, r.scores, r, 0

@@ -36,6 +36,8 @@ def _rotate_backfill() -> Executable:
 # the table's columns are typed loosely by SQLAlchemy's declarative stubs
 ADDED: tuple[tuple[Column[object], Callable[[], Executable] | None], ...] = (
     (cast("Column[object]", JobPair.__table__.c.rotate), _rotate_backfill),
+    # pairs planned before headings were read keep their probe (-1)
+    (cast("Column[object]", JobPair.__table__.c.turn), None),
 )
 
 

@@ -11,7 +11,18 @@ import uuid
 from datetime import UTC, datetime
 from typing import Any, ClassVar
 
-from sqlalchemy import JSON, Boolean, DateTime, ForeignKey, Integer, String, Text, UniqueConstraint, false
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    DateTime,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+    false,
+    text,
+)
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
@@ -127,6 +138,9 @@ class JobPair(Base):
     # a side is aerial: matched at its best quarter turn (geomatch.matching.rotation); decided by
     # the plan, with the pair (migrate.py fills it in for rows planned before it was stored)
     rotate: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    # the quarter turn the photos' headings give (geomatch.geo.heading), -1 where the pair is
+    # probed: decided by the plan, with the pair
+    turn: Mapped[int] = mapped_column(Integer, default=-1, server_default=text("-1"))
     done: Mapped[bool] = mapped_column(Boolean, default=False)
     matches: Mapped[int | None] = mapped_column(Integer, default=None)
     inliers: Mapped[int | None] = mapped_column(Integer, default=None)

@@ -52,7 +52,7 @@ Timestamp = Annotated[
 # \\s are narrower than Python's, and the schema must not promise what the server refuses)
 # (a union may name a kind twice: options.parse_plan reads it as the larger K)
 _PART = r"[ \t\n\r]*(?:sequential|retrieval|gps):0*[1-9][0-9]*[ \t\n\r]*"
-PAIR_SPEC_PATTERN = rf"^(?:[ \t\n\r]*exhaustive[ \t\n\r]*|{_PART}(?:\+{_PART})*)$"
+PAIR_SPEC_PATTERN = rf"^(?:[ \t\n\r]*(?:exhaustive|auto)[ \t\n\r]*|{_PART}(?:\+{_PART})*)$"
 
 
 def _option_schema(o: options.Option) -> dict[str, Any]:

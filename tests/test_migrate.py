@@ -20,6 +20,7 @@ def test_job_pairs_get_rotate_from_the_aerial_images(tmp_path: Path) -> None:
     store.create_all()
     with store.engine.begin() as c:  # the table as a release before the column made it
         c.execute(text("ALTER TABLE job_pairs DROP COLUMN rotate"))
+        c.execute(text("ALTER TABLE job_pairs DROP COLUMN turn"))
     with store.session() as s:
         tenant = Tenant(name="t")
         s.add(tenant)
@@ -58,5 +59,8 @@ def test_job_pairs_get_rotate_from_the_aerial_images(tmp_path: Path) -> None:
     with store.session() as s:
         rotate = dict(s.execute(select(JobPair.idx, JobPair.rotate).order_by(JobPair.idx)).all())
     assert rotate == {0: True, 1: False, 2: False}  # a pair done already is never matched again
+    with store.session() as s:
+        turns = set(s.scalars(select(JobPair.turn)).all())
+    assert turns == {-1}  # planned before the plan decided turns: each pair probes its own
     assert add_missing_columns(store.engine) == []  # there now: nothing to add
     store.dispose()

@@ -94,3 +94,25 @@ def test_aerial_from_synthetic_exif_and_xmp(tmp_path) -> None:
     assert ImageMeta(1, 1, relative_altitude_m=3.0, gimbal_pitch_deg=-90).aerial_hint is False
     assert ImageMeta(1, 1, gimbal_pitch_deg=-45).aerial_hint is True
     assert ImageMeta(1, 1, gimbal_pitch_deg=-5).aerial_hint is False
+
+
+@pytest.mark.unit
+def test_auto_plans_exhaustive_for_a_small_project_and_gps_neighbours_for_a_located_flight() -> None:
+    few = [f"{i:03d}.jpg" for i in range(pairs.AUTO_EXHAUSTIVE_MAX)]
+    many = [f"{i:03d}.jpg" for i in range(pairs.AUTO_EXHAUSTIVE_MAX + 1)]
+    assert pairs.auto_plan(few, few) == [("exhaustive", 0)]
+    assert pairs.auto_plan(many, many) == [("gps", pairs.AUTO_GPS_K)]
+    assert pairs.auto_plan(many, many[: len(many) // 2]) == [("exhaustive", 0)]  # most without a fix
+    assert pairs.parse_plan("auto") == [("auto", 0)]
+    with pytest.raises(pairs.PairSpecError, match="auto stands alone"):
+        pairs.parse_plan("auto+gps:3")
+
+
+@pytest.mark.unit
+def test_known_turns_are_relative_and_leave_tiled_pairs_to_their_probe() -> None:
+    plan = pairs.finalize([("a", "b"), ("b", "c"), ("a", "g"), ("c", "d")], {"a", "b", "c", "d"})
+    turned = {p.key: p for p in pairs.with_turns(plan, {"a": 0, "b": 2, "c": 3})}
+    assert turned[("a", "b")].turn == 2
+    assert turned[("b", "c")].turn == 1  # c is turned 3, b 2: one more brings c to b's frame
+    assert turned[("a", "g")].tiled and turned[("a", "g")].turn is None
+    assert turned[("c", "d")].turn is None and turned[("c", "d")].rotate  # d undecided: probed

@@ -63,7 +63,8 @@ def _plan(ctx: Context, job: Job) -> None:
     names = [n for n, _ in rows]
     image_dir = ctx.storage.images_dir(pid)
     metas = {n: read_metadata(image_dir / n) for n in names}
-    aerial = steps.aerial_set(dict(rows), metas)
+    fixes = gps.fixes(names, metas)
+    aerial = steps.aerial_set(dict(rows), metas, fixes.enu if fixes is not None else None)
     with ctx.store.session() as s:
         for n in names:
             s.execute(
@@ -71,8 +72,8 @@ def _plan(ctx: Context, job: Job) -> None:
             )
     spec = opts["pairs"] if isinstance(opts["pairs"], str) else DEFAULTS["pairs"]
     pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
-    matcher = runtime.matcher(ctx, opts) if "retrieval" in spec and pairs_list is None else None
-    fixes = gps.fixes(names, metas)
+    # retrieval's global descriptors and the aerial images' quarter turns (steps.image_turns)
+    matcher = runtime.matcher(ctx, opts) if ("retrieval" in spec and pairs_list is None) or aerial else None
     planned = steps.plan(
         image_dir, names, aerial, spec, pairs_list, opts["tiling"], matcher, fixes=fixes, metas=metas
     )
@@ -97,6 +98,7 @@ def _plan(ctx: Context, job: Job) -> None:
                 tiled=p.tiled,
                 aerial_first=p.aerial_first,
                 rotate=p.rotate,
+                turn=-1 if p.turn is None else p.turn,
             )
             for i, p in enumerate(todo)
         )
@@ -175,7 +177,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         if not present:
             a = runtime.image(ctx, ctx.storage.image_path(pid, p.name0))
             b = runtime.image(ctx, ctx.storage.image_path(pid, p.name1))
-            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate)
+            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate, None if p.turn < 0 else p.turn)
             target = steps.PairTarget(
                 lambda: _writable(ctx, job_id, pid, db_path), id0, id1, float(opts["snap_radius"])
             )

@@ -35,6 +35,7 @@ from ..geometry import estimate_fundamental, sampson_distance, scale_fundamental
 from ..imageio import Prepared, image_key, prepare, read_image
 from ..lru import trim_lru
 from ..options import DEFAULTS, DENSE_BACKBONES, METHOD_FLAGS, METHODS, SPARSE_BACKBONES, Method
+from .guided import mutual_ratio
 from .optimizer import (
     Assignment,
     GeoOptions,
@@ -70,6 +71,15 @@ AUTO_PLAIN_PAIRS: dict[str, Any] = {
     "lightglue_depth_confidence": 0.95,
     "lightglue_width_confidence": 0.99,
 }
+
+
+# ``auto``'s pairs of two aerial photos (MatcherConfig.guided_keypoints): ALIKED points per photo;
+# the seed's ratio test over all points and the guided pass's among those on an epipolar line;
+# LightGlue's points where the nearest neighbours seed too weak an F
+GUIDED_KEYPOINTS = 4096
+SEED_RATIO = 0.9
+GUIDED_RATIO = 0.95
+GUIDED_LIGHTGLUE_POINTS = 1024
 
 
 @dataclass(frozen=True)
@@ -115,6 +125,21 @@ class MatcherConfig:
     # 0.01. Tiled aerial x ground pairs always get the full method (Matcher.for_pair): that is where
     # it was measured to register views the anchors lose.
     anchors_suffice: int = 50
+    # geo: try the light anchors (``sparse`` with AUTO_PLAIN_PAIRS, what a ground-only project's
+    # pairs get) first, and answer with them when they fit an F with at least ``anchors_suffice``
+    # inliers; only a pair they leave weak pays for full-strength anchors and the dense rounds.
+    # ``auto`` sets it on the plain pairs of a project with aerial images (Matcher.for_pair)
+    light_first: bool = False
+    # light_first: a pair whose light anchors fit fewer inliers than this keeps the light answer
+    # (0: every weak pair gets the full method). ``auto`` sets it to ``anchors_suffice`` on pairs of
+    # two aerial photos, which then never escalate: on brighton_beach half the exhaustive plan's
+    # pairs (77 of 153) seed 15-49 inliers, photos that barely share ground, and the full method
+    # cost 3.3 s on each (8x a guided pair) for 0-100 matches the model did not need
+    escalate_from: int = 0
+    # light_first on pairs of two aerial photos: instead of LightGlue on 1024 points, this many
+    # ALIKED points per photo matched by mutual nearest neighbours, a robust F, and the matches
+    # that F's epipolar lines guide (geomatch.matching.guided); 0: LightGlue's light anchors
+    guided_keypoints: int = 0
     # least-squares matching of the final points in B (geomatch.features.subpixel): "auto" does it for the
     # methods that optimise (the paper's refinement stage, anchors included), "lsm" for any
     # method, "off" never
@@ -242,14 +267,25 @@ class Matcher:
         # a retried task) does not run LightGlue again
         self._anchors: OrderedDict[tuple[str, str, int | None, str | None], SparseMatch] = OrderedDict()
         self._variants: dict[str, Matcher] = {}  # ``auto``'s per-pair methods (for_pair)
+        self._light: Matcher | None = None  # light_first's anchors (for_pair shares its variant's)
+        self._full: Matcher | None = None  # light_first's matcher for the pairs the light ones leave weak
 
-    def for_pair(self, tiled: bool, aerial_project: bool = False) -> Matcher:
-        """The matcher a planned pair gets: itself, except under ``auto``, where the pairs of a
-        project with aerial images get ``geo`` as configured (on the synthetic air-to-ground
-        scenes it is what registers the ground views, and their ground x ground pairs are wide
-        baselines at low resolution that the lighter anchors lose) and the pairs of a ground-only
-        project the anchors alone (``sparse``) with :data:`AUTO_PLAIN_PAIRS`: on the real tuning
-        photos the dense rounds tie the anchors at about twice their cost (docs/benchmarks.md).
+    def for_pair(self, tiled: bool, aerial_project: bool = False, aerial_pair: bool = False) -> Matcher:
+        """The matcher a planned pair gets: itself, except under ``auto``, where
+
+        - a tiled (aerial x ground) pair gets the full ``geo`` method on every crop: on the
+          synthetic air-to-ground scenes it is what registers the ground views;
+        - a plain pair of a project with aerial images gets ``geo`` light-first
+          (``MatcherConfig.light_first``): the light anchors where they fit an F with
+          ``anchors_suffice`` inliers (a drone survey's overlapping nadir photos, where they cost
+          ~0.4 s a pair instead of ~6 s), the full-strength anchors and the dense rounds where they
+          do not (the synthetic scenes' wide ground x ground baselines at low resolution); a
+          pair of two aerial photos (``aerial_pair``) is matched by the guided matcher
+          (``MatcherConfig.guided_keypoints``) and never escalates (``escalate_from``);
+        - a pair of a ground-only project gets the light anchors alone (``sparse`` with
+          :data:`AUTO_PLAIN_PAIRS`): on the real tuning photos the dense rounds tie the anchors at
+          about twice their cost (docs/benchmarks.md).
+
         Derived once, sharing this matcher's networks and caches where the settings allow."""
         cfg = self.config
         if cfg.method == "auto":
@@ -258,13 +294,100 @@ class Matcher:
             method = cfg.method
         else:
             return self
+        light_first = cfg.method == "auto" and method == "geo" and not tiled
         variant = f"{method}-tiled" if tiled and method != "sparse" else method
+        variant += ("-light-first" if light_first else "") + (
+            "-aerial" if light_first and aerial_pair else ""
+        )
         if variant not in self._variants:
             overrides: dict[str, Any] = dict(AUTO_PLAIN_PAIRS) if method == "sparse" else {}
             if variant.endswith("-tiled"):
                 overrides["anchors_suffice"] = 0
+            if light_first:
+                overrides["light_first"] = True
+                overrides["escalate_from"] = cfg.anchors_suffice if aerial_pair else 0
+                overrides["guided_keypoints"] = GUIDED_KEYPOINTS if aerial_pair else 0
             self._variants[variant] = self.derive(method=method, **overrides)
+            if light_first and not aerial_pair:  # the ground pairs' light anchors, shared
+                self._variants[variant]._light = self.for_pair(False, False)
         return self._variants[variant]
+
+    def light(self) -> Matcher:
+        """``light_first``'s matcher: the light anchors of a ground-only project's pairs, or with
+        ``guided_keypoints`` the guided matcher's (:meth:`match_guided`)."""
+        if self._light is None:
+            overrides: dict[str, Any] = dict(AUTO_PLAIN_PAIRS)
+            if self.config.guided_keypoints:
+                overrides["max_keypoints"] = self.config.guided_keypoints
+            self._light = self.derive(method="sparse", light_first=False, **overrides)
+        return self._light
+
+    def turn_score(self, image0: np.ndarray, image1: np.ndarray) -> int:
+        """How well ``image1`` matches ``image0`` as given, to rank quarter turns: the guided
+        matcher's seed F inliers (:meth:`seed_inliers`) where this matcher guides, else the
+        LightGlue matches (:meth:`anchor_count`)."""
+        if self.config.light_first and self.config.guided_keypoints:
+            return self.light().seed_inliers(image0, image1)
+        return self.anchor_count(image0, image1)
+
+    def _seed(
+        self, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures, lightglue: bool
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, int, str]:
+        """The guided matcher's seed: (points in A, points in B, F, its inliers, which seed): mutual
+        nearest neighbours with the ratio test, and where they fit fewer than ``anchors_suffice``
+        inliers (and ``lightglue``) LightGlue on each photo's 1024 strongest points, the better."""
+        cfg = self.config
+        ia, ib, _ = mutual_ratio(sa.descriptors, sb.descriptors, SEED_RATIO)
+        pa, pb = sa.keypoints[ia].float(), sb.keypoints[ib].float()
+        F, mask = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
+        n = 0 if mask is None else int(mask.sum())
+        if n >= cfg.anchors_suffice or not lightglue:
+            return pa, pb, F, n, "nn"
+        a, b = _strongest(sa, GUIDED_LIGHTGLUE_POINTS), _strongest(sb, GUIDED_LIGHTGLUE_POINTS)
+        lg = self._match_anchors(key0, key1, a, b)
+        qa, qb = a.keypoints[lg.idx_a].float(), b.keypoints[lg.idx_b].float()
+        F2, mask2 = estimate_fundamental(qa, qb, cfg.geo.f_estimator, cfg.geo.f_threshold)
+        n2 = 0 if mask2 is None else int(mask2.sum())
+        return (qa, qb, F2, n2, "lightglue") if n2 > n else (pa, pb, F, n, "nn")
+
+    @torch.inference_mode()
+    def seed_inliers(self, image0: np.ndarray, image1: np.ndarray) -> int:
+        """The inliers of the mutual-nearest-neighbour seed's F alone (no LightGlue): a cheap,
+        sharp rank of a pair's quarter turns (a wrong turn fits a handful)."""
+        key0, key1 = image_key(image0), image_key(image1)
+        sa = self.features(image0, key0)[self.config.sparse].sparse
+        sb = self.features(image1, key1)[self.config.sparse].sparse
+        assert sa is not None and sb is not None
+        return self._seed(key0, key1, sa, sb, lightglue=False)[3]
+
+    @torch.inference_mode()
+    def match_guided(self, image0: np.ndarray, image1: np.ndarray) -> MatchResult:
+        """The pair by geomatch.matching.guided: a seed F, then the matches its epipolar lines
+        guide. ``stats["f_inliers"]`` is the seed's: below ``anchors_suffice`` the seed's matches
+        are the answer (no guided pass), and the caller decides whether the full method runs."""
+        cfg = self.config
+        timer = _Timer(self.device)
+        key0, key1 = image_key(image0), image_key(image1)
+        with timer("features0"):
+            sa = self.features(image0, key0)[cfg.sparse].sparse
+        with timer("features1"):
+            sb = self.features(image1, key1)[cfg.sparse].sparse
+        assert sa is not None and sb is not None
+        prep0, prep1 = self._prepared(image0, key0), self._prepared(image1, key1)
+        with timer("seed"):
+            pa, pb, F, n, how = self._seed(key0, key1, sa, sb, lightglue=True)
+        stats: dict[str, Any] = {"f_inliers": n, "seed": how, "seed_matches": int(pa.shape[0])}
+        if F is None or n < cfg.anchors_suffice:
+            return self._result(pa, pb, torch.ones(pa.shape[0]), F, prep0, prep1, stats, timer)
+        with timer("guided"):
+            ia, ib, sim = mutual_ratio(
+                sa.descriptors, sb.descriptors, GUIDED_RATIO, (F, sa.keypoints, sb.keypoints, cfg.geo.tau)
+            )
+            ga, gb = sa.keypoints[ia].float(), sb.keypoints[ib].float()
+        with timer("merge"):
+            F_guided, _ = estimate_fundamental(ga, gb, cfg.geo.f_estimator, cfg.geo.f_threshold)
+        stats["guided"] = int(ia.numel())
+        return self._result(ga, gb, sim, F if F_guided is None else F_guided, prep0, prep1, stats, timer)
 
     def derive(self, **overrides: Any) -> Matcher:
         """A matcher with other options that shares this one's networks and feature cache.
@@ -462,6 +585,19 @@ class Matcher:
     @torch.inference_mode()
     def match(self, image0: np.ndarray, image1: np.ndarray) -> MatchResult:
         cfg = self.config
+        if cfg.light_first and cfg.flags.optimise and cfg.anchors_suffice > 0:
+            lm = self.light()
+            light = lm.match_guided(image0, image1) if cfg.guided_keypoints else lm.match(image0, image1)
+            inliers = light.stats.get("f_inliers", 0)
+            if inliers >= cfg.anchors_suffice or inliers < cfg.escalate_from:
+                light.stats["anchors_suffice"] = "light"
+                return light
+            if self._full is None:  # derived once: the dense head is built once
+                self._full = self.derive(light_first=False, escalate_from=0)
+            full = self._full.match(image0, image1)
+            full.timings = {"light": light.timings.get("total", 0.0), **full.timings}
+            full.timings["total"] += full.timings["light"]
+            return full
         timer = _Timer(self.device)
         key0, key1 = image_key(image0), image_key(image1)
         with timer("features0"):
@@ -520,7 +656,8 @@ class Matcher:
                 pb, moved = refine_points(prep0.tensor, prep1.tensor, pa, pb, cfg.subpixel_options)
             stats["subpixel_refined"] = int(moved.sum())
         with timer("merge"):
-            F_net, _ = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
+            F_net, f_mask = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
+            stats["f_inliers"] = 0 if f_mask is None else int(f_mask.sum())
             if cfg.flags.optimise and cfg.final_check and F_net is not None:
                 keep = sampson_distance(F_net, pa, pb) <= cfg.geo.tau
                 stats["final_check_removed"] = int((~keep).sum())

@@ -13,7 +13,7 @@ near-linear in pairs); parts join into a union with ``+`` (``gps:10+retrieval:5`
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -32,6 +32,9 @@ class Pair:
     # an aerial side: a drone's heading is arbitrary, so the pair is matched at the best quarter
     # turn (geomatch.matching.rotation)
     rotate: bool = False
+    # the quarter turn of image1 (np.rot90) into image0's frame when the plan decided both images'
+    # turns (steps.image_turns): the pair is matched at it, with no probe of its own
+    turn: int | None = None
 
     @property
     def key(self) -> tuple[str, str]:
@@ -125,6 +128,24 @@ def gps_neighbours(
     return sorted(out)
 
 
+# ``auto``: exhaustive up to this many images (a pair of every two costs little, and no overlap is
+# missed); beyond it, with a GPS fix on at least AUTO_GPS_SHARE of them, each image with its
+# AUTO_GPS_K nearest by position or shared ground, as COLMAP's spatial matcher and OpenDroneMap
+# pair a flight (the images without a fix are paired with every image)
+AUTO_EXHAUSTIVE_MAX = 30
+AUTO_GPS_SHARE = 0.9
+AUTO_GPS_K = 12
+
+
+def auto_plan(names: Sequence[str], located: Iterable[str]) -> list[tuple[str, int]]:
+    """What ``auto`` plans for these images, as parse_plan's parts."""
+    n = len(names)
+    share = len(set(located) & set(names)) / max(n, 1)
+    if n > AUTO_EXHAUSTIVE_MAX and share >= AUTO_GPS_SHARE:
+        return [("gps", AUTO_GPS_K)]
+    return [("exhaustive", 0)]
+
+
 def cross_view(names: Sequence[str], aerial: set[str]) -> list[tuple[str, str]]:
     a = [n for n in names if n in aerial]
     g = [n for n in names if n not in aerial]
@@ -159,6 +180,7 @@ def finalize(raw: Iterable[tuple[str, str]], aerial: set[str], tiling: str = "au
     ``on`` tiles the first image of every pair that has no aerial side designated (forced);
     ``auto`` tiles exactly the aerial x ground pairs.
     """
+
     if tiling not in TILING:
         raise PairSpecError(f"tiling must be auto, on or off, not {tiling!r}")
     seen: set[frozenset[str]] = set()
@@ -178,4 +200,15 @@ def finalize(raw: Iterable[tuple[str, str]], aerial: set[str], tiling: str = "au
             out.append(Pair(a, b, tiled=True, aerial_first=True, rotate=turn))
         else:
             out.append(Pair(a, b, rotate=turn))
+    return out
+
+
+def with_turns(planned: Iterable[Pair], turns: Mapping[str, int]) -> list[Pair]:
+    """The plan with each plain pair of two images whose quarter turn into the project's frame
+    is known (``turns``, image -> np.rot90 turns) matched at their relative turn, unprobed."""
+    out = []
+    for p in planned:
+        if not p.tiled and p.name0 in turns and p.name1 in turns:
+            p = replace(p, rotate=True, turn=(turns[p.name1] - turns[p.name0]) % 4)
+        out.append(p)
     return out

@@ -23,7 +23,7 @@ class ProjectUseCases(UseCases):
         cfg = check_config(config or {})
         if isinstance(cfg.get("pairs"), list):
             raise InvalidRequest(
-                "a project's default pairs is a spec (exhaustive, sequential:K, retrieval:K)"
+                "a project's default pairs is a spec (auto, exhaustive, sequential:K, retrieval:K, gps:K)"
             )
         with self.store.session() as s:
             self._within_project_quota(s, tenant_id)

@@ -1,0 +1,141 @@
+"""Real drone surveys, ``geomatch run`` with its defaults beside COLMAP's SIFT pipeline, same machine.
+
+brighton_beach (18 DJI nadir photos with GPS and XMP) is the tuning set; caliterra (75 photos from
+a compact camera with GPS only, no XMP) the test set. No surveyed cameras: a run is judged by what
+can be judged (``../shared/data/real/drone/README.md``): photos registered, 3D points, mean track
+length, mean reprojection error, and the camera centres against the photos' own GPS after one
+least-squares similarity (median and largest residual, metres: consumer GPS, so this shows scale
+and gross failures). The peer matches brighton exhaustively and caliterra with its spatial
+matcher (GPS neighbours), as a COLMAP user would; geomatch's default plan decides for itself.
+Each row is a child process (wall time and peak RSS of the whole run).
+
+    .venv/bin/python bench/drone.py                       # both sets
+    .venv/bin/python bench/drone.py --sets brighton_beach --peer-matcher exhaustive
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+from real_sfm import timed
+
+from geomatch.geo import gps
+from geomatch.geo.georef import camera_centres
+from geomatch.geo.similarity import umeyama
+from geomatch.metadata import read_metadata
+from geomatch.steps import list_images
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "real" / "drone"
+SETS = {"brighton_beach": ("tuning", "exhaustive"), "caliterra": ("test", "spatial")}
+
+
+def gps_residuals(model: Path, images: Path) -> tuple[float, float, int]:
+    """(median, max) metres between the model's camera centres and the photos' GPS (ENU) after one
+    least-squares similarity, and how many cameras took part."""
+    names = list_images(images)
+    fixes = gps.fixes(names, {n: read_metadata(images / n) for n in names})
+    if fixes is None:
+        return float("nan"), float("nan"), 0
+    centres = camera_centres(pycolmap.Reconstruction(str(model)))
+    common = sorted(n for n in centres if n in fixes.enu)
+    if len(common) < 3:
+        return float("nan"), float("nan"), len(common)
+    src = np.stack([centres[n] for n in common])
+    dst = np.stack([fixes.enu[n] for n in common])
+    res = np.linalg.norm(umeyama(src, dst).apply(src) - dst, axis=1)
+    return float(np.median(res)), float(res.max()), len(common)
+
+
+def judge(out: Path, images: Path) -> dict[str, Any]:
+    summary = json.loads((out / "summary.json").read_text())
+    model = out / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(model))
+    median, largest, _ = gps_residuals(model, images)
+    return {
+        "registered": f"{rec.num_reg_images()}/{len(list_images(images))}",
+        "models": summary.get("models", len(list((out / "sparse").iterdir()))),
+        "points": rec.num_points3D(),
+        "track": rec.compute_mean_track_length(),
+        "reproj": rec.compute_mean_reprojection_error(),
+        "gps": f"{median:.2f} / {largest:.2f}",
+        "pairs": summary.get("pairs", "-"),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sets", default=",".join(SETS), help="comma-separated: " + ", ".join(SETS))
+    ap.add_argument("--out", type=Path, default=ROOT / "bench-out" / "drone")
+    ap.add_argument("--peer-matcher", choices=("exhaustive", "spatial"), help="default: per set")
+    ap.add_argument("--extra", default="", help="more `geomatch run` flags for the geomatch row")
+    args = ap.parse_args(argv)
+    rows = []
+    for name in args.sets.split(","):
+        split, peer_matcher = SETS[name]
+        peer_matcher = args.peer_matcher or peer_matcher
+        images = DATA / name / "images"
+        peer_out, gm_out = args.out / name / "colmap-sift", args.out / name / "geomatch"
+        peer_cmd = [
+            sys.executable,
+            "bench/peer_colmap.py",
+            str(images),
+            str(peer_out),
+            "--matcher",
+            peer_matcher,
+        ]
+        wall_peer, rss_peer, rc = timed(peer_cmd)
+        if rc == 0:
+            rows.append(
+                {
+                    "set": name,
+                    "split": split,
+                    "run": f"COLMAP SIFT ({peer_matcher})",
+                    "wall": wall_peer,
+                    "ratio": 1.0,
+                    "rss": rss_peer,
+                    **judge(peer_out, images),
+                }
+            )
+        gm_cmd = [sys.executable, "-m", "geomatch_app", "run", str(images), "--out", str(gm_out)]
+        gm_cmd += args.extra.split()
+        if gm_out.exists():
+            import shutil
+
+            shutil.rmtree(gm_out)
+        wall, rss, rc = timed(gm_cmd)
+        if rc == 0:
+            label = "geomatch run" + (f" {args.extra}" if args.extra else " (defaults)")
+            rows.append(
+                {
+                    "set": name,
+                    "split": split,
+                    "run": label,
+                    "wall": wall,
+                    "ratio": wall / wall_peer,
+                    "rss": rss,
+                    **judge(gm_out, images),
+                }
+            )
+    print(
+        "| set | split | run | registered | models | pairs | 3D points | mean track length "
+        "| mean reprojection px | GPS residual median / max m | wall s | x peer | peak RSS MiB |"
+    )
+    print("|---|---|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|")
+    for r in rows:
+        print(
+            f"| {r['set']} | {r['split']} | {r['run']} | {r['registered']} | {r['models']} | {r['pairs']} "
+            f"| {r['points']} | {r['track']:.2f} | {r['reproj']:.2f} | {r['gps']} | {r['wall']:.0f} "
+            f"| {r['ratio']:.2f} | {r['rss']:.0f} |"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

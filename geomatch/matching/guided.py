@@ -1,0 +1,76 @@
+"""Keypoint matching guided by the epipolar geometry: the geometry-aware idea on a detector's points.
+
+The paper re-weights dense matching confidences by their Sampson distance under an F the sparse
+anchors initialise. On two overlapping photos of a survey (nadir, the same scale, brought to one
+heading) the detector's own points are dense enough to be the cells: with thousands of ALIKED
+keypoints per photo, the descriptor similarity of every pair of points is the confidence, and the
+Sampson gate keeps only the candidates that lie on each other's epipolar lines. Two passes:
+
+1. seed: mutual nearest neighbours with a ratio test over all points (what COLMAP does with SIFT),
+   and a robust F on them; LightGlue is not needed on such pairs (measured on brighton_beach:
+   the seed F has more inliers than light LightGlue on the same photos, in a quarter of the time);
+2. guided: the mutual nearest neighbours again, each point choosing only among the points within
+   ``tau`` (Sampson, px^2) of its epipolar line, with the ratio test among those candidates; the
+   ambiguity a repeated texture makes along the whole image is gone, so 3-5x the seed's matches
+   survive.
+
+The (N, M) similarity and Sampson matrices are computed in row blocks bounded in bytes.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..geometry import homogeneous
+
+# rows of the (N, M) matrices computed at once: 64 MiB of float32 per matrix
+BLOCK_BYTES = 64 * 2**20
+
+
+def mutual_ratio(
+    da: torch.Tensor,
+    db: torch.Tensor,
+    ratio: float,
+    gate: tuple[torch.Tensor, torch.Tensor, torch.Tensor, float] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(ia, ib, similarity) of the mutual nearest neighbours by cosine similarity of the
+    L2-normalised descriptors ``da`` (N, D) and ``db`` (M, D), kept where a point's second best
+    similarity is below ``ratio`` times its best (the ratio test, on similarities). With ``gate``
+    = (F, ka, kb, tau) a candidate pair counts only when its Sampson distance under F (x_b^T F x_a
+    = 0, points ``ka`` (N, 2) and ``kb`` (M, 2)) is at most ``tau`` px^2."""
+    n, m = da.shape[0], db.shape[0]
+    if n < 2 or m < 2:
+        empty = torch.zeros(0, dtype=torch.long, device=da.device)
+        return empty, empty, torch.zeros(0, device=da.device)
+    da, db = da.float(), db.float()
+    best_b = torch.empty(n, dtype=torch.long, device=da.device)
+    s1 = torch.empty(n, device=da.device)
+    s2 = torch.empty(n, device=da.device)
+    col_best = torch.full((m,), -2.0, device=da.device)
+    col_arg = torch.zeros(m, dtype=torch.long, device=da.device)
+    if gate is not None:
+        F, ka, kb, tau = gate
+        F = F.to(device=ka.device, dtype=torch.float32)
+        lines = homogeneous(ka.float()) @ F.T  # (N, 3) epipolar lines in B
+        xb = homogeneous(kb.float())
+        ftxb = xb @ F  # (M, 3)
+        den_b = ftxb[:, 0] ** 2 + ftxb[:, 1] ** 2
+    step = max(1, BLOCK_BYTES // max(4 * m, 1))
+    for r0 in range(0, n, step):
+        r1 = min(n, r0 + step)
+        s = da[r0:r1] @ db.T
+        if gate is not None:
+            la = lines[r0:r1]
+            num = (la @ xb.T).square_()
+            den = (la[:, 0:1] ** 2 + la[:, 1:2] ** 2) + den_b[None]
+            s.masked_fill_(num > tau * den, -1.0)
+        top = s.topk(2, dim=1)
+        best_b[r0:r1], s1[r0:r1], s2[r0:r1] = top.indices[:, 0], top.values[:, 0], top.values[:, 1]
+        cb, ca = s.max(dim=0)
+        better = cb > col_best
+        col_best = torch.where(better, cb, col_best)
+        col_arg = torch.where(better, ca + r0, col_arg)
+    rows = torch.arange(n, device=da.device)
+    keep = (col_arg[best_b] == rows) & (s1 > 0) & (s2 < ratio * s1)
+    ia = rows[keep]
+    return ia, best_b[ia], s1[keep]

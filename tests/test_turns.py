@@ -1,0 +1,80 @@
+"""An aerial project's quarter turns are decided once per image, and its plain pairs take the light
+anchors first: the two things that make a drone survey cost what a ground project costs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from geomatch import Matcher
+from geomatch.eval.homography import reprojection_errors
+from geomatch.matching.matcher import MatcherConfig
+from geomatch.matching.rotation import quarter_turn
+from geomatch.sfm.pairs import exhaustive, finalize, with_turns
+from geomatch.steps import Images, image_turns
+from geomatch.synth.photos import WarpedPair, warped_pair
+
+pytestmark = pytest.mark.nets
+
+
+def test_each_image_gets_its_turn_once_and_pairs_their_relative_turn(
+    matcher: Matcher, astronaut_pair: WarpedPair, tmp_path: Path
+) -> None:
+    shots = {
+        "a.png": astronaut_pair.image0,
+        "b.png": quarter_turn(astronaut_pair.image1, 1),
+        "c.png": quarter_turn(astronaut_pair.image1, 2),
+    }
+    for name, img in shots.items():
+        Image.fromarray(img).save(tmp_path / name)
+    plan = finalize(exhaustive(sorted(shots)), set(shots))
+    light = matcher.derive(method="sparse", max_keypoints=1024)
+    turns = image_turns(plan, light.anchor_count, Images(tmp_path), {})
+    # into a's frame: b was turned once, three more make four; c twice, two more
+    assert turns == {"a.png": 0, "b.png": 3, "c.png": 2}
+    turned = {p.key: p.turn for p in with_turns(plan, turns)}
+    assert turned == {("a.png", "b.png"): 3, ("a.png", "c.png"): 2, ("b.png", "c.png"): 3}
+    b_again = quarter_turn(shots["c.png"], turned[("b.png", "c.png")])
+    assert np.array_equal(b_again, shots["b.png"])
+
+
+def test_an_image_whose_probes_find_nothing_keeps_the_per_pair_probe(
+    matcher: Matcher, astronaut_pair: WarpedPair, tmp_path: Path
+) -> None:
+    other = warped_pair("coffee", seed=3).image0
+    noise = np.random.default_rng(0).integers(0, 255, other.shape, dtype=np.uint8)
+    for name, img in {"a.png": astronaut_pair.image0, "n.png": noise}.items():
+        Image.fromarray(img).save(tmp_path / name)
+    plan = finalize(exhaustive(["a.png", "n.png"]), {"a.png", "n.png"})
+    turns = image_turns(
+        plan, matcher.derive(method="sparse", max_keypoints=1024).anchor_count, Images(tmp_path), {}
+    )
+    assert turns == {"a.png": 0}
+    assert with_turns(plan, turns)[0].turn is None
+
+
+def test_two_aerial_photos_are_matched_guided_and_a_ground_pair_escalates(astronaut_pair: WarpedPair) -> None:
+    auto = Matcher(MatcherConfig(method="auto", resize=480, device="cpu"))
+    aerial = auto.for_pair(tiled=False, aerial_project=True, aerial_pair=True)
+    assert aerial.config.method == "geo" and aerial.config.light_first and aerial.config.guided_keypoints
+    r = aerial.match(astronaut_pair.image0, astronaut_pair.image1)
+    assert r.stats["anchors_suffice"] == "light" and r.stats["f_inliers"] >= aerial.config.anchors_suffice
+    # the epipolar lines guide more matches than the seed had, and they are right
+    assert r.stats["guided"] > 1.2 * r.stats["seed_matches"]
+    err = reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)
+    assert np.median(err) < 1.5 and np.mean(err < 5.0) > 0.9
+    assert "dense_coarse" not in r.timings  # no dense maps for this pair
+
+    other = warped_pair("coffee", seed=3).image0
+    # two aerial photos that share nothing: the seed's answer stands, no full method
+    r = aerial.match(astronaut_pair.image0, other)
+    assert r.stats["f_inliers"] < aerial.config.anchors_suffice and "guided" not in r.stats
+    assert "light" not in r.timings
+    # a ground x ground pair of the same project escalates whatever the light anchors found
+    ground = auto.for_pair(tiled=False, aerial_project=True, aerial_pair=False)
+    assert ground.config.escalate_from == 0 and not ground.config.guided_keypoints
+    r = ground.match(astronaut_pair.image0, other)
+    assert "light" in r.timings and "anchors" in r.timings
