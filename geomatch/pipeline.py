@@ -165,6 +165,9 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         image_dir=str(image_dir.resolve()),  # where ``geomatch export`` finds the images
         method=opts.method,
         pairs=len(planned),
+        pair_plan="explicit list"
+        if opts.pairs_list is not None
+        else steps.plan_in_words(opts.pairs, names, fixes, metas),
         pairs_matched_now=len(todo),
         tiled_pairs=sum(p.tiled for p in planned),
         aerial=sorted(aerial),

@@ -347,10 +347,11 @@ def plan(
         raw = pairing.explicit(pairs_list, names)
     else:
         parts = pairing.parse_plan(spec)
-        if parts == [("auto", 0)]:
-            parts = pairing.auto_plan(names, gps_enu)
-        kinds = {kind for kind, _ in parts}
         raw = []
+        if parts == [("auto", 0)]:
+            raw, _ = pairing.auto_pairs(names, gps_enu, footprints)
+            parts = []
+        kinds = {kind for kind, _ in parts}
         for kind, k in parts:
             if kind == "exhaustive":
                 raw += pairing.exhaustive(names)
@@ -465,6 +466,17 @@ def image_turns(
             bar.update()
     bar.close()
     return turns
+
+
+def plan_in_words(
+    spec: str, names: Sequence[str], fixes: GpsFixes | None, metas: Mapping[str, ImageMeta] | None
+) -> str:
+    """The plan :func:`plan` makes of ``spec``, in words: ``auto``'s choice (pairs.auto_pairs)."""
+    if spec.strip() != "auto":
+        return spec.strip()
+    enu = gps.plan_points(fixes, metas) if fixes is not None and metas is not None else {}
+    footprints = gps.footprints(fixes, metas) if fixes is not None and metas is not None else None
+    return pairing.auto_pairs(list(names), enu, footprints)[1]
 
 
 def global_descriptors(

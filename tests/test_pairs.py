@@ -100,9 +100,12 @@ def test_aerial_from_synthetic_exif_and_xmp(tmp_path) -> None:
 def test_auto_plans_exhaustive_for_a_small_project_and_gps_neighbours_for_a_located_flight() -> None:
     few = [f"{i:03d}.jpg" for i in range(pairs.AUTO_EXHAUSTIVE_MAX)]
     many = [f"{i:03d}.jpg" for i in range(pairs.AUTO_EXHAUSTIVE_MAX + 1)]
-    assert pairs.auto_plan(few, few) == [("exhaustive", 0)]
-    assert pairs.auto_plan(many, many) == [("gps", pairs.AUTO_GPS_K)]
-    assert pairs.auto_plan(many, many[: len(many) // 2]) == [("exhaustive", 0)]  # most without a fix
+    located = {n: np.array([i * 5.0, 0.0, 0.0]) for i, n in enumerate(many)}
+    assert pairs.auto_pairs(few, {})[1] == "exhaustive"
+    raw, plan = pairs.auto_pairs(many, located)
+    assert plan == f"gps:{pairs.AUTO_GPS_K}" and len(raw) < len(pairs.exhaustive(many)) / 2
+    half = {n: located[n] for n in many[: len(many) // 2]}
+    assert pairs.auto_pairs(many, half)[1] == "exhaustive"  # most without a fix
     assert pairs.parse_plan("auto") == [("auto", 0)]
     with pytest.raises(pairs.PairSpecError, match="auto stands alone"):
         pairs.parse_plan("auto+gps:3")
@@ -116,3 +119,16 @@ def test_known_turns_are_relative_and_leave_tiled_pairs_to_their_probe() -> None
     assert turned[("b", "c")].turn == 1  # c is turned 3, b 2: one more brings c to b's frame
     assert turned[("a", "g")].tiled and turned[("a", "g")].turn is None
     assert turned[("c", "d")].turn is None and turned[("c", "d")].rotate  # d undecided: probed
+
+
+@pytest.mark.unit
+def test_auto_leaves_out_small_pairs_whose_footprints_do_not_meet() -> None:
+    names = [f"{i}.jpg" for i in range(6)]
+    enu = {n: np.array([i * 40.0, 0.0, 50.0]) for i, n in enumerate(names)}
+    square = np.array([[-30.0, -30.0], [30.0, -30.0], [30.0, 30.0], [-30.0, 30.0]])
+    footprints = {n: square + enu[n][:2] for n in names}  # 60 m wide, 40 m apart: neighbours meet
+    raw, plan = pairs.auto_pairs(names, enu, footprints)
+    assert plan.startswith("footprints")
+    assert ("0.jpg", "1.jpg") in raw and ("0.jpg", "5.jpg") not in raw
+    # every image keeps its nearest partners however little they share
+    assert all(sum(n in p for p in raw) >= pairs.AUTO_NEAREST for n in names)

@@ -333,21 +333,28 @@ class Matcher:
     def _seed(
         self, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures, lightglue: bool
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, int, str]:
-        """The guided matcher's seed: (points in A, points in B, F, its inliers, which seed): mutual
+        """The guided matcher's seed: (inliers in A, inliers in B, F, how many, which seed): mutual
         nearest neighbours with the ratio test, and where they fit fewer than ``anchors_suffice``
-        inliers (and ``lightglue``) LightGlue on each photo's 1024 strongest points, the better."""
+        inliers (and ``lightglue``) LightGlue on each photo's 1024 strongest points, the better.
+        Only the F's inliers come back: on a weak pair they are its answer, and the rest (most of
+        the matches of photos that share little) cost COLMAP's verification its longest RANSAC."""
         cfg = self.config
+
+        def fit(
+            pa: torch.Tensor, pb: torch.Tensor
+        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, int]:
+            F, mask = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
+            if mask is None:
+                return pa[:0], pb[:0], F, 0
+            return pa[mask], pb[mask], F, int(mask.sum())
+
         ia, ib, _ = mutual_ratio(sa.descriptors, sb.descriptors, SEED_RATIO)
-        pa, pb = sa.keypoints[ia].float(), sb.keypoints[ib].float()
-        F, mask = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
-        n = 0 if mask is None else int(mask.sum())
+        pa, pb, F, n = fit(sa.keypoints[ia].float(), sb.keypoints[ib].float())
         if n >= cfg.anchors_suffice or not lightglue:
             return pa, pb, F, n, "nn"
         a, b = _strongest(sa, GUIDED_LIGHTGLUE_POINTS), _strongest(sb, GUIDED_LIGHTGLUE_POINTS)
         lg = self._match_anchors(key0, key1, a, b)
-        qa, qb = a.keypoints[lg.idx_a].float(), b.keypoints[lg.idx_b].float()
-        F2, mask2 = estimate_fundamental(qa, qb, cfg.geo.f_estimator, cfg.geo.f_threshold)
-        n2 = 0 if mask2 is None else int(mask2.sum())
+        qa, qb, F2, n2 = fit(a.keypoints[lg.idx_a].float(), b.keypoints[lg.idx_b].float())
         return (qa, qb, F2, n2, "lightglue") if n2 > n else (pa, pb, F, n, "nn")
 
     @torch.inference_mode()
@@ -376,7 +383,7 @@ class Matcher:
         prep0, prep1 = self._prepared(image0, key0), self._prepared(image1, key1)
         with timer("seed"):
             pa, pb, F, n, how = self._seed(key0, key1, sa, sb, lightglue=True)
-        stats: dict[str, Any] = {"f_inliers": n, "seed": how, "seed_matches": int(pa.shape[0])}
+        stats: dict[str, Any] = {"f_inliers": n, "seed": how}
         if F is None or n < cfg.anchors_suffice:
             return self._result(pa, pb, torch.ones(pa.shape[0]), F, prep0, prep1, stats, timer)
         with timer("guided"):
