@@ -366,7 +366,9 @@ def plan(
                 raw += pairing.nearest_neighbours(descriptors, names, k)
                 raw += pairing.cross_view(names, aerial)
     planned = pairing.finalize(raw, aerial, tiling)
-    if matcher is not None and any(p.rotate and not p.tiled for p in planned):
+    # a survey (every image aerial) gets its turns once per image and its pairs the guided matcher;
+    # a project with ground images keeps the per-pair probe and geo (Matcher.for_pair)
+    if matcher is not None and aerial >= set(names) and any(p.rotate and not p.tiled for p in planned):
         # ranked as a plain pair of two aerial photos is first matched (auto: the guided seed)
         probe = matcher.for_pair(tiled=False, aerial_project=True, aerial_pair=True)
         guided = probe.config.light_first and probe.config.guided_keypoints > 0
@@ -562,7 +564,7 @@ def match(
     shared by runs (benchmarks, variants), keyed by the pixels, the plan and the matcher's config.
     Under ``auto`` the pair and whether its project has aerial images decide the method
     (:meth:`Matcher.for_pair`)."""
-    matcher = matcher.for_pair(pair.tiled, aerial_project, aerial_pair=pair.rotate)
+    matcher = matcher.for_pair(pair.tiled, aerial_project, aerial_pair=pair.rotate and pair.turn is not None)
     sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
     path = None
     if cache:

@@ -56,7 +56,9 @@ def test_an_image_whose_probes_find_nothing_keeps_the_per_pair_probe(
     assert with_turns(plan, turns)[0].turn is None
 
 
-def test_two_aerial_photos_are_matched_guided_and_a_ground_pair_escalates(astronaut_pair: WarpedPair) -> None:
+def test_two_aerial_photos_of_a_survey_are_matched_guided_and_other_pairs_keep_geo(
+    astronaut_pair: WarpedPair,
+) -> None:
     auto = Matcher(MatcherConfig(method="auto", resize=480, device="cpu"))
     aerial = auto.for_pair(tiled=False, aerial_project=True, aerial_pair=True)
     assert aerial.config.method == "geo" and aerial.config.light_first and aerial.config.guided_keypoints
@@ -73,8 +75,6 @@ def test_two_aerial_photos_are_matched_guided_and_a_ground_pair_escalates(astron
     r = aerial.match(astronaut_pair.image0, other)
     assert r.stats["f_inliers"] < aerial.config.anchors_suffice and "guided" not in r.stats
     assert "light" not in r.timings
-    # a ground x ground pair of the same project escalates whatever the light anchors found
+    # any other pair of a project with aerial images keeps geo
     ground = auto.for_pair(tiled=False, aerial_project=True, aerial_pair=False)
-    assert ground.config.escalate_from == 0 and not ground.config.guided_keypoints
-    r = ground.match(astronaut_pair.image0, other)
-    assert "light" in r.timings and "anchors" in r.timings
+    assert ground.config.method == "geo" and not ground.config.light_first

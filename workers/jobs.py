@@ -72,8 +72,9 @@ def _plan(ctx: Context, job: Job) -> None:
             )
     spec = opts["pairs"] if isinstance(opts["pairs"], str) else DEFAULTS["pairs"]
     pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
-    # retrieval's global descriptors and the aerial images' quarter turns (steps.image_turns)
-    matcher = runtime.matcher(ctx, opts) if ("retrieval" in spec and pairs_list is None) or aerial else None
+    # retrieval's global descriptors and a survey's quarter turns (steps.image_turns)
+    retrieval = "retrieval" in spec and pairs_list is None
+    matcher = runtime.matcher(ctx, opts) if retrieval or (aerial and aerial >= set(names)) else None
     planned = steps.plan(
         image_dir, names, aerial, spec, pairs_list, opts["tiling"], matcher, fixes=fixes, metas=metas
     )

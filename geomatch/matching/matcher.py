@@ -275,13 +275,13 @@ class Matcher:
 
         - a tiled (aerial x ground) pair gets the full ``geo`` method on every crop: on the
           synthetic air-to-ground scenes it is what registers the ground views;
-        - a plain pair of a project with aerial images gets ``geo`` light-first
-          (``MatcherConfig.light_first``): the light anchors where they fit an F with
-          ``anchors_suffice`` inliers (a drone survey's overlapping nadir photos, where they cost
-          ~0.4 s a pair instead of ~6 s), the full-strength anchors and the dense rounds where they
-          do not (the synthetic scenes' wide ground x ground baselines at low resolution); a
-          pair of two aerial photos (``aerial_pair``) is matched by the guided matcher
-          (``MatcherConfig.guided_keypoints``) and never escalates (``escalate_from``);
+        - a plain pair of two aerial photos of a survey (``aerial_pair``: the plan decided their
+          turns, steps.image_turns) gets ``geo`` light-first (``MatcherConfig.light_first``) by
+          the guided matcher (``MatcherConfig.guided_keypoints``), never escalating to the full
+          method (``escalate_from``): ~0.4 s a pair instead of ~6 s;
+        - any other plain pair of a project with aerial images gets ``geo`` (the synthetic
+          air-to-ground scenes' wide ground x ground baselines at low resolution need it: taking
+          the light anchors first there lost 2 of 6 cameras of the test scene);
         - a pair of a ground-only project gets the light anchors alone (``sparse`` with
           :data:`AUTO_PLAIN_PAIRS`): on the real tuning photos the dense rounds tie the anchors at
           about twice their cost (docs/benchmarks.md).
@@ -294,7 +294,7 @@ class Matcher:
             method = cfg.method
         else:
             return self
-        light_first = cfg.method == "auto" and method == "geo" and not tiled
+        light_first = cfg.method == "auto" and method == "geo" and not tiled and aerial_pair
         variant = f"{method}-tiled" if tiled and method != "sparse" else method
         variant += ("-light-first" if light_first else "") + (
             "-aerial" if light_first and aerial_pair else ""
