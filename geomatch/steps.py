@@ -406,9 +406,9 @@ def image_turns(
     """Each aerial photo's quarter turn (np.rot90) into one frame for the project, decided once
     per image instead of once per pair: the image with the most planned partners is the frame;
     every other one is scored (``score``: Matcher.turn_score) at the four turns against its nearest
-    partners already decided (GPS distance, else plan order). A pair then matches at the
-    two images' relative turn, unprobed. An image whose probes do not settle keeps the per-pair
-    probe on its pairs.
+    partners already decided (GPS distance, else plan order). A pair then matches with each image
+    at its own turn (one turned copy per image, so features once), unprobed. An image whose probes
+    do not settle keeps the per-pair probe on its pairs.
 
     Why not the photos' own headings (DJI XMP gimbal yaw, or the direction of travel between
     GPS fixes): on the real surveys they do not say how the pixels are turned. brighton_beach's
@@ -450,18 +450,21 @@ def image_turns(
         probed[n] = probed.get(n, 0) + 1
         tried.add(p.key)
         known = p.name1 if p.name0 == n else p.name0
-        # upright first (the turn its partner has), then the half turn of a line flown back:
-        # a turn with TURN_SURE matches is the answer without trying the rest
+        # scored in the frame: the partner as it will be matched (its features are reused), the
+        # image first at the partner's turn, then the half turn of a line flown back; a turn with
+        # a sure score is the answer without trying the rest
+        framed = quarter_turn(images[known], turns[known])
         counts = [0, 0, 0, 0]
-        for t in (0, 2, 1, 3):
-            counts[t] = score(images[known], quarter_turn(images[n], t))
+        for step in (0, 2, 1, 3):
+            t = (turns[known] + step) % 4
+            counts[t] = score(framed, quarter_turn(images[n], t))
             if counts[t] >= sure:
                 break
         best, runner_up = sorted(counts, reverse=True)[:2]
         log.debug("turn probe %s -> %s: %s", known, n, counts)
         if best < TURN_MIN_MATCHES or (best < sure and best < PROBE_MARGIN * max(runner_up, 1)):
             continue
-        t = (turns[known] + int(np.argmax(counts))) % 4
+        t = int(np.argmax(counts))
         votes[n][t] = votes[n].get(t, 0) + 1
         if best >= sure or votes[n][t] >= TURN_VOTES:
             turns[n] = t
@@ -564,7 +567,7 @@ def match(
     shared by runs (benchmarks, variants), keyed by the pixels, the plan and the matcher's config.
     Under ``auto`` the pair and whether its project has aerial images decide the method
     (:meth:`Matcher.for_pair`)."""
-    matcher = matcher.for_pair(pair.tiled, aerial_project, aerial_pair=pair.rotate and pair.turn is not None)
+    matcher = matcher.for_pair(pair.tiled, aerial_project, aerial_pair=pair.rotate and pair.turns is not None)
     sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
     path = None
     if cache:
@@ -576,7 +579,7 @@ def match(
                     pair.tiled,
                     pair.aerial_first,
                     pair.rotate,
-                    pair.turn,
+                    pair.turns,
                     matcher.config,
                 )
             ).encode()
@@ -599,9 +602,10 @@ def _match_turned(
     matcher: Matcher, pair: Pair, image0: np.ndarray, image1: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, MatchResult | TiledMatches | None, int]:
     """(keypoints0, keypoints1, scores, source, aerial crops matched) of the pair; with
-    ``pair.rotate`` the aerial side (image1 of an untiled pair) is matched at its best quarter
-    turn (geomatch.matching.rotation) and its keypoints mapped back, and the source is dropped (its F is in
-    the turned frame)."""
+    ``pair.turns`` (a survey) each image is matched turned into the project's frame, else with
+    ``pair.rotate`` the aerial side (image1 of an untiled pair) at its best quarter turn
+    (geomatch.matching.rotation); keypoints are mapped back, and the source is dropped when
+    anything was turned (its F is in the turned frames)."""
     if pair.tiled:
         aerial, other = (image0, image1) if pair.aerial_first else (image1, image0)
         turns, crops = tiled_turn(matcher, aerial, other, pair.rotate)
@@ -612,12 +616,16 @@ def _match_turned(
         if pair.aerial_first:
             return points_back(t.keypoints0, turns, w, h), t.keypoints1, t.scores, None, len(crops)
         return t.keypoints0, points_back(t.keypoints1, turns, w, h), t.scores, None, len(crops)
-    turns = pair.turn if pair.turn is not None else (pair_turn(matcher, image0, image1) if pair.rotate else 0)
-    r = matcher.match(image0, quarter_turn(image1, turns))
-    if not turns:
+    if pair.turns is not None:  # each image in the project's frame: one turned copy, features once
+        t0, t1 = pair.turns
+    else:
+        t0, t1 = 0, (pair_turn(matcher, image0, image1) if pair.rotate else 0)
+    r = matcher.match(quarter_turn(image0, t0), quarter_turn(image1, t1))
+    if not (t0 or t1):
         return r.keypoints0, r.keypoints1, r.scores, r, 0
-    h, w = image1.shape[:2]
-    return r.keypoints0, points_back(r.keypoints1, turns, w, h), r.scores, None, 0
+    (h0, w0), (h1, w1) = image0.shape[:2], image1.shape[:2]
+    k0, k1 = points_back(r.keypoints0, t0, w0, h0), points_back(r.keypoints1, t1, w1, h1)
+    return k0, k1, r.scores, None, 0
 
 
 def pair_turn(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:

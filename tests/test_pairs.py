@@ -115,10 +115,10 @@ def test_auto_plans_exhaustive_for_a_small_project_and_gps_neighbours_for_a_loca
 def test_known_turns_are_relative_and_leave_tiled_pairs_to_their_probe() -> None:
     plan = pairs.finalize([("a", "b"), ("b", "c"), ("a", "g"), ("c", "d")], {"a", "b", "c", "d"})
     turned = {p.key: p for p in pairs.with_turns(plan, {"a": 0, "b": 2, "c": 3})}
-    assert turned[("a", "b")].turn == 2
-    assert turned[("b", "c")].turn == 1  # c is turned 3, b 2: one more brings c to b's frame
-    assert turned[("a", "g")].tiled and turned[("a", "g")].turn is None
-    assert turned[("c", "d")].turn is None and turned[("c", "d")].rotate  # d undecided: probed
+    assert turned[("a", "b")].turns == (0, 2)
+    assert turned[("b", "c")].turns == (2, 3)
+    assert turned[("a", "g")].tiled and turned[("a", "g")].turns is None
+    assert turned[("c", "d")].turns is None and turned[("c", "d")].rotate  # d undecided: probed
 
 
 @pytest.mark.unit

@@ -35,10 +35,11 @@ def test_each_image_gets_its_turn_once_and_pairs_their_relative_turn(
     turns = image_turns(plan, light.anchor_count, Images(tmp_path), {})
     # into a's frame: b was turned once, three more make four; c twice, two more
     assert turns == {"a.png": 0, "b.png": 3, "c.png": 2}
-    turned = {p.key: p.turn for p in with_turns(plan, turns)}
-    assert turned == {("a.png", "b.png"): 3, ("a.png", "c.png"): 2, ("b.png", "c.png"): 3}
-    b_again = quarter_turn(shots["c.png"], turned[("b.png", "c.png")])
-    assert np.array_equal(b_again, shots["b.png"])
+    turned = {p.key: p.turns for p in with_turns(plan, turns)}
+    assert turned == {("a.png", "b.png"): (0, 3), ("a.png", "c.png"): (0, 2), ("b.png", "c.png"): (3, 2)}
+    # in the frame, b and c are the same photo
+    b_framed, c_framed = quarter_turn(shots["b.png"], 3), quarter_turn(shots["c.png"], 2)
+    assert np.array_equal(b_framed, c_framed)
 
 
 def test_an_image_whose_probes_find_nothing_keeps_the_per_pair_probe(
@@ -53,7 +54,7 @@ def test_an_image_whose_probes_find_nothing_keeps_the_per_pair_probe(
         plan, matcher.derive(method="sparse", max_keypoints=1024).anchor_count, Images(tmp_path), {}
     )
     assert turns == {"a.png": 0}
-    assert with_turns(plan, turns)[0].turn is None
+    assert with_turns(plan, turns)[0].turns is None
 
 
 def test_two_aerial_photos_of_a_survey_are_matched_guided_and_other_pairs_keep_geo(

@@ -99,7 +99,7 @@ def _plan(ctx: Context, job: Job) -> None:
                 tiled=p.tiled,
                 aerial_first=p.aerial_first,
                 rotate=p.rotate,
-                turn=-1 if p.turn is None else p.turn,
+                turn=-1 if p.turns is None else 4 * p.turns[0] + p.turns[1],
             )
             for i, p in enumerate(todo)
         )
@@ -178,7 +178,8 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         if not present:
             a = runtime.image(ctx, ctx.storage.image_path(pid, p.name0))
             b = runtime.image(ctx, ctx.storage.image_path(pid, p.name1))
-            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate, None if p.turn < 0 else p.turn)
+            turns = None if p.turn < 0 else divmod(p.turn, 4)
+            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate, turns)
             target = steps.PairTarget(
                 lambda: _writable(ctx, job_id, pid, db_path), id0, id1, float(opts["snap_radius"])
             )

@@ -32,9 +32,9 @@ class Pair:
     # an aerial side: a drone's heading is arbitrary, so the pair is matched at the best quarter
     # turn (geomatch.matching.rotation)
     rotate: bool = False
-    # the quarter turn of image1 (np.rot90) into image0's frame when the plan decided both images'
-    # turns (steps.image_turns): the pair is matched at it, with no probe of its own
-    turn: int | None = None
+    # each image's quarter turn (np.rot90) into the project's frame when the plan decided both
+    # (steps.image_turns, a survey): the pair is matched with both turned so, unprobed
+    turns: tuple[int, int] | None = None
 
     @property
     def key(self) -> tuple[str, str]:
@@ -224,10 +224,10 @@ def finalize(raw: Iterable[tuple[str, str]], aerial: set[str], tiling: str = "au
 
 def with_turns(planned: Iterable[Pair], turns: Mapping[str, int]) -> list[Pair]:
     """The plan with each plain pair of two images whose quarter turn into the project's frame
-    is known (``turns``, image -> np.rot90 turns) matched at their relative turn, unprobed."""
+    is known (``turns``, image -> np.rot90 turns) matched with both turned so, unprobed."""
     out = []
     for p in planned:
         if not p.tiled and p.name0 in turns and p.name1 in turns:
-            p = replace(p, rotate=True, turn=(turns[p.name1] - turns[p.name0]) % 4)
+            p = replace(p, rotate=True, turns=(turns[p.name0], turns[p.name1]))
         out.append(p)
     return out
