@@ -134,7 +134,14 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         for p in bar:
             target = steps.PairTarget(lambda: nullcontext(db), ids[p.name0], ids[p.name1], opts.snap_radius)
             r = steps.run_pair(
-                matcher, p, images[p.name0], images[p.name1], target, opts.match_cache, bool(aerial)
+                matcher,
+                p,
+                images[p.name0],
+                images[p.name1],
+                target,
+                opts.match_cache,
+                bool(aerial),
+                survey=aerial >= set(names),
             )
             assert r.written is not None  # the run's own database takes every write
             timings["matching"] += r.match_s

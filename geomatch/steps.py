@@ -562,12 +562,15 @@ def match(
     image1: np.ndarray,
     cache: str | Path | None = None,
     aerial_project: bool = False,
+    survey: bool = False,
 ) -> PairMatches:
     """One planned pair, tiled when the plan says so. ``cache``: a folder of raw pair matches
     shared by runs (benchmarks, variants), keyed by the pixels, the plan and the matcher's config.
     Under ``auto`` the pair and whether its project has aerial images decide the method
     (:meth:`Matcher.for_pair`)."""
-    matcher = matcher.for_pair(pair.tiled, aerial_project, aerial_pair=pair.rotate and pair.turns is not None)
+    # two aerial photos of a survey (every image aerial): the guided matcher, turned or not yet
+    aerial_pair = pair.rotate and not pair.tiled and (survey or pair.turns is not None)
+    matcher = matcher.for_pair(pair.tiled, aerial_project, aerial_pair=aerial_pair)
     sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
     path = None
     if cache:
@@ -751,12 +754,13 @@ def run_pair(
     target: PairTarget | None = None,
     cache: str | Path | None = None,
     aerial_project: bool = False,
+    survey: bool = False,
 ) -> PairRun:
     """One planned pair matched (:func:`match`) and written into ``target`` (:func:`write`, at
     the matcher's working size): the sequence of ``geomatch run``, a worker's pair step and the
     service's two-image match (no target: nothing is kept)."""
     t0 = time.perf_counter()
-    m = match(matcher, pair, image0, image1, cache, aerial_project)
+    m = match(matcher, pair, image0, image1, cache, aerial_project, survey)
     t1 = time.perf_counter()
     written = None
     if target is not None:

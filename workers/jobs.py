@@ -166,6 +166,10 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         aerial_project = bool(
             s.scalar(select(exists().where(Image.project_id == job.project_id, Image.aerial.is_(True))))
         )
+        # a survey (every image aerial): its aerial pairs take the guided matcher (steps.match)
+        survey = aerial_project and not s.scalar(
+            select(exists().where(Image.project_id == job.project_id, Image.aerial.is_(False)))
+        )
     if p is None:
         return "skipped"
     pid, opts = job.project_id, runtime.job_options(job.options)
@@ -183,7 +187,9 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             target = steps.PairTarget(
                 lambda: _writable(ctx, job_id, pid, db_path), id0, id1, float(opts["snap_radius"])
             )
-            r = steps.run_pair(runtime.matcher(ctx, opts), pair, a, b, target, aerial_project=aerial_project)
+            r = steps.run_pair(
+                runtime.matcher(ctx, opts), pair, a, b, target, aerial_project=aerial_project, survey=survey
+            )
             if r.written is None:
                 return "cancelled"
             w = r.written
