@@ -336,7 +336,7 @@ def plan(
     (global descriptors come from its sparse features); ``gps:K`` pairs by the ``fixes`` (images
     without one: see pairs.gps_neighbours), by look point, and by shared ground where ``metas``
     give both images a footprint (gps.plan_points, gps.footprints); ``auto`` is exhaustive or
-    ``gps:K`` by the project's size and fixes (pairs.auto_plan)."""
+    ``gps:K`` by the project's size and fixes (pairs.auto_pairs)."""
     gps_enu: Mapping[str, np.ndarray] = {}
     footprints: Mapping[str, np.ndarray] | None = None
     if fixes is not None:
@@ -393,6 +393,25 @@ TURN_SURE_SEED = 50
 TURN_VOTES = 2
 TURN_PROBES = 3
 TURN_MIN_MATCHES = 20  # fewer probe matches on the best turn: the pair does not vote
+
+
+def turn_scores(
+    score: Callable[[np.ndarray, np.ndarray], int],
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    first: int,
+    sure: int,
+) -> list[int]:
+    """``score(fixed, moving turned t)`` for the quarter turns t, ``first`` first, then a half turn
+    more (a line flown back), then the other two, stopping at a ``sure`` score (the turns not
+    tried score 0)."""
+    scores = [0, 0, 0, 0]
+    for step in (0, 2, 1, 3):
+        t = (first + step) % 4
+        scores[t] = score(fixed, quarter_turn(moving, t))
+        if scores[t] >= sure:
+            break
+    return scores
 
 
 def image_turns(
@@ -453,13 +472,7 @@ def image_turns(
         # scored in the frame: the partner as it will be matched (its features are reused), the
         # image first at the partner's turn, then the half turn of a line flown back; a turn with
         # a sure score is the answer without trying the rest
-        framed = quarter_turn(images[known], turns[known])
-        counts = [0, 0, 0, 0]
-        for step in (0, 2, 1, 3):
-            t = (turns[known] + step) % 4
-            counts[t] = score(framed, quarter_turn(images[n], t))
-            if counts[t] >= sure:
-                break
+        counts = turn_scores(score, quarter_turn(images[known], turns[known]), images[n], turns[known], sure)
         best, runner_up = sorted(counts, reverse=True)[:2]
         log.debug("turn probe %s -> %s: %s", known, n, counts)
         if best < TURN_MIN_MATCHES or (best < sure and best < PROBE_MARGIN * max(runner_up, 1)):
@@ -638,12 +651,7 @@ def pair_turn(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:
     turn; best_turn's full-strength LightGlue calls cost ~12 s a pair on caliterra's photos."""
     if not (matcher.config.light_first and matcher.config.guided_keypoints):
         return best_turn(matcher, image0, image1)
-    scores = [-1, -1, -1, -1]
-    for t in (0, 2, 1, 3):
-        scores[t] = matcher.turn_score(image0, quarter_turn(image1, t))
-        if scores[t] >= TURN_SURE_SEED:
-            break
-    return int(np.argmax(scores))
+    return int(np.argmax(turn_scores(matcher.turn_score, image0, image1, 0, TURN_SURE_SEED)))
 
 
 # the probe's matches that select a tiled pair's crops must agree with one F within this many

@@ -296,20 +296,16 @@ class Matcher:
             return self
         light_first = cfg.method == "auto" and method == "geo" and not tiled and aerial_pair
         variant = f"{method}-tiled" if tiled and method != "sparse" else method
-        variant += ("-light-first" if light_first else "") + (
-            "-aerial" if light_first and aerial_pair else ""
-        )
+        variant += "-guided" if light_first else ""
         if variant not in self._variants:
             overrides: dict[str, Any] = dict(AUTO_PLAIN_PAIRS) if method == "sparse" else {}
             if variant.endswith("-tiled"):
                 overrides["anchors_suffice"] = 0
             if light_first:
-                overrides["light_first"] = True
-                overrides["escalate_from"] = cfg.anchors_suffice if aerial_pair else 0
-                overrides["guided_keypoints"] = GUIDED_KEYPOINTS if aerial_pair else 0
+                overrides.update(
+                    light_first=True, escalate_from=cfg.anchors_suffice, guided_keypoints=GUIDED_KEYPOINTS
+                )
             self._variants[variant] = self.derive(method=method, **overrides)
-            if light_first and not aerial_pair:  # the ground pairs' light anchors, shared
-                self._variants[variant]._light = self.for_pair(False, False)
         return self._variants[variant]
 
     def light(self) -> Matcher:
