@@ -36,6 +36,7 @@ DEFAULT_SET = HERE.parent.parent / "shared" / "data" / "real" / "sacre_coeur"
 STAGES: dict[str, tuple[str, ...]] = {
     "features": ("features0", "features1"),
     "LightGlue": ("anchors", "dense_lightglue"),
+    "guided NN": ("seed", "guided"),  # a survey pair's seed F and guided pass (Matcher.match_guided)
     "dense coarse": ("dense_coarse",),
     "optimizer": ("optimizer",),
     "refine": ("refine", "subpixel"),
@@ -74,6 +75,9 @@ def worker(args: argparse.Namespace) -> None:
     m.match(*pairs[0])  # networks loaded and run once, not timed
     m.clear_caches()
     m.extract_calls = 0
+    if m._light is not None:
+        m._light.clear_caches()
+        m._light.extract_calls = 0
     if device.type == "cuda":
         torch.cuda.synchronize(device)
         torch.cuda.reset_peak_memory_stats(device)
@@ -103,7 +107,8 @@ def worker(args: argparse.Namespace) -> None:
         "pairs_per_s": len(pairs) / wall,
         "stage_s": stage,
         "other_s": max(0.0, wall - sum(stage.values())),
-        "extractions": m.extract_calls,
+        # light_first's matcher is derived (Matcher.light) and extracts on its own
+        "extractions": m.extract_calls + (m._light.extract_calls if m._light is not None else 0),
         "matches_per_pair": matches / len(pairs),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "cuda_peak_mb": cuda_peak,

@@ -425,9 +425,9 @@ def image_turns(
     """Each aerial photo's quarter turn (np.rot90) into one frame for the project, decided once
     per image instead of once per pair: the image with the most planned partners is the frame;
     every other one is scored (``score``: Matcher.turn_score) at the four turns against its nearest
-    partners already decided (GPS distance, else plan order). A pair then matches with each image
-    at its own turn (one turned copy per image, so features once), unprobed. An image whose probes
-    do not settle keeps the per-pair probe on its pairs.
+    partners already decided (the photo taken before or after it, else by GPS distance). A pair
+    then matches with each image at its own turn (one turned copy per image, so features once),
+    unprobed. An image whose probes do not settle keeps the per-pair probe on its pairs.
 
     Why not the photos' own headings (DJI XMP gimbal yaw, or the direction of travel between
     GPS fixes): on the real surveys they do not say how the pixels are turned. brighton_beach's
@@ -442,10 +442,17 @@ def image_turns(
     if not partners:
         return {}
 
-    def distance(p: Pair) -> float:
+    # file names (a camera's counter) are the capture order: a photo and the next one taken
+    # overlap most and share a turn along a flight line, more surely than GPS neighbours (a
+    # compact camera's fixes are tens of metres off, and the nearest fix can be on the next line)
+    rank = {n: i for i, n in enumerate(sorted(partners))}
+
+    def distance(p: Pair) -> tuple[bool, float]:
+        adjacent = abs(rank[p.name0] - rank[p.name1]) == 1
         if p.name0 in enu and p.name1 in enu:
-            return float(np.linalg.norm(np.asarray(enu[p.name0])[:2] - np.asarray(enu[p.name1])[:2]))
-        return float("inf")
+            d = float(np.linalg.norm(np.asarray(enu[p.name0])[:2] - np.asarray(enu[p.name1])[:2]))
+            return (not adjacent, d)
+        return (not adjacent, float("inf"))
 
     root = max(sorted(partners), key=lambda n: len(partners[n]))
     turns = {root: 0}
@@ -454,8 +461,9 @@ def image_turns(
     votes: dict[str, dict[int, int]] = {n: {} for n in partners}
     bar = tqdm(total=len(partners) - 1, desc="quarter turns", disable=not progress, leave=False)
     while True:
-        # the undecided image nearest to a decided one goes next, against that partner: the
-        # frame grows outwards from the root through the pairs most likely to overlap
+        # the undecided image taken next to a decided one, else the nearest, goes next against
+        # that partner: the frame grows outwards from the root through the pairs most likely to
+        # overlap, so the partner's own turn is usually the image's and one turned copy is scored
         options = [
             (distance(p), p.key, n, p)
             for n in partners

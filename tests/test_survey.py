@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+from PIL import Image
 
 from geomatch.geo.survey import is_survey_track
+from geomatch.matching.rotation import quarter_turn
 from geomatch.metadata import ImageMeta
-from geomatch.steps import aerial_set, captures
+from geomatch.sfm.pairs import exhaustive, finalize
+from geomatch.steps import Images, aerial_set, captures, image_turns
 
 pytestmark = pytest.mark.unit
 
@@ -59,3 +64,49 @@ def test_a_survey_without_xmp_is_aerial_unless_the_user_says_otherwise() -> None
     # one photo that says it is on the ground: the metadata speaks, the track does not
     ground = dict(silent, **{names[0]: ImageMeta(4000, 3000, relative_altitude_m=1.0)})
     assert aerial_set(captures(names), ground, track) == set()
+
+
+def _shot(i: int, turned: int) -> np.ndarray:
+    """A 16x16 photo that says which it is (its centre, unchanged by a quarter turn) and how it is
+    turned (a marked corner); ``turned``: quarter turns the camera applied to the frame's view."""
+    a = np.zeros((16, 16, 3), np.uint8)
+    a[0, 0] = 200
+    a[7:9, 7:9] = i + 1
+    return quarter_turn(a, turned)
+
+
+def _read(a: np.ndarray) -> tuple[int, int]:
+    """(photo, quarter turns from the frame) of a shot, as turned by the plan's probes."""
+    corners = {(0, 0): 0, (15, 0): 1, (15, 15): 2, (0, 15): 3}  # where np.rot90 takes the mark
+    turn = next(t for (r, c), t in corners.items() if a[r, c, 0] == 200)
+    return int(a[7, 7, 0]) - 1, turn
+
+
+def test_turns_grow_along_the_capture_order_so_each_photo_is_turned_about_once(tmp_path: Path) -> None:
+    """Two lines flown in opposite directions, the second with its photos turned by a half turn,
+    and the lines closer to each other (1 m) than photos along a line (2 m), as a compact
+    camera's GPS can put them: the nearest fix is on the other line, whose photo shares nothing.
+    The photo taken just before or after overlaps: probing it first scores one turned copy of
+    each photo, plus the half turn where the line turns (a quarter-turn probe's cost per copy
+    is a feature extraction)."""
+    n = 12
+    true_turn = {i: 0 if i < 6 else 2 for i in range(n)}
+    names = [f"IMG_{i:04d}.png" for i in range(n)]  # lossless: the marks survive
+    enu = {}
+    for i, name in enumerate(names):
+        x = 2.0 * i if i < 6 else 2.0 * (n - 1 - i)
+        enu[name] = np.array([x, 0.0 if i < 6 else 1.0, 80.0])
+        Image.fromarray(_shot(i, true_turn[i])).save(tmp_path / name)
+    scored: set[tuple[int, int]] = set()
+
+    def score(fixed: np.ndarray, moving: np.ndarray) -> int:
+        (i, ti), (j, tj) = _read(fixed), _read(moving)
+        scored.add((j, tj))
+        in_frame = ti == 0 and tj == 0  # both turned back into the frame
+        return 500 if abs(i - j) == 1 and in_frame else 15
+
+    plan = finalize(exhaustive(names), set(names))
+    turns = image_turns(plan, score, Images(tmp_path), enu)
+    assert turns == {name: (4 - true_turn[i]) % 4 for i, name in enumerate(names)}
+    # one copy per photo but the root (it is the frame), and the half turn of the line's first
+    assert len(scored) == (n - 1) + 1, sorted(scored)
