@@ -7,7 +7,9 @@ length, mean reprojection error, and the camera centres against the photos' own 
 least-squares similarity (median and largest residual, metres: consumer GPS, so this shows scale
 and gross failures). The peer matches brighton exhaustively and caliterra with its spatial
 matcher (GPS neighbours), as a COLMAP user would; geomatch's default plan decides for itself.
-Each row is a child process (wall time and peak RSS of the whole run).
+Each row is a child process (wall time and peak RSS of the whole run). Plan recall: of the pairs
+that see at least 15 (and 100) of the peer model's 3D points together, the share geomatch's default
+plan matched (pairs with matches in its database); on brighton the peer matched every pair.
 
     .venv/bin/python bench/drone.py                       # both sets
     .venv/bin/python bench/drone.py --sets brighton_beach --peer-matcher exhaustive
@@ -16,8 +18,11 @@ Each row is a child process (wall time and peak RSS of the whole run).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import sqlite3
 import sys
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +56,41 @@ def gps_residuals(model: Path, images: Path) -> tuple[float, float, int]:
     dst = np.stack([fixes.enu[n] for n in common])
     res = np.linalg.norm(umeyama(src, dst).apply(src) - dst, axis=1)
     return float(np.median(res)), float(res.max()), len(common)
+
+
+def covisible(model: Path, min_shared: int) -> set[tuple[str, str]]:
+    """Pairs of photos that see at least ``min_shared`` of a model's 3D points together."""
+    rec = pycolmap.Reconstruction(str(model))
+    shared: Counter[tuple[int, int]] = Counter()
+    for point in rec.points3D.values():
+        ids = sorted({el.image_id for el in point.track.elements})
+        shared.update(itertools.combinations(ids, 2))
+    name = {i: im.name for i, im in rec.images.items()}
+    return {tuple(sorted((name[a], name[b]))) for (a, b), n in shared.items() if n >= min_shared}
+
+
+def matched_pairs(database: Path) -> set[tuple[str, str]]:
+    """The pairs a run matched: the rows of its COLMAP database's matches table."""
+    with sqlite3.connect(database) as db:
+        name = dict(db.execute("SELECT image_id, name FROM images"))
+        ids = [r[0] for r in db.execute("SELECT pair_id FROM matches WHERE rows > 0")]
+    out = set()
+    for pair_id in ids:
+        b = pair_id % 2147483647
+        a = (pair_id - b) // 2147483647
+        out.add(tuple(sorted((name[a], name[b]))))
+    return out
+
+
+def plan_recall(gm_out: Path, peer_model: Path) -> str:
+    """The share of the pairs that the peer's model shows covisible (>= 15 and >= 100 shared 3D
+    points) that geomatch's plan matched: what its default pairing leaves out."""
+    planned = matched_pairs(gm_out / "database.db")
+    cells = []
+    for k in (15, 100):
+        truth = covisible(peer_model, k)
+        cells.append(f"{100 * len(truth & planned) / max(len(truth), 1):.1f} % of {len(truth)}")
+    return " / ".join(cells)
 
 
 def judge(out: Path, images: Path) -> dict[str, Any]:
@@ -120,19 +160,23 @@ def main(argv: list[str] | None = None) -> int:
                     "wall": wall,
                     "ratio": wall / wall_peer,
                     "rss": rss,
+                    "recall": plan_recall(gm_out, peer_out / "sparse" / "0")
+                    if (peer_out / "sparse" / "0").is_dir()
+                    else "-",
                     **judge(gm_out, images),
                 }
             )
     print(
         "| set | split | run | registered | models | pairs | 3D points | mean track length "
-        "| mean reprojection px | GPS residual median / max m | wall s | x peer | peak RSS MiB |"
+        "| mean reprojection px | GPS residual median / max m | wall s | x peer | peak RSS MiB "
+        "| plan recall (>= 15 / >= 100 shared points in the peer's model) |"
     )
-    print("|---|---|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|")
+    print("|---|---|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---|")
     for r in rows:
         print(
             f"| {r['set']} | {r['split']} | {r['run']} | {r['registered']} | {r['models']} | {r['pairs']} "
             f"| {r['points']} | {r['track']:.2f} | {r['reproj']:.2f} | {r['gps']} | {r['wall']:.0f} "
-            f"| {r['ratio']:.2f} | {r['rss']:.0f} |"
+            f"| {r['ratio']:.2f} | {r['rss']:.0f} | {r.get('recall', '-')} |"
         )
     return 0
 

@@ -32,6 +32,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -205,12 +206,16 @@ def run_one(images: Path, out: Path, spec: str, match_cache: str | None) -> None
 
 def timed(cmd: list[str]) -> tuple[float, float, int]:
     """(wall seconds, peak RSS MiB, exit status) of a child process."""
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    # stderr into a file, not a pipe: a pipe nobody reads until the child exits blocks the child
+    # once its buffer (64 KiB) is full, and a long run's log fills it
+    with tempfile.TemporaryFile() as log:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=log)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        log.seek(0)
+        err = log.read().decode(errors="replace")
     if proc.returncode:
         print(err[-3000:], file=sys.stderr)
     return wall, usage.ru_maxrss / 1024, proc.returncode
