@@ -112,7 +112,7 @@ def judge(out: Path, images: Path) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sets", default=",".join(SETS), help="comma-separated: " + ", ".join(SETS))
-    ap.add_argument("--out", type=Path, default=ROOT / "bench-out" / "drone")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "drone")
     ap.add_argument("--peer-matcher", choices=("exhaustive", "spatial"), help="default: per set")
     ap.add_argument("--extra", default="", help="more `geomatch run` flags for the geomatch row")
     args = ap.parse_args(argv)

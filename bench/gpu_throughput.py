@@ -73,11 +73,13 @@ def worker(args: argparse.Namespace) -> None:
     method, options = parse_method(args.method)
     m = Matcher(config_from_options(method=method, resize=args.size, device=str(device), **options))
     m.match(*pairs[0])  # networks loaded and run once, not timed
+    # light_first's matcher is derived (Matcher.light) and extracts and caches on its own
+    light = m.light() if m.config.light_first else None
     m.clear_caches()
     m.extract_calls = 0
-    if m._light is not None:
-        m._light.clear_caches()
-        m._light.extract_calls = 0
+    if light is not None:
+        light.clear_caches()
+        light.extract_calls = 0
     if device.type == "cuda":
         torch.cuda.synchronize(device)
         torch.cuda.reset_peak_memory_stats(device)
@@ -107,8 +109,7 @@ def worker(args: argparse.Namespace) -> None:
         "pairs_per_s": len(pairs) / wall,
         "stage_s": stage,
         "other_s": max(0.0, wall - sum(stage.values())),
-        # light_first's matcher is derived (Matcher.light) and extracts on its own
-        "extractions": m.extract_calls + (m._light.extract_calls if m._light is not None else 0),
+        "extractions": m.extract_calls + (light.extract_calls if light is not None else 0),
         "matches_per_pair": matches / len(pairs),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "cuda_peak_mb": cuda_peak,
