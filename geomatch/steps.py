@@ -448,11 +448,14 @@ def image_turns(
     rank = {n: i for i, n in enumerate(sorted(partners))}
 
     def distance(p: Pair) -> tuple[bool, float]:
-        adjacent = abs(rank[p.name0] - rank[p.name1]) == 1
+        d = float("inf")
         if p.name0 in enu and p.name1 in enu:
             d = float(np.linalg.norm(np.asarray(enu[p.name0])[:2] - np.asarray(enu[p.name1])[:2]))
-            return (not adjacent, d)
-        return (not adjacent, float("inf"))
+        return (abs(rank[p.name0] - rank[p.name1]) != 1, d)
+
+    # once per pair, not once per pair per decision: the loop below looks at every candidate
+    # pair each time it decides an image
+    order = {p.key: distance(p) for ps in partners.values() for p in ps}
 
     root = max(sorted(partners), key=lambda n: len(partners[n]))
     turns = {root: 0}
@@ -465,7 +468,7 @@ def image_turns(
         # that partner: the frame grows outwards from the root through the pairs most likely to
         # overlap, so the partner's own turn is usually the image's and one turned copy is scored
         options = [
-            (distance(p), p.key, n, p)
+            (order[p.key], p.key, n, p)
             for n in partners
             if n not in turns and probed.get(n, 0) < TURN_PROBES
             for p in partners[n]
