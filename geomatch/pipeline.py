@@ -163,6 +163,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         tree_check=opts.tree_check,
         track_refine=opts.track_refine,
         gps=fixes,
+        tiled=any(p.tiled for p in planned),
     )
     summary["pose_priors"] = priors
     timings["mapping"] = time.perf_counter() - t_map

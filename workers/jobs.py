@@ -256,12 +256,16 @@ def reconstruct(ctx: Context, job_id: str) -> str:
             snapshot_sqlite(db_path, snapshot)
         out = work / "model"
         images = ctx.storage.images_dir(pid)
+        opts = runtime.job_options(job.options)
+        with ctx.store.session() as s:  # aerial and ground images: the project's pairs were tiled
+            kinds = set(s.scalars(select(Image.aerial).where(Image.project_id == pid).distinct()))
         summary = mapping.reconstruct(
             snapshot,
             images,
             out,
-            runtime.job_options(job.options)["mapper"],
+            opts["mapper"],
             gps=gps.fixes_of_database(snapshot, images),
+            tiled=len(kinds) == 2 and opts["tiling"] != "off",
         )
         with ColmapDatabase(snapshot) as db:
             summary["database"] = db.stats()

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from ..geo import georef
 from ..geo.gps import GpsFixes
-from ..options import MAPPERS, MIN_POSE_INLIERS
+from ..options import MAPPERS, MIN_POSE_INLIERS, TILED_MIN_POSE_INLIERS
 from .colmaplog import colmap_log
 from .sqlitecopy import snapshot_sqlite
 from .trackrefine import refine_tracks
@@ -70,11 +70,12 @@ def reconstruct(
     seed: int = 0,
     verbose: bool = False,
     progress: bool = False,
-    min_pose_inliers: int = MIN_POSE_INLIERS,
+    min_pose_inliers: int = 0,
     loop_check: bool = True,
     gps: GpsFixes | None = None,
     tree_check: bool = True,
     track_refine: bool = True,
+    tiled: bool = False,
 ) -> dict[str, Any]:
     """Map, export the largest model and return (and write) the summary.
 
@@ -90,7 +91,8 @@ def reconstruct(
     and the summary lists the dropped pairs (``view_graph``) and the moved points
     (``track_refinement``). ``verbose`` lets COLMAP's own
     log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
-    line a user watching a terminal needs.
+    line a user watching a terminal needs. ``min_pose_inliers`` 0 is COLMAP's 30, or 20 where
+    the project has tiled aerial x ground pairs (``tiled``; options.TILED_MIN_POSE_INLIERS).
     """
     if mapper not in MAPPERS:
         raise ValueError(f"unknown mapper {mapper!r}; choose from {', '.join(MAPPERS)}")
@@ -114,7 +116,9 @@ def reconstruct(
             opts = pycolmap.IncrementalPipelineOptions()
             opts.min_model_size = min_model_size
             opts.random_seed = seed
-            opts.mapper.abs_pose_min_num_inliers = min_pose_inliers
+            opts.mapper.abs_pose_min_num_inliers = min_pose_inliers or (
+                TILED_MIN_POSE_INLIERS if tiled else MIN_POSE_INLIERS
+            )
             models = pycolmap.incremental_mapping(
                 str(mapped),
                 str(image_dir),
