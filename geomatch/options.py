@@ -245,7 +245,8 @@ _OPTIONS: tuple[Option, ...] = (
         "min_pose_inliers",
         int,
         0,
-        "2D-3D inliers the incremental mapper needs to register an image",
+        "2D-3D inliers the incremental mapper needs to register an image (0: COLMAP's 30, "
+        "20 in a project with tiled aerial x ground pairs)",
         low=3,
         high=10000,
         zero=f"auto: COLMAP's own {MIN_POSE_INLIERS}, {TILED_MIN_POSE_INLIERS} in a project with tiled pairs",
