@@ -109,6 +109,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     )
     matcher = steps.stored(config, steps.run_feature_store(out / "features"))
     images = steps.Images(image_dir, budget.images_mb)
+    t_plan = time.perf_counter()
     planned = steps.plan(
         image_dir,
         names,
@@ -123,7 +124,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         metas=metas,
     )
 
-    timings: dict[str, float] = {"matching": 0.0, "writing": 0.0}
+    timings: dict[str, float] = {"plan": time.perf_counter() - t_plan, "matching": 0.0, "writing": 0.0}
     pair_seconds: dict[str, list[float]] = {"tiled": [], "plain": []}
     with ColmapDatabase(out / "database.db") as db:
         ids = steps.register(db, names, metas, opts.share_camera)

@@ -36,8 +36,10 @@ Relative rotations come from the verified inliers: an essential matrix on normal
 
 from __future__ import annotations
 
+import os
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Set
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -365,14 +367,22 @@ def _rotations(
             keypoints[i] = db.read_keypoints(i)[:, :2]
         return keypoints[i]
 
-    out: dict[tuple[int, int], list[np.ndarray]] = {}
-    inliers: dict[tuple[int, int], int] = {}
+    jobs: list[
+        tuple[int, int, pycolmap.TwoViewGeometry, pycolmap.Camera, pycolmap.Camera, np.ndarray, np.ndarray]
+    ] = []
     pair_ids, geometries = db.read_two_view_geometries()
     for pid, g in zip(pair_ids, geometries, strict=True):
         if len(g.inlier_matches) < min_inliers:
             continue
         a, b = pycolmap.pair_id_to_image_pair(pid)
-        rs = candidate_rotations(cameras[images[a].camera_id], cameras[images[b].camera_id], kp(a), kp(b), g)
+        jobs.append((a, b, g, cameras[images[a].camera_id], cameras[images[b].camera_id], kp(a), kp(b)))
+    # one pair's RANSACs run single-threaded in OpenCV and release the GIL: the pairs go side by
+    # side on the cores (each RANSAC seeds its own generator, so the result does not depend on it)
+    with ThreadPoolExecutor(max_workers=max(1, min(4, os.cpu_count() or 1))) as pool:
+        found = list(pool.map(lambda j: candidate_rotations(j[3], j[4], j[5], j[6], j[2]), jobs))
+    out: dict[tuple[int, int], list[np.ndarray]] = {}
+    inliers: dict[tuple[int, int], int] = {}
+    for (a, b, g, *_), rs in zip(jobs, found, strict=True):
         if rs:
             key = _key(a, b)
             out[key] = rs if a < b else [R.T for R in rs]
