@@ -17,8 +17,11 @@ with a high correlation.
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,6 +50,10 @@ class TrackRefineOptions:
     neighbour_radius: float = 100.0  # photo pixels: the scale of the neighbours' weights
     max_track: int = 64  # observations; a larger component is several scene points chained together
     images_mb: float = 512.0  # decoded photos held at once
+    workers: int = 0  # pairs aligned at once; 0: one per core, at most REFINE_WORKERS
+
+
+REFINE_WORKERS = 4
 
 
 @dataclass
@@ -131,9 +138,12 @@ def refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | No
     """Move the keypoints of ``database`` (in place) onto their tracks' references; returns counts
     for the summary.
 
-    One torch thread: the alignment is many small batches of element-wise work, for which a
+    One torch thread per pair, and pairs side by side on the cores (Python threads: torch releases
+    the GIL in its kernels): the alignment is many small batches of element-wise work, for which a
     second OpenMP thread gains little and, beside other busy processes, made it 30 times slower
-    (fountain-P11's 5800 observations, on a loaded 2-core machine: 4 s on one thread, 129 s on two)."""
+    (fountain-P11's 5800 observations, on a loaded 2-core machine: 4 s on one thread, 129 s on two).
+    Each observation is moved by one pair only, so the result does not depend on which pair
+    finishes first."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -164,22 +174,23 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
             i: torch.from_numpy(np.array(k[:, :2], np.float32) - COLMAP_OFFSET) for i, k in keypoints.items()
         }
         photos: ByteLRU[int, torch.Tensor] = ByteLRU(opts.images_mb, lambda t: t.numel() * t.element_size())
+        photos_lock = threading.Lock()
 
         def photo(i: int) -> torch.Tensor:
             """The photo's smoothed luminance and its gradients, (3, H, W), prepared once."""
-            maps = photos.get(i)
-            if maps is None:
-                raw = (
-                    cv2.cvtColor(read_image(image_dir / names[i]), cv2.COLOR_RGB2GRAY).astype(np.float32)
-                    / 255.0
-                )
-                gray = cv2.GaussianBlur(raw, (0, 0), opts.sigma) if opts.sigma > 0 else raw
-                maps = gradient_maps(torch.from_numpy(gray))
-                photos.put(i, maps)
-            return maps
+            with photos_lock:
+                maps = photos.get(i)
+                if maps is None:
+                    raw = (
+                        cv2.cvtColor(read_image(image_dir / names[i]), cv2.COLOR_RGB2GRAY).astype(np.float32)
+                        / 255.0
+                    )
+                    gray = cv2.GaussianBlur(raw, (0, 0), opts.sigma) if opts.sigma > 0 else raw
+                    maps = gradient_maps(torch.from_numpy(gray))
+                    photos.put(i, maps)
+                return maps
 
         moved = np.zeros(int(tracks.offsets[-1]), bool)
-        shifts: list[np.ndarray] = []
         new_xy = {i: v.clone() for i, v in xy.items()}
         e = tracks.edges
         ea, eb = tracks.image_of(e[:, 0]), tracks.image_of(e[:, 1])
@@ -190,7 +201,10 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
         order = np.argsort(key, kind="stable")
         keys, first = np.unique(key[order], return_index=True)
         blocks = dict(zip(keys.tolist(), np.split(order, first[1:]) if len(order) else [], strict=True))
-        for ia, ib, pair_tasks in _by_pair(tracks, todo):
+
+        def align(job: tuple[int, int, np.ndarray]) -> tuple[int, np.ndarray, torch.Tensor, torch.Tensor]:
+            """One pair's observations: (the other image, their nodes, where they go, aligned?)."""
+            ia, ib, pair_tasks = job
             # the pair's verified matches, oriented reference image -> other, start each warp
             pair_edges = e[blocks[min(ia, ib) * width + max(ia, ib)]]
             ends = (0, 1) if ia < ib else (1, 0)
@@ -199,10 +213,16 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
             pa = xy[ia][pair_tasks[:, 0] - start[ia]]
             pb = xy[ib][pair_tasks[:, 1] - start[ib]]
             out, ok = refine_on_maps(photo(ia)[0], photo(ib), pa, pb, lsm, around=(xy[ia][na], xy[ib][nb]))
-            idx = pair_tasks[ok.numpy(), 1]
-            new_xy[ib][idx - start[ib]] = out[ok]
-            moved[idx] = True
-            shifts.append((out[ok] - pb[ok]).norm(dim=1).numpy())
+            return ib, pair_tasks[:, 1], out, ok
+
+        shifts: list[np.ndarray] = []
+        workers = opts.workers or max(1, min(REFINE_WORKERS, os.cpu_count() or 1))
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            for ib, nodes, out, ok in pool.map(align, _by_pair(tracks, todo)):
+                idx = nodes[ok.numpy()]
+                new_xy[ib][idx - start[ib]] = out[ok]
+                moved[idx] = True
+                shifts.append((out[ok] - xy[ib][idx - start[ib]]).norm(dim=1).numpy())
         for i in tracks.image_ids:
             if len(keypoints[i]) and moved[start[i] : start[i] + len(keypoints[i])].any():
                 rows = np.array(keypoints[i], np.float32, copy=True)
