@@ -17,7 +17,6 @@ with a high correlation.
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections.abc import Iterator
@@ -36,6 +35,7 @@ from scipy.sparse.csgraph import connected_components
 from ..features.subpixel import SubpixelOptions, gradient_maps, refine_on_maps
 from ..imageio import read_image
 from ..lru import ByteLRU
+from . import pair_threads
 from .colmapdb import COLMAP_OFFSET
 
 UNUSABLE = (pycolmap.TwoViewGeometryConfiguration.UNDEFINED, pycolmap.TwoViewGeometryConfiguration.DEGENERATE)
@@ -50,10 +50,7 @@ class TrackRefineOptions:
     neighbour_radius: float = 100.0  # photo pixels: the scale of the neighbours' weights
     max_track: int = 64  # observations; a larger component is several scene points chained together
     images_mb: float = 512.0  # decoded photos held at once
-    workers: int = 0  # pairs aligned at once; 0: one per core, at most REFINE_WORKERS
-
-
-REFINE_WORKERS = 4
+    workers: int = 0  # pairs aligned at once; 0: sfm.pair_threads()
 
 
 @dataclass
@@ -216,7 +213,7 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
             return ib, pair_tasks[:, 1], out, ok
 
         shifts: list[np.ndarray] = []
-        workers = opts.workers or max(1, min(REFINE_WORKERS, os.cpu_count() or 1))
+        workers = opts.workers or pair_threads()
         with ThreadPoolExecutor(max_workers=workers) as pool:
             for ib, nodes, out, ok in pool.map(align, _by_pair(tracks, todo)):
                 idx = nodes[ok.numpy()]

@@ -36,7 +36,6 @@ Relative rotations come from the verified inliers: an essential matrix on normal
 
 from __future__ import annotations
 
-import os
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Set
 from concurrent.futures import ThreadPoolExecutor
@@ -45,6 +44,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 import pycolmap
+
+from . import pair_threads
 
 # a loop holds when the composed rotation is within this angle of the identity; three noisy
 # estimates compose their errors, and pairs with little parallax give rotations to about a degree
@@ -378,7 +379,7 @@ def _rotations(
         jobs.append((a, b, g, cameras[images[a].camera_id], cameras[images[b].camera_id], kp(a), kp(b)))
     # one pair's RANSACs run single-threaded in OpenCV and release the GIL: the pairs go side by
     # side on the cores (each RANSAC seeds its own generator, so the result does not depend on it)
-    with ThreadPoolExecutor(max_workers=max(1, min(4, os.cpu_count() or 1))) as pool:
+    with ThreadPoolExecutor(max_workers=pair_threads()) as pool:
         found = list(pool.map(lambda j: candidate_rotations(j[3], j[4], j[5], j[6], j[2]), jobs))
     out: dict[tuple[int, int], list[np.ndarray]] = {}
     inliers: dict[tuple[int, int], int] = {}
