@@ -33,6 +33,7 @@ def unit(n: int, seed: int) -> torch.Tensor:
 def test_mutual_neighbours_match_a_pair_by_pair_reference(
     block_bytes: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(guided, "CPU_BLOCK_BYTES", block_bytes)
     monkeypatch.setattr(guided, "BLOCK_BYTES", block_bytes)
     db = unit(40, 1)
     # half of A are noisy copies of B's points, so many mutual pairs exist
