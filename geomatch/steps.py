@@ -49,6 +49,7 @@ from .lru import ByteLRU
 from .matching.matcher import Matcher, MatcherConfig, MatchResult
 from .matching.rotation import PROBE_MARGIN, best_turn, points_back, quarter_turn
 from .matching.tiling import SELECT_MIN_PROBE, Crop, TiledMatches, five_crops, match_tiled, select_crops
+from .matching.turnhint import HINT_MIN_INLIERS, SiftHints, TurnHint
 from .metadata import ImageMeta
 from .options import DEFAULTS, IMAGE_SUFFIXES
 from .sfm import pairs as pairing
@@ -379,6 +380,7 @@ def plan(
             gps_enu,
             progress,
             sure=TURN_SURE_SEED if guided else TURN_SURE,
+            hint=SiftHints().hint,
         )
         planned = pairing.with_turns(planned, turns)
     return sorted(planned, key=lambda p: (not p.tiled, p.name0 if p.aerial_first else p.name1, p.key))
@@ -421,13 +423,17 @@ def image_turns(
     enu: Mapping[str, np.ndarray],
     progress: bool = False,
     sure: int = TURN_SURE,
+    hint: Callable[[str, np.ndarray, str, np.ndarray], TurnHint] | None = None,
 ) -> dict[str, int]:
     """Each aerial photo's quarter turn (np.rot90) into one frame for the project, decided once
     per image instead of once per pair: the image with the most planned partners is the frame;
     every other one is scored (``score``: Matcher.turn_score) at the four turns against its nearest
     partners already decided (the photo taken before or after it, else by GPS distance). A pair
     then matches with each image at its own turn (one turned copy per image, so features once),
-    unprobed. An image whose probes do not settle keeps the per-pair probe on its pairs.
+    unprobed. An image whose probes do not settle keeps the per-pair probe on its pairs. With
+    ``hint`` (SiftHints.hint: rotation-invariant, one cheap extraction per photo) a pair the hint
+    finds no overlap in is not probed and costs the image none of its probes, and the turn the hint
+    reads from the pair is scored first: the score still decides.
 
     Why not the photos' own headings (DJI XMP gimbal yaw, or the direction of travel between
     GPS fixes): on the real surveys they do not say how the pixels are turned. brighton_beach's
@@ -477,13 +483,20 @@ def image_turns(
         if not options:
             break
         _, _, n, p = min(options)
-        probed[n] = probed.get(n, 0) + 1
         tried.add(p.key)
         known = p.name1 if p.name0 == n else p.name0
+        first = turns[known]
+        if hint is not None:
+            h = hint(known, images[known], n, images[n])
+            log.debug("turn hint %s -> %s: %s", known, n, h)
+            if h.inliers < HINT_MIN_INLIERS:
+                continue  # the two share nothing: four turned copies would score noise
+            first = (turns[known] + h.turn) % 4
+        probed[n] = probed.get(n, 0) + 1
         # scored in the frame: the partner as it will be matched (its features are reused), the
-        # image first at the partner's turn, then the half turn of a line flown back; a turn with
-        # a sure score is the answer without trying the rest
-        counts = turn_scores(score, quarter_turn(images[known], turns[known]), images[n], turns[known], sure)
+        # image first at the hinted turn or else the partner's, then the half turn of a line flown
+        # back; a turn with a sure score is the answer without trying the rest
+        counts = turn_scores(score, quarter_turn(images[known], turns[known]), images[n], first, sure)
         best, runner_up = sorted(counts, reverse=True)[:2]
         log.debug("turn probe %s -> %s: %s", known, n, counts)
         if best < TURN_MIN_MATCHES or (best < sure and best < PROBE_MARGIN * max(runner_up, 1)):

@@ -10,6 +10,7 @@ from PIL import Image
 
 from geomatch.geo.survey import is_survey_track
 from geomatch.matching.rotation import quarter_turn
+from geomatch.matching.turnhint import TurnHint
 from geomatch.metadata import ImageMeta
 from geomatch.sfm.pairs import exhaustive, finalize
 from geomatch.steps import Images, aerial_set, captures, image_turns
@@ -110,3 +111,48 @@ def test_turns_grow_along_the_capture_order_so_each_photo_is_turned_about_once(t
     assert turns == {name: (4 - true_turn[i]) % 4 for i, name in enumerate(names)}
     # one copy per photo but the root (it is the frame), and the half turn of the line's first
     assert len(scored) == (n - 1) + 1, sorted(scored)
+
+
+def _two_lines(tmp_path: Path, n: int = 12) -> tuple[list[str], dict[str, np.ndarray], dict[int, int]]:
+    """The survey of the test above: two lines, the second turned by a half turn, its fixes on the
+    other line's photos."""
+    true_turn = {i: 0 if i < n // 2 else 2 for i in range(n)}
+    names = [f"IMG_{i:04d}.png" for i in range(n)]
+    enu = {}
+    for i, name in enumerate(names):
+        x = 2.0 * i if i < n // 2 else 2.0 * (n - 1 - i)
+        enu[name] = np.array([x, 0.0 if i < n // 2 else 1.0, 80.0])
+        Image.fromarray(_shot(i, true_turn[i])).save(tmp_path / name)
+    return names, enu, true_turn
+
+
+@pytest.mark.parametrize("hint_right", [True, False])
+def test_a_turn_hint_skips_pairs_that_share_nothing_and_orders_the_turns_but_the_score_decides(
+    tmp_path: Path, hint_right: bool
+) -> None:
+    """Where every photo's line-mate is its only overlap, and the hint (SIFT in the plan) sees
+    that: the pairs across lines are never scored, and each photo is scored at one turned copy,
+    the line's first photo too, whose turn only the hint knows. A hint that reads the wrong turn
+    costs more copies, not a wrong turn."""
+    names, enu, true_turn = _two_lines(tmp_path)
+    scored: list[tuple[int, int, int]] = []
+
+    def score(fixed: np.ndarray, moving: np.ndarray) -> int:
+        (i, ti), (j, tj) = _read(fixed), _read(moving)
+        scored.append((i, j, tj))
+        return 500 if abs(i - j) == 1 and ti == 0 and tj == 0 else 15
+
+    def hint(name0: str, image0: np.ndarray, name1: str, image1: np.ndarray) -> TurnHint:
+        (i, ti), (j, tj) = _read(image0), _read(image1)
+        overlap = (abs(i - j) == 1 and (i < 6) == (j < 6)) or {i, j} == {5, 6}
+        turn = (ti - tj) % 4 if hint_right else (ti - tj + 1) % 4
+        return TurnHint(turn, 300 if overlap else 4)
+
+    plan = finalize(exhaustive(names), set(names))
+    turns = image_turns(plan, score, Images(tmp_path), enu, hint=hint)
+    assert turns == {name: (4 - true_turn[i]) % 4 for i, name in enumerate(names)}
+    assert all(abs(i - j) == 1 for i, j, _ in scored)  # no pair across the lines was scored
+    if hint_right:
+        assert len(scored) == len(names) - 1  # one turned copy per photo but the root
+    else:
+        assert len(scored) > len(names) - 1
