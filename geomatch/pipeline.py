@@ -11,9 +11,10 @@ pairs.
 from __future__ import annotations
 
 import dataclasses
+import queue
+import threading
 import time
 from collections.abc import Mapping
-from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,7 @@ from .matching.matcher import config_from_options
 from .metadata import read_metadata
 from .options import DEFAULTS, cache_budget, parse_plan, resolve
 from .sfm import mapping
-from .sfm.colmapdb import ColmapDatabase
+from .sfm.colmapdb import ColmapDatabase, PairWrite
 from .steps import PipelineError as PipelineError  # a run's bad input; defined with the stages
 from .steps import list_images as list_images
 
@@ -71,6 +72,56 @@ class RunOptions:
         resolved = resolve(values)
         matcher = {k: v for k, v in resolved.items() if k not in own}
         return cls(**{k: v for k, v in resolved.items() if k in own}, matcher=matcher, **fields)
+
+
+class PairWriter:
+    """The run's pairs into its COLMAP database on a thread of their own, in the order matched.
+
+    Why: a pair's write is mostly COLMAP's verification (RANSAC in pycolmap, which releases the
+    GIL) and the matcher does not keep both cores busy, so the write of one pair overlaps the
+    matching of the next; the queue holds a few pairs' matches, so memory stays bounded. Only this
+    thread touches the database while it runs. A failed write stops the run with its error at
+    the next pair, and the pairs written before it stay written (the run resumes there)."""
+
+    QUEUE_PAIRS = 4
+
+    def __init__(self, database: Path, radius: float, resize: int | None) -> None:
+        self.database, self.radius, self.resize = database, radius, resize
+        self.seconds = 0.0  # the writes' own time; they overlap the matching
+        self.last: PairWrite | None = None
+        self._queue: queue.Queue[tuple[int, int, steps.PairMatches] | None] = queue.Queue(self.QUEUE_PAIRS)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="pair-writer", daemon=True)
+
+    def __enter__(self) -> PairWriter:
+        self._thread.start()
+        return self
+
+    def put(self, id0: int, id1: int, matches: steps.PairMatches) -> None:
+        self._raise()
+        self._queue.put((id0, id1, matches))
+
+    def __exit__(self, *exc: object) -> None:
+        self._queue.put(None)
+        self._thread.join()
+        if exc[0] is None:
+            self._raise()
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    def _run(self) -> None:
+        with ColmapDatabase(self.database) as db:
+            while (item := self._queue.get()) is not None:
+                if self._error is not None:
+                    continue  # drained so that the producer never blocks on a dead writer
+                try:
+                    t0 = time.perf_counter()
+                    self.last = steps.write(db, *item, self.radius, self.resize)
+                    self.seconds += time.perf_counter() - t0
+                except BaseException as e:  # handed to the matching thread, which raises it
+                    self._error = e
 
 
 def pair_timing_summary(pair_seconds: dict[str, list[float]]) -> dict[str, float]:
@@ -131,24 +182,27 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     priors = gpsfix.write_pose_priors(out / "database.db", ids, fixes) if fixes is not None else 0
     with ColmapDatabase(out / "database.db") as db:
         todo = steps.unmatched(db, ids, planned)
-        bar = tqdm(todo, desc=f"matching ({opts.method})", unit="pair", disable=not opts.progress)
+    bar = tqdm(todo, desc=f"matching ({opts.method})", unit="pair", disable=not opts.progress)
+    with PairWriter(out / "database.db", opts.snap_radius, matcher.config.resize) as writer:
         for p in bar:
-            target = steps.PairTarget(lambda: nullcontext(db), ids[p.name0], ids[p.name1], opts.snap_radius)
-            r = steps.run_pair(
+            t0 = time.perf_counter()
+            m = steps.match(
                 matcher,
                 p,
                 images[p.name0],
                 images[p.name1],
-                target,
                 opts.match_cache,
                 bool(aerial),
-                survey=aerial >= set(names),
+                aerial >= set(names),
             )
-            assert r.written is not None  # the run's own database takes every write
-            timings["matching"] += r.match_s
-            pair_seconds["tiled" if p.tiled else "plain"].append(r.match_s)
-            timings["writing"] += r.write_s
-            bar.set_postfix(matches=r.written.matches, inliers=r.written.inliers)
+            match_s = time.perf_counter() - t0
+            timings["matching"] += match_s
+            pair_seconds["tiled" if p.tiled else "plain"].append(match_s)
+            writer.put(ids[p.name0], ids[p.name1], m)
+            if writer.last is not None:
+                bar.set_postfix(matches=writer.last.matches, inliers=writer.last.inliers)
+    timings["writing"] = writer.seconds
+    with ColmapDatabase(out / "database.db") as db:
         db_stats = db.stats()
     t_map = time.perf_counter()
     summary = mapping.reconstruct(

@@ -9,7 +9,7 @@ from kornia.feature.disk.detector import heatmap_to_keypoints
 from torch import nn
 
 from geomatch.features.aliked import AlikedExtractor
-from geomatch.features.aliked_strips import aliked_maps
+from geomatch.features.aliked_strips import aliked_maps, sddh_descriptors
 from geomatch.features.disk import DiskExtractor
 from geomatch.features.disk_strips import disk_maps
 from geomatch.features.pooling import pool_to_grid
@@ -84,3 +84,17 @@ def test_aliked_maps_equal_extract_dense_map(size: tuple[int, int]) -> None:
     assert fmap.shape == ref_fmap.shape and score.shape == ref_score.shape
     assert torch.allclose(fmap, ref_fmap, atol=1e-5)
     assert torch.allclose(score, ref_score, atol=1e-5)
+
+
+@pytest.mark.nets
+@torch.inference_mode()
+@pytest.mark.parametrize("parts", [1, 2, 3])
+def test_descriptors_sampled_in_parts_equal_the_deformable_head(parts: int) -> None:
+    net = AlikedExtractor(CPU, max_keypoints=500).net
+    img = _image(176, 208)
+    fmap, score = aliked_maps(net, img)
+    kpts, _, _ = net.dkd(score)
+    assert len(kpts[0]) > 100
+    ref, _ = net.desc_head(fmap, kpts)
+    got = sddh_descriptors(net.desc_head, fmap, kpts[0], parts=parts)
+    assert torch.equal(got, ref[0])  # the same samples, only spread over the cores

@@ -7,7 +7,7 @@ import torch.nn.functional as F
 from kornia.feature import ALIKED
 
 from ..weights import load_state_dict
-from .aliked_strips import aliked_maps
+from .aliked_strips import aliked_maps, sddh_descriptors
 from .base import DenseFeatures, Extractor, ImageFeatures, SparseFeatures
 from .pooling import FINE_DTYPE, pool_to_grid
 
@@ -41,11 +41,11 @@ class AlikedExtractor(Extractor):
         # the full-resolution head in row strips: same maps, about half the peak memory
         feature_map, score_map = aliked_maps(net, image)
         kpts_n, scores, _ = net.dkd(score_map)
-        desc, _ = net.desc_head(feature_map, kpts_n)
+        descriptors = sddh_descriptors(net.desc_head, feature_map, kpts_n[0])
         h, w = image.shape[-2:]
         wh = torch.tensor([w - 1, h - 1], device=image.device, dtype=torch.float32)
         keypoints = wh * (kpts_n[0] + 1) / 2.0  # align_corners frame: pixel centres at integers
-        sparse = SparseFeatures(keypoints, F.normalize(desc[0], dim=-1), scores[0], (w, h))
+        sparse = SparseFeatures(keypoints, F.normalize(descriptors, dim=-1), scores[0], (w, h))
         if not dense:
             return ImageFeatures(sparse=sparse)
         fmap = feature_map[0]

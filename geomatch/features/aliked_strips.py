@@ -11,8 +11,9 @@ strip: same numbers, about half the peak.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from kornia.feature import ALIKED
-from kornia.feature.aliked.aliked import InputPadder
+from kornia.feature.aliked.aliked import SDDH, InputPadder
 
 from .strips import row_strips, rows_through
 
@@ -46,3 +47,54 @@ def aliked_maps(
         strip = fmap[..., r0:r1, :]
         strip.div_(strip.norm(p=2, dim=1, keepdim=True).clamp_min(1e-12))
     return padder.unpad(fmap), padder.unpad(score)
+
+
+def sddh_descriptors(
+    head: SDDH, feature_map: torch.Tensor, keypoints: torch.Tensor, parts: int = 2
+) -> torch.Tensor:
+    """``head(feature_map, [keypoints])[0][0]``: ALIKED's deformable descriptors of one image.
+
+    Why not the head itself: on the CPU PyTorch's ``grid_sample`` spreads its work over the batch
+    only, so sampling 4096 points x 16 positions from one 128-channel map runs on one core (0.14 s
+    of a 0.45 s extraction at 640 px). Here the sample positions are cut into ``parts`` batch
+    entries over the same map (expanded, not copied): every sample is computed as before, so the
+    descriptors are equal, on ``parts`` cores."""
+    x = feature_map[0]
+    c, h, w = x.shape
+    wh = torch.tensor([[w - 1, h - 1]], device=x.device, dtype=torch.promote_types(x.dtype, torch.float32))
+    kpts_wh = (keypoints / 2 + 0.5) * wh
+    n = len(keypoints)
+    if head.kernel_size > 1:
+        patch = head.get_patches_func(x, kpts_wh.long(), head.kernel_size)
+    else:
+        k = kpts_wh.long()
+        patch = x[:, k[:, 1], k[:, 0]].permute(1, 0).reshape(n, c, 1, 1)
+    offset = head.offset_conv(patch).clamp(-max(h, w) / 4.0, max(h, w) / 4.0)
+    mask_w = None
+    if head.mask:
+        offset = offset[:, :, 0, 0].view(n, 3, head.n_pos).permute(0, 2, 1)
+        mask_w = torch.sigmoid(offset[:, :, -1])
+        offset = offset[:, :, :-1]
+    else:
+        offset = offset[:, :, 0, 0].view(n, 2, head.n_pos).permute(0, 2, 1)
+    pos = 2.0 * (kpts_wh.unsqueeze(1) + offset) / wh[None] - 1
+    grid = pos.reshape(n * head.n_pos, 2).to(x.dtype)
+    total = n * head.n_pos
+    parts = max(1, min(parts, total))
+    if x.device.type != "cpu" or total % parts:
+        parts = 1  # a GPU spreads one sample grid over its cores already
+    sampled = F.grid_sample(
+        x.unsqueeze(0).expand(parts, -1, -1, -1),
+        grid.reshape(parts, total // parts, 1, 2),
+        "bilinear",
+        align_corners=True,
+    )  # (parts, C, total / parts, 1)
+    features = sampled.permute(1, 0, 2, 3).reshape(c, n, head.n_pos, 1).permute(1, 0, 2, 3)
+    if mask_w is not None:
+        features = torch.einsum("ncpo,np->ncpo", features, mask_w)
+    features = torch.selu_(head.sf_conv(features)).squeeze(-1)
+    if not head.conv2d:
+        descs = torch.einsum("ncp,pcd->nd", features, head.agg_weights)
+    else:
+        descs = head.convM(features.reshape(n, -1)[:, :, None, None]).squeeze(-1).squeeze(-1)
+    return F.normalize(descs, p=2.0, dim=1)
