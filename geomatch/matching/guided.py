@@ -26,8 +26,8 @@ from ..geometry import homogeneous
 # rows of the (N, M) matrices computed at once, in bytes of float32 per matrix. On the CPU a block
 # small enough to stay in cache: the passes over it (similarity, Sampson gate, top two, column
 # maxima) then read cached memory, and no temporary is large enough for the allocator to map fresh
-# pages for it; on 4096 x 4096 points 2 MiB blocks took 30 ms for the seed pass and 50 ms for the
-# guided one, 64 MiB blocks 50 and 120 ms. On a GPU, few large blocks: each is a dozen launches.
+# pages for it (docs/benchmarks.md, drone surveys). On a GPU, few large blocks: each is a dozen
+# launches.
 CPU_BLOCK_BYTES = 2 * 2**20
 BLOCK_BYTES = 64 * 2**20
 
