@@ -55,8 +55,8 @@ def sddh_descriptors(
     """``head(feature_map, [keypoints])[0][0]``: ALIKED's deformable descriptors of one image.
 
     Why not the head itself: on the CPU PyTorch's ``grid_sample`` spreads its work over the batch
-    only, so sampling 4096 points x 16 positions from one 128-channel map runs on one core (0.14 s
-    of a 0.45 s extraction at 640 px). Here the sample positions are cut into ``parts`` batch
+    only, so sampling 4096 points x 16 positions from one 128-channel map runs on one core (a
+    third of an extraction). Here the sample positions are cut into ``parts`` batch
     entries over the same map (expanded, not copied): every sample is computed as before, so the
     descriptors are equal, on ``parts`` cores."""
     x = feature_map[0]

@@ -2,12 +2,12 @@
 
 Why: the plan decides each aerial photo's quarter turn by scoring the guided matcher's seed F at
 the four turns (steps.image_turns), and every turn it scores is an ALIKED extraction of a turned
-copy (~0.45 s at 640 px on the 2-core CPU) that is thrown away unless it wins. A pair that does
-not overlap at all (GPS neighbours on adjacent lines, a compact camera's fixes tens of metres off)
-costs all four. SIFT is invariant to in-plane rotation, so one extraction per photo (~0.05 s)
-says both whether a pair overlaps (inliers of a similarity fitted to its matches) and, from that
-similarity's angle, which quarter turn the ALIKED score should try first. The networks still
-decide the turn: the hint only orders the turns tried and skips the pairs that share nothing.
+copy that is thrown away unless it wins. A pair that does not overlap at all (GPS neighbours on
+adjacent lines, a compact camera's fixes tens of metres off) costs all four. SIFT is invariant to
+in-plane rotation, so one extraction per photo (a tenth of an ALIKED one) says both whether a pair
+overlaps (inliers of a similarity fitted to its matches) and, from that similarity's angle, which
+quarter turn the ALIKED score should try first. The networks still decide the turn: the hint only
+orders the turns tried and skips the pairs that share nothing.
 """
 
 from __future__ import annotations
