@@ -183,6 +183,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     with ColmapDatabase(out / "database.db") as db:
         todo = steps.unmatched(db, ids, planned)
     bar = tqdm(todo, desc=f"matching ({opts.method})", unit="pair", disable=not opts.progress)
+    survey = aerial >= set(names)  # every image aerial: the survey pairs' matcher (steps.match)
     with PairWriter(out / "database.db", opts.snap_radius, matcher.config.resize) as writer:
         for p in bar:
             t0 = time.perf_counter()
@@ -193,7 +194,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
                 images[p.name1],
                 opts.match_cache,
                 bool(aerial),
-                aerial >= set(names),
+                survey,
             )
             match_s = time.perf_counter() - t0
             timings["matching"] += match_s
