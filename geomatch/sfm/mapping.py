@@ -27,11 +27,17 @@ from .sqlitecopy import snapshot_sqlite
 from .trackrefine import refine_tracks
 from .viewgraph import filter_database
 
-# from this many images on, the incremental mapper's global bundle adjustments leave out the 3D
-# points whose cameras other points already hold (COLMAP's ba_global_ignore_redundant_points3D):
-# on the 75-photo caliterra survey the mapper took 156 s instead of 200 s for the same cameras,
-# points and GPS fit; the ground scenes of a few dozen photos keep COLMAP's default
+# from this many images on, the incremental mapper's global bundle adjustments are lighter: they
+# leave out the 3D points whose cameras other points already hold (COLMAP's
+# ba_global_ignore_redundant_points3D), run when the model has grown by LARGE_BA_GROWTH in images
+# or points since the last one instead of COLMAP's 10 %, and refine LARGE_BA_REFINEMENTS time(s)
+# (COLMAP: up to 5). Why: global adjustments are most of a survey's mapping time and grow with the
+# model, while the local adjustment after each image keeps the new cameras right in between; the
+# drone surveys kept the same cameras, points and GPS fit (docs/benchmarks.md). Projects of a few
+# dozen photos (the ground scenes) keep COLMAP's defaults.
 LARGE_PROJECT_IMAGES = 40
+LARGE_BA_GROWTH = 1.3
+LARGE_BA_REFINEMENTS = 1
 
 
 def sfm_stats(rec: pycolmap.Reconstruction, n_images: int) -> dict[str, Any]:
@@ -66,6 +72,22 @@ def verify(database: Path, verbose: bool = False) -> int:
             with colmap_log(verbose):
                 pycolmap.verify_matches(str(database), str(pairs_path))
     return len(pending)
+
+
+def incremental_options(
+    n_images: int, min_model_size: int, min_pose_inliers: int, seed: int
+) -> pycolmap.IncrementalPipelineOptions:
+    """COLMAP's incremental mapper as a project of ``n_images`` gets it (LARGE_PROJECT_IMAGES)."""
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.min_model_size = min_model_size
+    opts.random_seed = seed
+    opts.mapper.abs_pose_min_num_inliers = min_pose_inliers
+    if n_images >= LARGE_PROJECT_IMAGES:
+        opts.mapper.ba_global_ignore_redundant_points3D = True
+        opts.ba_global_frames_ratio = LARGE_BA_GROWTH
+        opts.ba_global_points_ratio = LARGE_BA_GROWTH
+        opts.ba_global_max_refinements = LARGE_BA_REFINEMENTS
+    return opts
 
 
 def reconstruct(
@@ -133,18 +155,16 @@ def reconstruct(
     bar = tqdm(total=n_images, desc=f"mapping ({mapper})", unit="image", disable=not progress)
     with bar, colmap_log(verbose):
         if mapper == "incremental":
-            opts = pycolmap.IncrementalPipelineOptions()
-            opts.min_model_size = min_model_size
-            opts.random_seed = seed
-            opts.mapper.abs_pose_min_num_inliers = min_pose_inliers or (
-                TILED_MIN_POSE_INLIERS if tiled else MIN_POSE_INLIERS
-            )
-            opts.mapper.ba_global_ignore_redundant_points3D = n_images >= LARGE_PROJECT_IMAGES
             models = pycolmap.incremental_mapping(
                 str(mapped),
                 str(image_dir),
                 str(work),
-                opts,
+                incremental_options(
+                    n_images,
+                    min_model_size,
+                    min_pose_inliers or (TILED_MIN_POSE_INLIERS if tiled else MIN_POSE_INLIERS),
+                    seed,
+                ),
                 initial_image_pair_callback=lambda: bar.update(2),
                 next_image_callback=lambda: bar.update(1),
             )

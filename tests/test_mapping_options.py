@@ -1,0 +1,41 @@
+"""A survey's mapper runs lighter global bundle adjustments, while a project of a few dozen
+photos keeps COLMAP's own schedule: the ground scenes' table was measured with it."""
+
+from __future__ import annotations
+
+import pycolmap
+import pytest
+
+from geomatch.sfm.mapping import (
+    LARGE_BA_GROWTH,
+    LARGE_BA_REFINEMENTS,
+    LARGE_PROJECT_IMAGES,
+    incremental_options,
+)
+
+pytestmark = pytest.mark.unit
+
+
+def test_a_small_project_keeps_colmaps_global_adjustments() -> None:
+    colmap = pycolmap.IncrementalPipelineOptions()
+    opts = incremental_options(LARGE_PROJECT_IMAGES - 1, 3, 30, 0)
+    assert opts.ba_global_frames_ratio == colmap.ba_global_frames_ratio
+    assert opts.ba_global_points_ratio == colmap.ba_global_points_ratio
+    assert opts.ba_global_max_refinements == colmap.ba_global_max_refinements
+    redundant = colmap.mapper.ba_global_ignore_redundant_points3D
+    assert opts.mapper.ba_global_ignore_redundant_points3D == redundant
+
+
+def test_a_survey_runs_fewer_and_lighter_global_adjustments() -> None:
+    colmap = pycolmap.IncrementalPipelineOptions()
+    opts = incremental_options(LARGE_PROJECT_IMAGES, 3, 30, 0)
+    assert colmap.ba_global_frames_ratio < LARGE_BA_GROWTH
+    assert opts.ba_global_frames_ratio == pytest.approx(LARGE_BA_GROWTH)
+    assert opts.ba_global_points_ratio == pytest.approx(LARGE_BA_GROWTH)
+    assert opts.ba_global_max_refinements == LARGE_BA_REFINEMENTS < colmap.ba_global_max_refinements
+    assert opts.mapper.ba_global_ignore_redundant_points3D
+
+
+def test_the_run_options_reach_the_mapper() -> None:
+    opts = incremental_options(10, 5, 15, 7)
+    assert (opts.min_model_size, opts.mapper.abs_pose_min_num_inliers, opts.random_seed) == (5, 15, 7)
