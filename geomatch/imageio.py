@@ -70,7 +70,7 @@ def image_key(image: np.ndarray) -> str:
     """Content hash of the decoded pixels: the feature cache key."""
     h = hashlib.sha256()
     h.update(str(image.shape).encode())
-    h.update(np.ascontiguousarray(image).tobytes())
+    h.update(np.ascontiguousarray(image).data)  # the buffer itself: no copy of the pixels
     return h.hexdigest()
 
 
