@@ -11,7 +11,8 @@ reported apart; tune on the first only.
 Raw pair matches are cached per scene under bench/out/air_ground_sweep, keyed by the pixels, the
 pair and the matcher's config, so a re-run after a change re-matches only the pairs it changes.
 ``--tiled-floor N`` writes the tiled pairs with steps.TILED_MIN_INLIERS set to N (0: COLMAP's own
-floor only), the ablation row of that floor; it matches nothing again.
+floor only), the ablation row of that floor; ``--min-pose-inliers N`` maps with that PnP minimum
+(RunOptions.min_pose_inliers; 0: the default); neither matches anything again.
 
     python bench/air_ground_sweep.py --layouts 2+4 --seeds 4242,1,2 --test-seeds 100,101
 """
@@ -65,14 +66,15 @@ SUMMARY_COLUMNS = [
 ]
 
 
-def run_seed(layout: str, seed: int, split: str) -> dict[str, Any]:
+def run_seed(layout: str, seed: int, split: str, min_pose_inliers: int = 0) -> dict[str, Any]:
     n_aerial, n_ground = (int(x) for x in layout.split("+"))
     scene = OUT / f"scene_a{n_aerial}_g{n_ground}_s{seed}"
     if not (scene / "gt" / "images.txt").is_file():
         write_scene(scene, n_aerial, n_ground, seed)
-    out = scene / f"run_floor{steps.TILED_MIN_INLIERS}"
+    out = scene / f"run_floor{steps.TILED_MIN_INLIERS}_pnp{min_pose_inliers}"
     shutil.rmtree(out, ignore_errors=True)  # a fresh database; raw matches come from the cache
-    s = run(scene / "images", out, RunOptions(match_cache=str(scene / "matches"), progress=False))
+    opts = RunOptions(match_cache=str(scene / "matches"), progress=False, min_pose_inliers=min_pose_inliers)
+    s = run(scene / "images", out, opts)
     m = evaluate_run(out, scene / "gt").metrics
     gt = pycolmap.Reconstruction(str(scene / "gt"))
     aerial = set(s["aerial"])
@@ -140,6 +142,7 @@ def main() -> None:
     ap.add_argument("--seeds", default="4242,1-9", help="tuning seeds")
     ap.add_argument("--test-seeds", default="", help="test seeds, reported apart (never tune on them)")
     ap.add_argument("--tiled-floor", type=int, help="steps.TILED_MIN_INLIERS for this run")
+    ap.add_argument("--min-pose-inliers", type=int, default=0, help="PnP minimum (0: the default)")
     ap.add_argument("--json", type=Path, help="append each seed's row to this JSON-lines file")
     args = ap.parse_args()
     if args.tiled_floor is not None:
@@ -149,12 +152,14 @@ def main() -> None:
     for layout in args.layouts.split(","):
         for split, spec in (("tuning", args.seeds), ("test", args.test_seeds)):
             for seed in seeds(spec):
-                row = run_seed(layout, seed, split)
+                row = run_seed(layout, seed, split, args.min_pose_inliers)
                 rows.append(row)
                 if args.json:
                     with args.json.open("a") as f:
                         f.write(json.dumps(row) + "\n")
     label = f"defaults, tiled pairs verified from {steps.TILED_MIN_INLIERS} inliers"
+    if args.min_pose_inliers:
+        label += f", PnP minimum {args.min_pose_inliers}"
     print_table(f"Air-to-ground sweep, geomatch run ({label}), per seed", SEED_COLUMNS, rows)
     print_table(
         f"Air-to-ground sweep ({label}): correct = <= 3 deg and <= 5% of the scene extent; "
