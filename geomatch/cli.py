@@ -82,12 +82,18 @@ def _run_options(args: argparse.Namespace) -> RunOptions:
     aerial_names = None
     if args.aerial_list is not None:
         aerial_names = [ln.strip() for ln in args.aerial_list.read_text().splitlines() if ln.strip()]
+    spec = args.checkpoints.strip()
+    checkpoints: list[str] | int = (
+        int(spec) if spec.isdigit() else [n.strip() for n in spec.split(",") if n.strip()]
+    )
     return RunOptions.of(
         values,
         pairs_list=pairs_list,
         aerial_glob=args.aerial,
         aerial_names=aerial_names,
         verbose=args.verbose,
+        gcp=str(args.gcp) if args.gcp is not None else None,
+        checkpoints=checkpoints,
     )
 
 
@@ -100,8 +106,36 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"geomatch: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
     print(format_summary(summary))
+    if "gcp" in summary:
+        print(format_gcp(summary["gcp"]))
     print(f"model: {args.out}/sparse/0 (binary + text), {args.out}/points.ply, {args.out}/summary.json")
     return 0
+
+
+def format_gcp(g: Mapping[str, Any]) -> str:
+    """The GCP lines a surveyor reads first: what the fit used, how the check points came out,
+    and every point left out with its reason."""
+    lines = []
+    if "error" in g:
+        lines.append(f"GCPs: not georeferenced: {g['error']}")
+    else:
+        roles = [p["role"] for p in g["points"]]
+        head = f"GCPs ({g['crs']}): {roles.count('control')} control, {roles.count('check')} check"
+        if "check_rmse_horizontal_m" in g:
+            head += (
+                f"; check-point RMSE {g['check_rmse_horizontal_m']:.3f} m horizontal,"
+                f" {g['check_rmse_3d_m']:.3f} m 3D"
+            )
+        if "control_rmse_3d_m" in g:
+            head += f"; control RMSE {g['control_rmse_3d_m']:.3f} m 3D"
+        lines.append(head)
+        lines += [f"  {p['name']}: not used: {p['reason']}" for p in g["points"] if p["role"] == "unused"]
+    lines += [
+        f"  {problem}"
+        for problem in g.get("problems", [])
+        if problem.split(":")[0] not in g.get("unusable", {})
+    ]
+    return "\n".join(lines)
 
 
 def format_summary(s: Mapping[str, Any]) -> str:
@@ -282,6 +316,19 @@ def register(sub: Any) -> None:
     air.add_argument("--aerial", default=None, metavar="GLOB", help="aerial images by name pattern")
     air.add_argument(
         "--aerial-list", type=Path, default=None, metavar="FILE", help="aerial names, one per line"
+    )
+    r.add_argument(
+        "--gcp",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="ground control points (OpenDroneMap's gcp_list.txt): the model is written in their frame",
+    )
+    r.add_argument(
+        "--checkpoints",
+        default="",
+        metavar="NAMES|N",
+        help="with --gcp: GCPs held out of the fit to judge it, by name (comma-separated) or how many",
     )
     options.add_arguments(
         r, options.RUN_OPTIONS, pairs=options.PAIR_SPEC_HELP + " | a file of pairs (two names per line)"

@@ -22,7 +22,9 @@ from typing import Any
 from tqdm import tqdm
 
 from . import steps
+from .geo import gcp as gcpgeo
 from .geo import gps as gpsfix
+from .geo.gcpfile import GcpError, GcpFile, read_gcp_file
 from .matching.matcher import config_from_options
 from .metadata import read_metadata
 from .options import DEFAULTS, cache_budget, parse_plan, resolve
@@ -58,6 +60,11 @@ class RunOptions:
     track_refine: bool = True
     # images with EXIF GPS: pose priors in the database, the model moved into ENU metres
     georeference: bool = True
+    # ground control points (OpenDroneMap's gcp_list.txt): the model is moved into their frame
+    # (geomatch.geo.gcp), over the GPS georeferencing; ``checkpoints``: the points held out of the
+    # fit to judge it, by name, or how many (0: none)
+    gcp: str | None = None
+    checkpoints: list[str] | int = 0
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
     match_cache: str | None = None  # folder of raw pair matches shared by runs (benchmarks, variants)
     progress: bool = True
@@ -147,6 +154,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     names = steps.list_images(image_dir)
     metas = {n: read_metadata(image_dir / n) for n in names}
     fixes = gpsfix.fixes(names, metas) if opts.georeference else None
+    gcps = _gcp_file(opts.gcp, metas) if opts.gcp else None  # a bad file fails before any work
     captured = steps.captures(names, opts.aerial_names, opts.aerial_glob)
     aerial = steps.aerial_set(captured, metas, fixes.enu if fixes is not None else None)
     out.mkdir(parents=True, exist_ok=True)
@@ -222,6 +230,21 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         tiled=any(p.tiled for p in planned),
     )
     summary["pose_priors"] = priors
+    if gcps is not None:
+        model = out / "sparse" / "0"
+        summary["gcp"] = (
+            gcpgeo.apply_to_model(model, gcps, opts.checkpoints, out / "points.ply")
+            if (model / "images.bin").is_file()
+            else {**gcps.summary(), "error": "no model to georeference"}
+        )
+        if "error" not in summary["gcp"]:
+            # the GCPs win over GPS: the GPS frame the model was in before moves aside
+            before = {
+                k: summary.pop(k) for k in ("frame", "origin", "ecef_from_enu", "vertical") if k in summary
+            }
+            if before:
+                summary["gps_frame_before_gcp"] = before
+            summary.update(georeferenced=True, frame="GCP")
     timings["mapping"] = time.perf_counter() - t_map
     timings["total"] = time.perf_counter() - t_start
     timings.update(pair_timing_summary(pair_seconds))
@@ -241,3 +264,16 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     )
     steps.export(out, summary)
     return summary
+
+
+def _gcp_file(path: str, metas: Mapping[str, Any]) -> GcpFile:
+    """The run's GCP file checked against its images; a file it cannot use stops the run here."""
+    sizes = {name: (m.width, m.height) for name, m in metas.items()}
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise PipelineError(f"GCP file {path}: {e}") from None
+    try:
+        return read_gcp_file(text, sizes)
+    except GcpError as e:
+        raise PipelineError(f"GCP file {path}: {e}") from None

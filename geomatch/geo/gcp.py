@@ -1,0 +1,211 @@
+"""A model georeferenced by ground control points, and proved by check points.
+
+Why check points: a fit always matches the points it was fitted to (with 3 points almost exactly),
+so a survey is judged at points the fit never saw. Each point is placed in the model by
+triangulating its pixel observations in the registered photos (a least-squares intersection of
+the viewing rays, then the reprojection error of each observation); a point whose observations do
+not meet (a mis-clicked target, a wrong photo) is reported and not used. A similarity from the model
+to the points' metric frame (gcpfile.GcpFile.frame) is fitted to the control points; the check
+points' residuals after it give the check-point RMSE, horizontal and 3D, as survey reports do.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+
+from .gcpfile import MIN_POINTS, ControlPoint, GcpError, GcpFile
+from .similarity import Similarity, umeyama
+
+# observations of one point whose rays miss their intersection by more than this many photo pixels
+# (the largest reprojection error) do not meet: a target clicked or named wrong in some photo
+MAX_REPROJECTION_PX = 5.0
+# rays closer to parallel than this place a point badly along them
+MIN_RAY_ANGLE_DEG = 1.0
+
+
+@dataclass
+class PointResult:
+    name: str
+    role: str  # control | check | unused
+    observations: int  # in the file
+    used: int  # in registered photos
+    reason: str | None = None  # why unused
+    reprojection_px: float | None = None  # largest, of the triangulated point
+    residual: np.ndarray | None = None  # (3,) metres, fitted model minus the surveyed point
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "name": self.name,
+            "role": self.role,
+            "observations": self.observations,
+            "observations_registered": self.used,
+        }
+        if self.reason is not None:
+            out["reason"] = self.reason
+        if self.reprojection_px is not None:
+            out["reprojection_px"] = round(self.reprojection_px, 3)
+        if self.residual is not None:
+            dx, dy, dz = (float(v) for v in self.residual)
+            out.update(dx_m=round(dx, 4), dy_m=round(dy, 4), dz_m=round(dz, 4))
+            out["horizontal_m"] = round(float(np.hypot(dx, dy)), 4)
+            out["3d_m"] = round(float(np.linalg.norm(self.residual)), 4)
+        return out
+
+
+@dataclass
+class GcpReport:
+    """``similarity``: model -> the file's metric frame minus ``origin`` (the points' mean), kept
+    small so that a model written in it keeps its precision in float32 viewers."""
+
+    points: list[PointResult]
+    similarity: Similarity
+    origin: np.ndarray
+
+    def rmse(self, role: str) -> tuple[float, float] | None:
+        """(horizontal, 3D) root mean square residual of the points of ``role``, metres."""
+        res = [p.residual for p in self.points if p.role == role and p.residual is not None]
+        if not res:
+            return None
+        r = np.stack(res)
+        return float(np.sqrt(np.mean(np.sum(r[:, :2] ** 2, axis=1)))), float(
+            np.sqrt(np.mean(np.sum(r**2, axis=1)))
+        )
+
+    def as_dict(self, gcps: GcpFile) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            **gcps.summary(),
+            "origin": [float(v) for v in self.origin],
+            "points": [p.as_dict() for p in self.points],
+        }
+        for role in ("control", "check"):
+            r = self.rmse(role)
+            if r is not None:
+                out[f"{role}_rmse_horizontal_m"], out[f"{role}_rmse_3d_m"] = round(r[0], 4), round(r[1], 4)
+        return out
+
+
+def triangulate(
+    rec: pycolmap.Reconstruction, point: ControlPoint
+) -> tuple[np.ndarray | None, int, float | None, str | None]:
+    """(model xyz, observations in registered photos, largest reprojection px, why not placed)."""
+    by_name = {im.name: im for im in rec.images.values() if im.has_pose}
+    centres, dirs, views = [], [], []
+    for o in point.observations:
+        im = by_name.get(o.image)
+        if im is None:
+            continue
+        cam = rec.cameras[im.camera_id]
+        # geomatch's pixels have centres at integers, COLMAP's at 0.5
+        xy = np.array([[o.pixel[0] + 0.5, o.pixel[1] + 0.5]], np.float64)
+        ray_cam = np.append(np.asarray(cam.cam_from_img(xy), np.float64).reshape(2), 1.0)
+        world_from_cam = im.cam_from_world().inverse()
+        d = world_from_cam.rotation.matrix() @ ray_cam
+        centres.append(np.asarray(im.projection_center(), np.float64))
+        dirs.append(d / np.linalg.norm(d))
+        views.append((im, cam, xy[0]))
+    if len(views) < 2:
+        return None, len(views), None, f"in {len(views)} registered photo(s): a point needs two"
+    # the point nearest to every ray: sum over rays of (I - d d^T) (X - c) = 0
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for c, d in zip(centres, dirs, strict=True):
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+    widest = max(
+        float(np.degrees(np.arccos(np.clip(abs(d1 @ d2), -1.0, 1.0))))
+        for i, d1 in enumerate(dirs)
+        for d2 in dirs[i + 1 :]
+    )
+    if widest < MIN_RAY_ANGLE_DEG:
+        return None, len(views), None, f"its rays meet at {widest:.2f} deg: too narrow to place it"
+    X = np.linalg.solve(A, b)
+    errors = []
+    for im, cam, xy in views:
+        pc = im.cam_from_world() * X
+        if pc[2] <= 0:
+            return None, len(views), None, f"it lies behind {im.name}: its observations do not meet"
+        proj = np.asarray(cam.img_from_cam(np.asarray(pc, np.float64).reshape(1, 3)), np.float64).reshape(2)
+        errors.append(float(np.linalg.norm(proj - xy)))
+    worst = max(errors)
+    if worst > MAX_REPROJECTION_PX:
+        why = f"its observations do not meet: {worst:.1f} px from the point they place"
+        return X, len(views), worst, f"{why} (> {MAX_REPROJECTION_PX:g})"
+    return X, len(views), worst, None
+
+
+def choose_checkpoints(names: Sequence[str], spec: Sequence[str] | int) -> set[str]:
+    """The check points: the names given, or ``spec`` of the usable points spread over their
+    sorted names (the same choice on every run)."""
+    if isinstance(spec, int):
+        ordered = sorted(names)
+        if spec <= 0:
+            return set()
+        if spec > len(ordered) - MIN_POINTS:
+            raise GcpError(
+                f"{spec} check points leave fewer than {MIN_POINTS} control points of {len(ordered)}"
+            )
+        idx = np.linspace(0, len(ordered) - 1, spec + 2)[1:-1].round().astype(int)
+        return {ordered[i] for i in idx}
+    unknown = sorted(set(spec) - set(names))
+    if unknown:
+        raise GcpError(f"check points not among the usable GCPs: {', '.join(unknown)}")
+    return set(spec)
+
+
+def georeference(
+    rec: pycolmap.Reconstruction, gcps: GcpFile, checkpoints: Sequence[str] | int = 0
+) -> GcpReport:
+    """Place every usable point in ``rec``, fit the similarity to the control points, report all."""
+    results: list[PointResult] = []
+    placed: dict[str, np.ndarray] = {}
+    for name, p in sorted(gcps.points.items()):
+        X, used, reproj, why = triangulate(rec, p)
+        results.append(PointResult(name, "unused", len(p.observations), used, why, reproj))
+        if why is None and X is not None:
+            placed[name] = X
+    for name, why in sorted(gcps.unusable.items()):
+        results.append(PointResult(name, "unused", 1, 0, why))
+    check = choose_checkpoints(list(placed), checkpoints) if checkpoints else set()
+    control = sorted(set(placed) - check)
+    if len(control) < MIN_POINTS:
+        raise GcpError(
+            f"{len(control)} control points placed in the model, and georeferencing needs {MIN_POINTS}: "
+            + "; ".join(f"{r.name}: {r.reason}" for r in results if r.reason)
+        )
+    origin = np.mean([gcps.points[n].xyz for n in placed], axis=0)
+    sim = umeyama(
+        np.stack([placed[n] for n in control]), np.stack([gcps.points[n].xyz - origin for n in control])
+    )
+    for r in results:
+        if r.name in placed:
+            r.role = "check" if r.name in check else "control"
+            r.residual = sim.apply(placed[r.name][None])[0] - (gcps.points[r.name].xyz - origin)
+    return GcpReport(results, sim, origin)
+
+
+def apply_to_model(
+    model_dir: Path, gcps: GcpFile, checkpoints: Sequence[str] | int = 0, ply: Path | None = None
+) -> dict[str, Any]:
+    """Georeference the model in ``model_dir`` (a run's ``sparse/0``) by ``gcps`` and write it back
+    (and its points to ``ply``) moved into the GCPs' metric frame minus the report's ``origin``;
+    returns the report as a dict.
+    A model the points cannot georeference is left as it was, and the dict says why (``error``):
+    the model is still the run's result, only not in the survey's coordinates."""
+    rec = pycolmap.Reconstruction(str(model_dir))
+    try:
+        report = georeference(rec, gcps, checkpoints)
+    except GcpError as e:
+        return {**gcps.summary(), "error": str(e)}
+    rec.transform(report.similarity.to_pycolmap())
+    rec.write_binary(str(model_dir))
+    if (model_dir / "cameras.txt").is_file():
+        rec.write_text(str(model_dir))
+    if ply is not None:
+        rec.export_PLY(str(ply))
+    return {**report.as_dict(gcps), "frame_of_model": "the GCPs' frame minus origin"}
