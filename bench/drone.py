@@ -11,7 +11,13 @@ Each row is a child process (wall time and peak RSS of the whole run). Plan reca
 that see at least 15 (and 100) of the peer model's 3D points together, the share geomatch's default
 plan matched (pairs with matches in its database); on brighton the peer matched every pair.
 
-    .venv/bin/python bench/drone.py                       # both sets
+copr (41 kite photos, no GPS, ten ground control points in OpenDroneMap's gcp_list.txt) is the
+tuning set for ground control points: geomatch runs with ``--gcp`` and CHECKPOINTS held out, and
+the peer's model is georeferenced by the same points with the same function (geo/gcp.py), so both
+are judged by their check points' residuals, triangulated in each model.
+
+    .venv/bin/python bench/drone.py                       # all three sets
+    .venv/bin/python bench/drone.py --sets copr           # the GCP table
     .venv/bin/python bench/drone.py --sets brighton_beach --peer-matcher exhaustive
 """
 
@@ -38,7 +44,14 @@ from geomatch.steps import list_images
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "real" / "drone"
-SETS = {"brighton_beach": ("tuning", "exhaustive"), "caliterra": ("test", "spatial")}
+SETS = {
+    "brighton_beach": ("tuning", "exhaustive"),
+    "caliterra": ("test", "spatial"),
+    "copr": ("tuning", "exhaustive"),
+}
+# copr's ground control points held out as check points (the issue's split: the other usable
+# points are the control); both rows are judged by the same triangulation and fit (geo/gcp.py)
+CHECKPOINTS = ["gcp03", "gcp06", "gcp09"]
 
 
 def gps_residuals(model: Path, images: Path) -> tuple[float, float, int]:
@@ -109,6 +122,40 @@ def judge(out: Path, images: Path) -> dict[str, Any]:
     }
 
 
+def gcp_file_of(name: str) -> Path:
+    return DATA / name / "gcp_list.txt"
+
+
+def gcp_judge(out: Path, images: Path, gcp_file: Path) -> dict[str, Any]:
+    """The model of ``out`` georeferenced by ``gcp_file`` with CHECKPOINTS held out: the same
+    function ``geomatch run --gcp`` applies, on a copy of the model (the run's own is kept)."""
+    import shutil
+    import tempfile
+
+    from geomatch.geo.gcp import apply_to_model
+    from geomatch.geo.gcpfile import read_gcp_file
+
+    metas = {n: read_metadata(images / n) for n in list_images(images)}
+    gcps = read_gcp_file(gcp_file.read_text(), {n: (m.width, m.height) for n, m in metas.items()})
+    with tempfile.TemporaryDirectory() as tmp:
+        model = Path(tmp) / "model"
+        shutil.copytree(out / "sparse" / "0", model)
+        return apply_to_model(model, gcps, CHECKPOINTS)
+
+
+def gcp_row(set_name: str, run: str, g: dict[str, Any]) -> str:
+    if "error" in g:
+        return f"| {set_name} | {run} | - | - | - | - | {g['error']} |"
+    roles = [p["role"] for p in g["points"]]
+    nan = float("nan")
+    unused = "; ".join(f"{p['name']}: {p['reason']}" for p in g["points"] if p["role"] == "unused")
+    return (
+        f"| {set_name} | {run} | {roles.count('control')} | {roles.count('check')} "
+        f"| {g.get('check_rmse_horizontal_m', nan):.2f} / {g.get('check_rmse_3d_m', nan):.2f} "
+        f"| {g.get('control_rmse_3d_m', nan):.2f} | {unused} |"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sets", default=",".join(SETS), help="comma-separated: " + ", ".join(SETS))
@@ -116,7 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--peer-matcher", choices=("exhaustive", "spatial"), help="default: per set")
     ap.add_argument("--extra", default="", help="more `geomatch run` flags for the geomatch row")
     args = ap.parse_args(argv)
-    rows = []
+    rows: list[dict[str, Any]] = []
+    gcp_rows: list[str] = []
     for name in args.sets.split(","):
         split, peer_matcher = SETS[name]
         peer_matcher = args.peer_matcher or peer_matcher
@@ -131,6 +179,10 @@ def main(argv: list[str] | None = None) -> int:
             peer_matcher,
         ]
         wall_peer, rss_peer, rc = timed(peer_cmd)
+        if rc == 0 and gcp_file_of(name).is_file():
+            gcp_rows.append(
+                gcp_row(name, f"COLMAP SIFT ({peer_matcher})", gcp_judge(peer_out, images, gcp_file_of(name)))
+            )
         if rc == 0:
             rows.append(
                 {
@@ -144,6 +196,9 @@ def main(argv: list[str] | None = None) -> int:
                 }
             )
         gm_cmd = [sys.executable, "-m", "geomatch_app", "run", str(images), "--out", str(gm_out)]
+        gcp_file = DATA / name / "gcp_list.txt"
+        if gcp_file.is_file():
+            gm_cmd += ["--gcp", str(gcp_file), "--checkpoints", ",".join(CHECKPOINTS)]
         gm_cmd += args.extra.split()
         if gm_out.exists():
             import shutil
@@ -152,6 +207,9 @@ def main(argv: list[str] | None = None) -> int:
         wall, rss, rc = timed(gm_cmd)
         if rc == 0:
             label = "geomatch run" + (f" {args.extra}" if args.extra else " (defaults)")
+            if gcp_file.is_file():
+                summary = json.loads((gm_out / "summary.json").read_text())
+                gcp_rows.append(gcp_row(name, label + " --gcp", summary["gcp"]))
             rows.append(
                 {
                     "set": name,
@@ -178,6 +236,17 @@ def main(argv: list[str] | None = None) -> int:
             f"| {r['points']} | {r['track']:.2f} | {r['reproj']:.2f} | {r['gps']} | {r['wall']:.0f} "
             f"| {r['ratio']:.2f} | {r['rss']:.0f} | {r.get('recall', '-')} |"
         )
+    if gcp_rows:
+        print(
+            f"\nGround control points: check points {', '.join(CHECKPOINTS)}, "
+            "the other usable points control\n"
+        )
+        print(
+            "| set | run | control | check | check-point RMSE horizontal / 3D m "
+            "| control RMSE 3D m | not used |"
+        )
+        print("|---|---|---:|---:|---|---:|---|")
+        print("\n".join(gcp_rows))
     return 0
 
 

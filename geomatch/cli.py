@@ -255,9 +255,15 @@ def cmd_synth(args: argparse.Namespace) -> int:
         args.gps_noise,
         baro_noise=args.baro_noise,  # None: synth.BARO_NOISE_M
     )
+    if args.gcps:
+        from .synth.aerial import Scene
+        from .synth.gcps import write_gcps
+
+        write_gcps(args.out, Scene(args.seed), cams, args.gcps, args.seed, args.gcp_noise)
     print(
         f"{len(cams)} images ({args.aerial} aerial, {args.ground} ground) in {time.perf_counter() - t0:.1f}s "
         f"-> {args.out}/images, ground truth in {args.out}/gt, aerial names in {args.out}/aerial.txt"
+        + (f", {args.gcps} GCPs in {args.out}/gt/gcp_list.txt" if args.gcps else "")
     )
     return 0
 
@@ -306,6 +312,16 @@ def register(sub: Any) -> None:
         metavar="METRES",
         help="with --gps-noise: noise N(0, METRES) on the aerial images' DJI relative altitude "
         "(a barometer; default 0.3, synth.BARO_NOISE_M)",
+    )
+    s.add_argument(
+        "--gcps", type=int, default=0, metavar="N", help="write N ground control points (gt/gcp_list.txt)"
+    )
+    s.add_argument(
+        "--gcp-noise",
+        type=float,
+        default=0.0,
+        metavar="METRES",
+        help="with --gcps: survey noise N(0, METRES) per axis on their coordinates (truth in gt/gcps.json)",
     )
     s.set_defaults(func=cmd_synth)
 

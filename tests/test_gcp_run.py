@@ -1,0 +1,95 @@
+"""``geomatch run --gcp``: the model comes out in the control points' frame, judged at check points
+the fit never saw, on the small synthetic scene whose truth is exact (tests/small_scene.py), and a
+GCP file the run cannot use stops it before any work with the reason."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from geomatch.cli import main
+from geomatch.synth.aerial import Scene
+from geomatch.synth.gcps import OFFSET, scene_gcps
+
+from .small_scene import RUN_OPTIONS, SEED, copy_of_run
+
+
+def _cameras() -> list:
+    return Scene(SEED).cameras(2, 4, 640, 480)  # tests/small_scene.py's layout and size
+
+
+@pytest.mark.pipeline
+def test_the_model_is_written_in_the_gcps_frame_and_judged_at_the_check_points(
+    small_run: Path, small_scene: Path, tmp_path: Path
+) -> None:
+    run_dir = copy_of_run(small_run, tmp_path / "run")
+    cams = _cameras()
+    text, truth = scene_gcps(Scene(SEED), cams, 7, seed=3)
+    gcp = tmp_path / "gcp_list.txt"
+    gcp.write_text(text)
+    args = [
+        "run",
+        str(small_scene / "images"),
+        "--out",
+        str(run_dir),
+        "--aerial-list",
+        str(small_scene / "aerial.txt"),
+    ]
+    assert main([*args, *RUN_OPTIONS, "--gcp", str(gcp), "--checkpoints", "2"]) == 0
+    s = json.loads((run_dir / "summary.json").read_text())
+    g = s["gcp"]
+    assert "error" not in g and s["frame"] == "GCP" and s["georeferenced"]
+    roles = [p["role"] for p in g["points"]]
+    assert roles.count("check") == 2 and roles.count("control") >= 3
+    # the aerial views see the ground at 2-5 cm a pixel (height over focal length): the check
+    # points must come out within twice the coarser of those
+    gsd = max(float(c.centre[2] / c.K[0, 0]) for c in cams if c.aerial)
+    assert g["check_rmse_3d_m"] < 2 * gsd, g
+    # not only the report: the cameras as written, against where they truly stood
+    rec = pycolmap.Reconstruction(str(run_dir / "sparse" / "0"))
+    true_centre = {c.name: c.centre + OFFSET for c in cams}
+    origin = np.asarray(g["origin"])
+    errors = [
+        np.linalg.norm(np.asarray(im.projection_center()) + origin - true_centre[im.name])
+        for im in rec.images.values()
+        if im.has_pose
+    ]
+    # (2+6 seed 2 of the sweep, mapped the same way: median 2.4 cm, the farthest ground camera 37 cm)
+    assert len(errors) == 6 and float(np.median(errors)) < 2 * gsd and max(errors) < 1.0, errors
+    # every point is in the file's frame: the check points' truth is what the report compares with
+    for p in g["points"]:
+        if p["role"] == "check":
+            assert p["3d_m"] < 2 * gsd and p["name"] in truth
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize(
+    ("content", "reason"),
+    [
+        ("EPSG:32632\n465000 5247000 408 10 10 a.png gcp00\n", "leaves 0 usable points"),
+        ("EPSG:32632\n465000 5247000 408 10 10 a.png gcp00\n", "gcp00: seen in one photo only (line 2)"),
+        ("NAD99 / nowhere\n465000 5247000 408 10 10 a.png gcp00\n", "line 1: unknown coordinate system"),
+        ("EPSG:32632\n465000 5247000 408 10 10 missing.png gcp00\n", "line 2: gcp00: image 'missing.png'"),
+        ("EPSG:32632\n465000 5247000 408 90 10 a.png gcp00\n", "pixel (90, 10) is outside a.png (64x48)"),
+    ],
+)
+def test_a_gcp_file_the_run_cannot_use_stops_it_with_the_reason(
+    content: str, reason: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    images = tmp_path / "images"
+    images.mkdir()
+    rng = np.random.default_rng(0)
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(images / name), rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    bad = tmp_path / "gcp_list.txt"
+    bad.write_text(content)
+    out = tmp_path / "o"
+    assert main(["run", str(images), "--out", str(out), "--gcp", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert f"GCP file {bad}" in err and reason in err, err
+    assert not (out / "database.db").exists()  # refused before any work
