@@ -44,6 +44,7 @@ def scene_gcps(
     """(the gcp_list.txt text, each point's true easting, northing, height): ``n`` ground points
     seen by at least ``min_views`` cameras each, their coordinates with N(0, ``noise_m``) per axis."""
     rng = np.random.default_rng(seed)
+    noise = np.random.default_rng([seed, 1])  # its own stream: noise does not change which points
     lines = [CRS]
     truth: dict[str, list[float]] = {}
     for _ in range(200 * n):
@@ -58,7 +59,7 @@ def scene_gcps(
         name = f"gcp{len(truth):02d}"
         true = X + OFFSET
         truth[name] = true.tolist()
-        measured = true + rng.normal(0.0, noise_m, 3) if noise_m > 0 else true
+        measured = true + noise.normal(0.0, noise_m, 3) if noise_m > 0 else true
         e, nn, h = measured
         lines += [f"{e:.4f} {nn:.4f} {h:.4f} {u:.3f} {v:.3f} {image} {name}" for image, (u, v) in seen]
     if len(truth) < n:
