@@ -259,6 +259,15 @@ class Scene:
             depth = depth[s // 2 :: s, s // 2 :: s]
         return np.clip(img, 0, 255).astype(np.uint8), depth
 
+    def hidden(self, origin: np.ndarray, X: np.ndarray, depth: float) -> bool:
+        """Whether a building stands between a camera at ``origin`` and the world point ``X`` at
+        ``depth`` along the camera's axis (the ray parameter :meth:`render` uses)."""
+        d = (X - origin) / depth
+        t_best = np.array([depth * (1.0 - 1e-6)])
+        for box in self.boxes:
+            self._hit_box(box, origin, d[None], t_best, np.zeros((1, 3)))
+        return bool(t_best[0] < depth * (1.0 - 1e-6))
+
     def _hit_box(
         self, box: Box, o: np.ndarray, d: np.ndarray, t_best: np.ndarray, colour: np.ndarray
     ) -> None:

@@ -31,11 +31,7 @@ def visible(scene: Scene, cam: Camera, X: np.ndarray) -> np.ndarray | None:
     u, v = uv[0]
     if not (MARGIN_PX <= u <= cam.width - 1 - MARGIN_PX and MARGIN_PX <= v <= cam.height - 1 - MARGIN_PX):
         return None
-    d = (X - cam.centre) / depth[0]  # the render's ray parameter: depth along the optical axis
-    t_best = np.array([depth[0] * (1.0 - 1e-6)])
-    for box in scene.boxes:
-        scene._hit_box(box, cam.centre, d[None], t_best, np.zeros((1, 3)))
-    return uv[0] if t_best[0] >= depth[0] * (1.0 - 1e-6) else None
+    return None if scene.hidden(cam.centre, X, float(depth[0])) else uv[0]
 
 
 def scene_gcps(
