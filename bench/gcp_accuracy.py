@@ -1,0 +1,86 @@
+"""Ground control points on synthetic scenes with exact truth: the check-point RMSE against the
+ground sampling distance, with survey noise of 0 and 2 cm on the points' coordinates.
+
+For each finished run of a synthetic air-to-ground scene (``geomatch synth`` + ``geomatch run``,
+e.g. the sweep's ``bench/out/air_ground_sweep/scene_*/run_*``): nine ground points that at least two
+cameras see unoccluded become a GCP file (geomatch.synth.gcps, exact clicks), three of them held out
+as check points; the model is georeferenced by the other six (geo/gcp.py, as ``geomatch run --gcp``
+does) and judged at the three, and its camera centres against the truth. GSD: the coarser aerial
+view's height over its focal length (metres per pixel at the ground below it).
+
+    .venv/bin/python bench/gcp_accuracy.py bench/out/air_ground_sweep/scene_a2_g6_s2/run_floor60_pnp0
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from common import print_table
+
+from geomatch.geo.gcp import georeference
+from geomatch.geo.gcpfile import read_gcp_file
+from geomatch.synth.aerial import Scene
+from geomatch.synth.gcps import OFFSET, scene_gcps
+
+COLUMNS = [
+    ("scene", "scene", "s"),
+    ("registered", "registered", "s"),
+    ("GCP noise m", "noise", ".2f"),
+    ("GSD m", "gsd", ".3f"),
+    ("check RMSE horizontal m", "check_h", ".3f"),
+    ("check RMSE 3D m", "check_3d", ".3f"),
+    ("check 3D / GSD", "ratio", ".2f"),
+    ("control RMSE 3D m", "control_3d", ".3f"),
+    ("camera centres median / max m", "cams", "s"),
+]
+
+
+def judge(run: Path, noise: float, points: int = 9, check: int = 3) -> dict[str, object]:
+    scene_dir = run.parent
+    m = re.fullmatch(r"scene_a(\d+)_g(\d+)_s(\d+)", scene_dir.name)
+    if m is None:
+        raise SystemExit(f"{run}: not a run of a synthetic scene folder (scene_aA_gG_sS)")
+    n_aerial, n_ground, seed = (int(v) for v in m.groups())
+    scene = Scene(seed)
+    cams = scene.cameras(n_aerial, n_ground, 640, 480)
+    text, _ = scene_gcps(scene, cams, points, seed=seed, noise_m=noise)
+    gcps = read_gcp_file(text, {c.name: (c.width, c.height) for c in cams})
+    rec = pycolmap.Reconstruction(str(run / "sparse" / "0"))
+    report = georeference(rec, gcps, check)
+    rec.transform(report.similarity.to_pycolmap())
+    truth = {c.name: c.centre + OFFSET for c in cams}
+    errors = [
+        float(np.linalg.norm(np.asarray(im.projection_center()) + report.origin - truth[im.name]))
+        for im in rec.images.values()
+        if im.has_pose
+    ]
+    gsd = max(float(c.centre[2] / c.K[0, 0]) for c in cams if c.aerial)
+    check_rmse, control_rmse = report.rmse("check"), report.rmse("control")
+    return {
+        "scene": scene_dir.name,
+        "registered": f"{len(errors)}/{len(cams)}",
+        "noise": noise,
+        "gsd": gsd,
+        "check_h": check_rmse[0] if check_rmse else float("nan"),
+        "check_3d": check_rmse[1] if check_rmse else float("nan"),
+        "ratio": (check_rmse[1] / gsd) if check_rmse else float("nan"),
+        "control_3d": control_rmse[1] if control_rmse else float("nan"),
+        "cams": f"{np.median(errors):.3f} / {max(errors):.3f}",
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", type=Path, nargs="+", help="run folders of synthetic scenes")
+    ap.add_argument("--noise", default="0,0.02", help="GCP coordinate noise, metres, comma-separated")
+    args = ap.parse_args()
+    rows = [judge(run, float(n)) for run in args.runs for n in args.noise.split(",")]
+    print_table("GCP georeferencing on synthetic scenes (6 control, 3 check points)", COLUMNS, rows)
+
+
+if __name__ == "__main__":
+    main()
