@@ -22,7 +22,7 @@ import pycolmap
 from common import print_table
 
 from geomatch.geo.gcp import georeference
-from geomatch.geo.gcpfile import read_gcp_file
+from geomatch.geo.gcpfile import GcpError, read_gcp_file
 from geomatch.synth.aerial import Scene
 from geomatch.synth.gcps import OFFSET, scene_gcps
 
@@ -31,11 +31,12 @@ COLUMNS = [
     ("registered", "registered", "s"),
     ("GCP noise m", "noise", ".2f"),
     ("GSD m", "gsd", ".3f"),
+    ("points left out", "unused", "s"),
     ("check RMSE horizontal m", "check_h", ".3f"),
     ("check RMSE 3D m", "check_3d", ".3f"),
     ("check 3D / GSD", "ratio", ".2f"),
     ("control RMSE 3D m", "control_3d", ".3f"),
-    ("camera centres median / max m", "cams", "s"),
+    ("camera centres median / max m (or why not georeferenced)", "cams", "s"),
 ]
 
 
@@ -50,7 +51,14 @@ def judge(run: Path, noise: float, points: int = 9, check: int = 3) -> dict[str,
     text, _ = scene_gcps(scene, cams, points, seed=seed, noise_m=noise)
     gcps = read_gcp_file(text, {c.name: (c.width, c.height) for c in cams})
     rec = pycolmap.Reconstruction(str(run / "sparse" / "0"))
-    report = georeference(rec, gcps, check)
+    gsd = max(float(c.centre[2] / c.K[0, 0]) for c in cams if c.aerial)
+    nan = float("nan")
+    row: dict[str, object] = {"scene": scene_dir.name, "noise": noise, "gsd": gsd, "unused": "-"}
+    try:
+        report = georeference(rec, gcps, check)
+    except GcpError as e:  # a model with wrongly placed cameras leaves points that do not meet
+        row.update(registered=f"{rec.num_reg_images()}/{len(cams)}", cams=str(e)[:60])
+        return {**row, "check_h": nan, "check_3d": nan, "ratio": nan, "control_3d": nan}
     rec.transform(report.similarity.to_pycolmap())
     truth = {c.name: c.centre + OFFSET for c in cams}
     errors = [
@@ -58,13 +66,11 @@ def judge(run: Path, noise: float, points: int = 9, check: int = 3) -> dict[str,
         for im in rec.images.values()
         if im.has_pose
     ]
-    gsd = max(float(c.centre[2] / c.K[0, 0]) for c in cams if c.aerial)
     check_rmse, control_rmse = report.rmse("check"), report.rmse("control")
     return {
-        "scene": scene_dir.name,
+        **row,
+        "unused": str(sum(p.role == "unused" for p in report.points)),
         "registered": f"{len(errors)}/{len(cams)}",
-        "noise": noise,
-        "gsd": gsd,
         "check_h": check_rmse[0] if check_rmse else float("nan"),
         "check_3d": check_rmse[1] if check_rmse else float("nan"),
         "ratio": (check_rmse[1] / gsd) if check_rmse else float("nan"),
