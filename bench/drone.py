@@ -122,10 +122,6 @@ def judge(out: Path, images: Path) -> dict[str, Any]:
     }
 
 
-def gcp_file_of(name: str) -> Path:
-    return DATA / name / "gcp_list.txt"
-
-
 def gcp_judge(out: Path, images: Path, gcp_file: Path) -> dict[str, Any]:
     """The model of ``out`` georeferenced by ``gcp_file`` with CHECKPOINTS held out: the same
     function ``geomatch run --gcp`` applies, on a copy of the model (the run's own is kept)."""
@@ -169,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         split, peer_matcher = SETS[name]
         peer_matcher = args.peer_matcher or peer_matcher
         images = DATA / name / "images"
+        gcp_file = DATA / name / "gcp_list.txt"  # a set with ground control points (copr)
         peer_out, gm_out = args.out / name / "colmap-sift", args.out / name / "geomatch"
         peer_cmd = [
             sys.executable,
@@ -179,9 +176,9 @@ def main(argv: list[str] | None = None) -> int:
             peer_matcher,
         ]
         wall_peer, rss_peer, rc = timed(peer_cmd)
-        if rc == 0 and gcp_file_of(name).is_file():
+        if rc == 0 and gcp_file.is_file():
             gcp_rows.append(
-                gcp_row(name, f"COLMAP SIFT ({peer_matcher})", gcp_judge(peer_out, images, gcp_file_of(name)))
+                gcp_row(name, f"COLMAP SIFT ({peer_matcher})", gcp_judge(peer_out, images, gcp_file))
             )
         if rc == 0:
             rows.append(
@@ -196,7 +193,6 @@ def main(argv: list[str] | None = None) -> int:
                 }
             )
         gm_cmd = [sys.executable, "-m", "geomatch_app", "run", str(images), "--out", str(gm_out)]
-        gcp_file = DATA / name / "gcp_list.txt"
         if gcp_file.is_file():
             gm_cmd += ["--gcp", str(gcp_file), "--checkpoints", ",".join(CHECKPOINTS)]
         gm_cmd += args.extra.split()
