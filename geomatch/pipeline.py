@@ -231,20 +231,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     )
     summary["pose_priors"] = priors
     if gcps is not None:
-        model = out / "sparse" / "0"
-        summary["gcp"] = (
-            gcpgeo.apply_to_model(model, gcps, opts.checkpoints, out / "points.ply")
-            if (model / "images.bin").is_file()
-            else {**gcps.summary(), "error": "no model to georeference"}
-        )
-        if "error" not in summary["gcp"]:
-            # the GCPs win over GPS: the GPS frame the model was in before moves aside
-            before = {
-                k: summary.pop(k) for k in ("frame", "origin", "ecef_from_enu", "vertical") if k in summary
-            }
-            if before:
-                summary["gps_frame_before_gcp"] = before
-            summary.update(georeferenced=True, frame="GCP")
+        gcpgeo.georeference_summary(summary, out, gcps, opts.checkpoints)
     timings["mapping"] = time.perf_counter() - t_map
     timings["total"] = time.perf_counter() - t_start
     timings.update(pair_timing_summary(pair_seconds))

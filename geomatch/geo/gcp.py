@@ -209,3 +209,22 @@ def apply_to_model(
     if ply is not None:
         rec.export_PLY(str(ply))
     return {**report.as_dict(gcps), "frame_of_model": "the GCPs' frame minus origin"}
+
+
+def georeference_summary(
+    summary: dict[str, Any], out: Path, gcps: GcpFile, checkpoints: Sequence[str] | int = 0
+) -> None:
+    """Georeference a run's or a reconstruct job's model (``out/sparse/0``) by ``gcps`` and record
+    it in its ``summary`` (``gcp``). The GCPs win over GPS: the frame the GPS path put the model in
+    moves to ``gps_frame_before_gcp``, and the GPS residuals stay in the summary as measured."""
+    model = out / "sparse" / "0"
+    if not (model / "images.bin").is_file():
+        summary["gcp"] = {**gcps.summary(), "error": "no model to georeference"}
+        return
+    summary["gcp"] = apply_to_model(model, gcps, checkpoints, out / "points.ply")
+    if "error" in summary["gcp"]:
+        return
+    before = {k: summary.pop(k) for k in ("frame", "origin", "ecef_from_enu", "vertical") if k in summary}
+    if before:
+        summary["gps_frame_before_gcp"] = before
+    summary.update(georeferenced=True, frame="GCP")
