@@ -4,6 +4,7 @@ Layout, one folder per project::
 
     projects/<id>/images/<name>        the uploaded bytes, as uploaded
     projects/<id>/database.db          the COLMAP database (written by one writer at a time)
+    projects/<id>/gcp_list.txt         the ground control points (OpenDroneMap's format), as accepted
     projects/<id>/model/               sparse/0 ..., points.ply, summary.json, model.zip
     projects/<id>/pictures/            match pictures, rendered on first request
     projects/<id>/localize/<job>/      photos of a localize job that are not added to the project,
@@ -60,6 +61,10 @@ class Storage:
     def database_path(self, project_id: str) -> Path:
         return self.project_dir(project_id) / "database.db"
 
+    def gcp_path(self, project_id: str) -> Path:
+        """The project's ground control points, OpenDroneMap's ``gcp_list.txt`` as uploaded (UTF-8)."""
+        return self.project_dir(project_id) / "gcp_list.txt"
+
     def model_dir(self, project_id: str) -> Path:
         return self.project_dir(project_id) / "model"
 
@@ -85,6 +90,21 @@ class Storage:
         self.tmp_dir.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(dir=self.tmp_dir, prefix="upload-")
         return fd, Path(name)
+
+    def put_file(self, dest: Path, data: bytes) -> None:
+        """``data`` at ``dest``, replacing what was there in one rename from a temporary file of
+        ``tmp/`` (the same file system): a reader sees the old file or the new one, never a part.
+        ``dest``'s folder must exist: a folder removed meanwhile (a project deleted under the
+        write) is FileNotFoundError, and is not made again. ENOSPC leaves nothing behind."""
+        fd, tmp = self.temp_file()
+        try:
+            with os.fdopen(fd, "wb") as f:
+                self.check_space(len(data))
+                f.write(data)
+            os.replace(tmp, dest)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
 
     @contextmanager
     def work(self, project_id: str, tag: str) -> Iterator[Path]:

@@ -10,7 +10,8 @@ middleware runs first, on the request head:
   thread: it reads the store), 401 before a byte of the body is read; the tenant goes to the
   request's state, where ``routes.deps.tenant`` takes it instead of checking the key again;
 - ``Content-Length`` over the route's limit is 413 at once: ``max_request_bytes`` for an upload
-  (every file of it together), ``max_json_bytes`` for any other body;
+  (every file of it together), 1 MiB (and a multipart part's headers) for a GCP file,
+  ``max_json_bytes`` for any other body;
 - while the app reads the body, what arrives is counted (a chunked body has no length to check
   up front), and in a multipart upload so is each part: a part over the per-file limit, or a body
   over the route's limit, ends the request with 413 there and then.
@@ -34,8 +35,10 @@ from geomatch_core.errors import DomainError, Unauthenticated
 
 from .httperrors import error_headers, status_of
 from .usecases import Service
+from .usecases.gcp import MAX_GCP_BYTES
 
 UPLOAD = re.compile(r"^/v1/projects/[^/]+/(?:images|localize)/?$")  # multipart uploads of images
+GCP = re.compile(r"^/v1/projects/[^/]+/gcp/?$")  # a gcp_list.txt, as the body or one multipart part
 PART_HEAD = 64 * 1024  # a multipart part's own headers, allowed on top of the file's bytes
 BODY_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 MiB = 1024 * 1024
@@ -97,6 +100,8 @@ class BodyLimits:
             boundary = boundary_of(headers.get("content-type", ""))
             parts = PartSizes(boundary, s.max_upload_bytes + PART_HEAD) if boundary else None
             return s.max_request_bytes, parts, f"an upload request over {s.max_request_bytes // MiB} MiB"
+        if GCP.match(scope["path"]):
+            return MAX_GCP_BYTES + PART_HEAD, None, f"a GCP file over {MAX_GCP_BYTES // MiB} MiB"
         return s.max_json_bytes, None, f"a request body over {s.max_json_bytes // MiB} MiB"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:

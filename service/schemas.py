@@ -28,6 +28,7 @@ from pydantic import (
 from geomatch import options
 
 from . import validation
+from .usecases.gcp import MAX_CHECKPOINT_NAME, MAX_CHECKPOINTS
 
 
 class _Strict(BaseModel):
@@ -200,10 +201,52 @@ if not TYPE_CHECKING:
     )
 
 
+CheckpointCount = Annotated[int, Field(ge=0, le=MAX_CHECKPOINTS), BeforeValidator(_integral)]
+
+
+def _unique(names: list[str]) -> list[str]:
+    if len(set(names)) != len(names):
+        raise ValueError("a check point is named twice")
+    return names
+
+
+CheckpointNames = Annotated[
+    list[Annotated[str, Field(min_length=1, max_length=MAX_CHECKPOINT_NAME)]],
+    Field(min_length=1, max_length=MAX_CHECKPOINTS, json_schema_extra={"uniqueItems": True}),
+    AfterValidator(_unique),
+]
+
+
 class ReconstructIn(_Strict):
     # a type built at run time from the options (choices, checks, schema), which pydantic reads
     mapper: option_type("mapper") | None = Field(  # type: ignore[valid-type]
         None, examples=[options.DEFAULTS["mapper"]], description=" | ".join(options.MAPPERS)
+    )
+    checkpoints: CheckpointCount | CheckpointNames | None = Field(
+        None,
+        examples=[2, ["gcp03", "gcp07"]],
+        description="ground control points held out of the fit and judged after it (the summary's "
+        "`gcp`: residuals and check-point RMSE): their names in the project's GCP file, or how many, "
+        "spread over the points' sorted names; needs a GCP file (PUT .../gcp). 0: none",
+    )
+
+
+class GcpOut(BaseModel):
+    """A project's GCP file (OpenDroneMap's gcp_list.txt) as read against its images."""
+
+    crs: str = Field(description="the file's coordinate system, as PROJ writes it")
+    frame: str | None = Field(
+        description="the metric frame the points are fitted in: the file's own when it is projected, "
+        "else the UTM zone of its points; null with `error`"
+    )
+    points: list[str] = Field(description="the usable points: each seen in two or more of the images")
+    unusable: dict[str, str] = Field(description="point name -> why it cannot be used")
+    problems: list[str] = Field(description="one line per problem found, naming its line or point")
+    size_bytes: int = Field(description="of the stored file")
+    error: str | None = Field(
+        None,
+        description="GET: why the stored file no longer fits the project's images (a reconstruct "
+        "then leaves the model in its own frame)",
     )
 
 

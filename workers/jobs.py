@@ -269,6 +269,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         )
         with ColmapDatabase(snapshot) as db:
             summary["database"] = db.stats()
+        _georeference_by_gcps(ctx, job, out, summary)
         summary["timings"] = {"mapping": round(time.perf_counter() - t0, 3)}
         summary["job_id"] = job_id
         steps.export(out, summary, archive=True)
@@ -285,6 +286,39 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     )
     jobstate.release_followers(ctx.store, ctx.queue, job_id)
     return "done"
+
+
+def _georeference_by_gcps(ctx: Context, job: Job, out: Path, summary: dict[str, Any]) -> None:
+    """When the project has ground control points (``Storage.gcp_path``): read them again against
+    the project's images as they are now (added or gone since the upload) and move the model in
+    ``out`` into their frame, judged at the job's check points (``geomatch.geo.gcp``). Whatever
+    keeps the points from being used (a file that no longer fits the images, too few points placed
+    in the model) leaves the model in the frame the mapping gave it and goes into the summary's
+    ``gcp`` as ``error``: the reconstruction itself succeeded."""
+    from geomatch.geo import gcp as gcpgeo
+    from geomatch.geo.gcpfile import GcpError, read_gcp_file
+
+    pid = job.project_id
+    try:
+        text = ctx.storage.gcp_path(pid).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return
+    with ctx.store.session() as s:
+        rows = s.execute(select(Image.name, Image.width, Image.height).where(Image.project_id == pid))
+        sizes = {name: (int(w), int(h)) for name, w, h in rows}
+    checkpoints = job.options.get("checkpoints") or 0
+    try:
+        gcps = read_gcp_file(text, sizes)
+        gcpgeo.georeference_summary(summary, out, gcps, checkpoints)
+    except GcpError as e:
+        summary["gcp"] = {"error": f"the project's GCP file: {e}"}
+    except Exception as e:  # numbers the fit cannot take (an infinite coordinate): the model stays
+        log.warning("GCP georeferencing failed: %r", e, extra={"job_id": job.id, "project_id": pid})
+        why = redact.without_paths(str(e), ctx.storage.root, ctx.storage.project_dir(pid))
+        summary["gcp"] = {"error": f"the GCP georeferencing failed ({type(e).__name__}: {why})"}
+    g = summary.get("gcp", {})
+    fit = f"RMSE 3D control {g.get('control_rmse_3d_m')} m, check {g.get('check_rmse_3d_m')} m"
+    log.info("GCPs: %s", g.get("error") or fit, extra={"job_id": job.id, "project_id": pid})
 
 
 # -- localize jobs ------------------------------------------------------------------------------

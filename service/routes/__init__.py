@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from . import images, jobs, localize, outputs, projects
+from . import gcp, images, jobs, localize, outputs, projects
 from .deps import ERRORS
 
 
@@ -18,6 +18,7 @@ def build_router() -> APIRouter:
     v1 = APIRouter(prefix="/v1", responses=ERRORS)
     v1.include_router(projects.router)
     v1.include_router(images.router)
+    v1.include_router(gcp.router)
     v1.include_router(jobs.router)
     v1.include_router(outputs.router())
     v1.include_router(localize.router)

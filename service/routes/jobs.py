@@ -40,7 +40,8 @@ def match(project_id: str, body: MatchIn, svc: Svc, tenant_id: Tenant) -> JobAcc
 def reconstruct(
     project_id: str, svc: Svc, tenant_id: Tenant, body: ReconstructIn | None = None
 ) -> JobAccepted:
-    job = svc.start_reconstruct(tenant_id, project_id, body.mapper if body else None)
+    mapper, checkpoints = (body.mapper, body.checkpoints) if body else (None, None)
+    job = svc.start_reconstruct(tenant_id, project_id, mapper, checkpoints)
     return JobAccepted(job_id=job.id)
 
 

@@ -3,7 +3,8 @@
 Routers (REST and gRPC) translate requests into these calls and the typed errors of
 ``geomatch_core.errors`` into statuses. A use case validates everything before it stores or
 enqueues anything, so a rejected request leaves no trace. One module per concern (projects,
-images, jobs, outputs, pair tools, localize; ``views`` what they take and give, ``base`` what they share);
+images, ground control points, jobs, outputs, pair tools, localize; ``views`` what they take and
+give, ``base`` what they share);
 :class:`Service` is all of them over one set of parts.
 """
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .. import auth
+from .gcp import GcpUseCases
 from .images import ImageUseCases
 from .jobs import JobUseCases
 from .localize import LocalizeUseCases
@@ -33,7 +35,13 @@ class Readiness:
 
 # LocalizeUseCases first: it builds on ImageUseCases and JobUseCases, which must follow it
 class Service(
-    LocalizeUseCases, ProjectUseCases, ImageUseCases, JobUseCases, OutputUseCases, PairToolUseCases
+    LocalizeUseCases,
+    ProjectUseCases,
+    ImageUseCases,
+    GcpUseCases,
+    JobUseCases,
+    OutputUseCases,
+    PairToolUseCases,
 ):
     def authenticate(self, key: str | None) -> str:
         """The tenant id of an API key (Unauthenticated otherwise), one request of its rate

@@ -20,6 +20,7 @@ from ..ids import known_id
 from ..paging import JOBS, Page, page_of
 from ..validation import check_option, check_pair_list
 from .base import DEFAULTS, UseCases, check_config, choice
+from .gcp import check_checkpoints
 from .views import JobView, MatchRequest, job_view
 
 
@@ -45,7 +46,15 @@ class JobUseCases(UseCases):
         self._enqueue(views[0])
         return views
 
-    def start_reconstruct(self, tenant_id: str, project_id: str, mapper: str | None = None) -> JobView:
+    def start_reconstruct(
+        self,
+        tenant_id: str,
+        project_id: str,
+        mapper: str | None = None,
+        checkpoints: list[str] | int | None = None,
+    ) -> JobView:
+        """``checkpoints``: ground control points held out of the fit to judge it (names, or how
+        many, spread over the points' sorted names), checked against the project's GCP file."""
         with self._unless_deleted(tenant_id, project_id), self.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             mapper = check_option("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"])
@@ -59,7 +68,8 @@ class JobUseCases(UseCases):
                     "nothing to reconstruct yet: no match job of this project has succeeded "
                     '(POST .../match first, or with "reconstruct": true to chain both)'
                 )
-            view = job_view(_reconstruct_job(s, project_id, tenant_id, mapper))
+            held_out = check_checkpoints(s, self.storage, project_id, checkpoints)
+            view = job_view(_reconstruct_job(s, project_id, tenant_id, mapper, checkpoints=held_out))
         self._enqueue(view)
         return view
 
@@ -146,13 +156,22 @@ class JobWatch:
 
 
 def _reconstruct_job(
-    s: Session, project_id: str, tenant_id: str, mapper: str, after: str | None = None
+    s: Session,
+    project_id: str,
+    tenant_id: str,
+    mapper: str,
+    after: str | None = None,
+    checkpoints: list[str] | int = 0,
 ) -> Job:
+    """``checkpoints`` go into the options only when asked for (the job's GCP step reads them)."""
+    options: dict[str, Any] = {"mapper": mapper}
+    if checkpoints:
+        options["checkpoints"] = checkpoints
     job = Job(
         project_id=project_id,
         tenant_id=tenant_id,
         kind="reconstruct",
-        options={"mapper": mapper},
+        options=options,
         total=1,
         after_job_id=after,
     )

@@ -65,6 +65,21 @@ class JobView:
 
 
 @dataclass(frozen=True)
+class GcpView:
+    """A project's ground control points file, read against its images (``geomatch.geo.gcpfile``'s
+    summary): ``points``, the usable ones; ``unusable``, the others and why; ``problems``, one line
+    each. ``error``: why the stored file no longer fits the images (then ``frame`` is None)."""
+
+    crs: str
+    frame: str | None
+    points: list[str]
+    unusable: dict[str, str]
+    problems: list[str]
+    size_bytes: int
+    error: str | None = None
+
+
+@dataclass(frozen=True)
 class MatchRequest:
     pairs: str | list[list[str]] | None = None
     method: str | None = None

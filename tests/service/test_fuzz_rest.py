@@ -18,11 +18,13 @@ and a matches picture waits 3 s for a worker instead of 120.
 Three checks are tuned, for reasons no schema can carry (see ``CONFIG``):
 
 - positive_data_acceptance: an upload's parts are binary strings to the schema, but only an image
-  of an accepted format is one (400, 413, 415 otherwise), and whether a match job can start depends
-  on the project's images (at least two; explicit pairs must name them): 422 otherwise;
-- ensure_resource_availability, for the project's COLMAP database, its model and match pictures:
-  those are made by jobs, not by creating the project, and until then 404 is the documented answer
-  (the stateful phase links them to POST /v1/projects and would call the 404 a lost resource);
+  of an accepted format is one (400, 413, 415 otherwise), whether a match job can start depends
+  on the project's images (at least two; explicit pairs must name them): 422 otherwise, and a GCP
+  file is any text to the schema but one the project's images can use only when it names them;
+- ensure_resource_availability, for the project's COLMAP database, its model, match pictures and
+  GCP file: those are made by jobs or by a PUT of their own, not by creating the project, and until
+  then 404 is the documented answer (the stateful phase links them to POST /v1/projects and would
+  call the 404 a lost resource);
 - not_a_server_error on /readyz: with no worker its 503 is the answer a load balancer needs.
 """
 
@@ -74,11 +76,15 @@ include-name = "POST /v1/projects/{{project_id}}/match"
 checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "404", "409", "422"]
 
 [[operations]]
+include-name = "PUT /v1/projects/{{project_id}}/gcp"
+checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "404", "400", "413", "415", "422"]
+
+[[operations]]
 include-name = "GET /readyz"
 checks.not_a_server_error.enabled = false
 
 [[operations]]
-include-path-regex = "^/v1/projects/\\\\{{project_id\\\\}}/(database|model|pairs/)"
+include-path-regex = "^/v1/projects/\\\\{{project_id\\\\}}/(database|model|pairs/|gcp)"
 checks.ensure_resource_availability.enabled = false
 """
 
