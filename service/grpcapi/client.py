@@ -199,6 +199,17 @@ class GrpcClient:
             if not (token := r.next_page_token):
                 return out
 
+    # -- ground control points ----------------------------------------------------------------
+    def put_gcp(self, project_id: str, text: str) -> Any:
+        """Store the project's gcp_list.txt; the GcpSummary of it."""
+        return self._call("PutGcp", pb2.PutGcpRequest(project_id=project_id, text=text))
+
+    def get_gcp(self, project_id: str) -> Any:
+        return self._call("GetGcp", pb2.GetGcpRequest(project_id=project_id))
+
+    def delete_gcp(self, project_id: str) -> None:
+        self._call("DeleteGcp", pb2.DeleteGcpRequest(project_id=project_id))
+
     # -- jobs --------------------------------------------------------------------------------
     def submit_matching(
         self,
@@ -222,10 +233,17 @@ class GrpcClient:
             )
         return self._call("SubmitMatching", req)
 
-    def submit_reconstruction(self, project_id: str, mapper: str | None = None) -> Any:
+    def submit_reconstruction(
+        self, project_id: str, mapper: str | None = None, checkpoints: Iterable[str] | int | None = None
+    ) -> Any:
+        """``checkpoints``: GCP names held out of the fit, or how many (None: none)."""
         req = pb2.SubmitReconstructionRequest(project_id=project_id)
         if mapper is not None:
             req.mapper = mapper
+        if isinstance(checkpoints, int):
+            req.checkpoint_count = checkpoints
+        elif checkpoints is not None:
+            req.checkpoint_names.CopyFrom(pb2.CheckpointNames(names=list(checkpoints)))
         return self._call("SubmitReconstruction", req)
 
     def list_jobs(self, project_id: str, state: str | None = None) -> list[Any]:

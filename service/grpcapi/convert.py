@@ -14,7 +14,7 @@ from geomatch import options
 from geomatch.export.formats import FORMATS, ExportFormat
 
 from ..usecases.outputs import model_formats
-from ..usecases.views import ImageView, JobView, MatchRequest, PairMatches, ProjectView
+from ..usecases.views import GcpView, ImageView, JobView, MatchRequest, PairMatches, ProjectView
 from .framing import CAPTURES
 from .pb import pb2
 
@@ -148,6 +148,30 @@ def match_request(req: pb2.SubmitMatchingRequest) -> MatchRequest:
         pairs = [[p.name0, p.name1] for p in req.pair_list.pairs]
     opts = optional_fields(req, tuple(n for n in CONFIG_FIELDS if n != "pairs"))
     return MatchRequest(pairs=pairs, reconstruct=req.reconstruct, **opts)
+
+
+def checkpoints(req: pb2.SubmitReconstructionRequest) -> list[str] | int | None:
+    """The request's check points: a count, names, or None (neither set)."""
+    which = req.WhichOneof("checkpoints")
+    if which == "checkpoint_count":
+        return int(req.checkpoint_count)
+    if which == "checkpoint_names":
+        return list(req.checkpoint_names.names)
+    return None
+
+
+def gcp(g: GcpView) -> pb2.GcpSummary:
+    msg = pb2.GcpSummary(
+        crs=g.crs,
+        frame=g.frame or "",
+        points=g.points,
+        unusable=g.unusable,
+        problems=g.problems,
+        size_bytes=g.size_bytes,
+    )
+    if g.error is not None:
+        msg.error = g.error
+    return msg
 
 
 def model_summary(summary: dict[str, Any]) -> pb2.ModelSummary:

@@ -86,6 +86,21 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
             images=[convert.image(v) for v in page.items], next_page_token=token_of(page.next_offset)
         )
 
+    # -- ground control points ----------------------------------------------------------------
+    @rpc
+    def PutGcp(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        data = request.text.encode("utf-8")
+        return convert.gcp(self.service.put_gcp(tenant_id, request.project_id, data))
+
+    @rpc
+    def GetGcp(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        return convert.gcp(self.service.get_gcp(tenant_id, request.project_id))
+
+    @rpc
+    def DeleteGcp(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+        self.service.delete_gcp(tenant_id, request.project_id)
+        return pb2.DeleteGcpResponse()
+
     # -- jobs --------------------------------------------------------------------------------
     @rpc
     def SubmitMatching(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
@@ -100,7 +115,8 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
     @rpc
     def SubmitReconstruction(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
         mapper = request.mapper if request.HasField("mapper") else None
-        return convert.job(self.service.start_reconstruct(tenant_id, request.project_id, mapper))
+        checkpoints = convert.checkpoints(request)
+        return convert.job(self.service.start_reconstruct(tenant_id, request.project_id, mapper, checkpoints))
 
     @rpc
     def ListJobs(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
