@@ -474,3 +474,54 @@ def test_a_second_tab_sees_the_projects_jobs(console: Console, scene: Path, tmp_
         wait_until(first, "document.getElementById('job').dataset.state === 'cancelled'")
         wait_until(first, f"document.querySelector(\"{row}\").dataset.state === 'cancelled'")
         assert console.d.client(console.key).get(f"/v1/jobs/{job_id}").json()["state"] == "cancelled"
+
+
+def test_ground_control_points_card(console: Console, scene: Path, tmp_path: Path) -> None:
+    """A gcp_list.txt chosen on the project page: its usable points and problems show (names as
+    text), a reload reads them back from the server, a file the project cannot use shows the API's
+    reason and leaves the stored one, Reconstruct only sends the check points, Remove removes it."""
+    c = console.d.client(console.key)
+    pid = c.post("/v1/projects", json={"name": "console gcps"}).json()["id"]
+    files = [("files", (n, (scene / "images" / n).read_bytes(), "image/png")) for n in IMAGES[:2]]
+    assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
+    lines = [f"46500{i} 524700{i} 408 {100 + 50 * i} 200 {n} g{i}" for i in range(3) for n in IMAGES[:2]]
+    lines += ["465009 5247009 408 10 10 ground_00.png <b>lone</b>", "465008 5247008 408 5 5 missing.png g8"]
+    good = "EPSG:32632\n" + "\n".join(lines) + "\n"
+    card = "document.getElementById('gcp-card').dataset.state"
+    with page_of(console) as page:
+        sign_in(page, console)
+        page.goto(f"{console.d.url}/#/projects/{pid}")
+        wait_until(page, f"{card} === 'none' && document.getElementById('gcp-status').textContent")
+        assert page.is_hidden("#gcp-remove") and page.is_hidden("#gcp-details")
+
+        page.set_input_files(
+            "#gcp-input", [{"name": "gcp_list.txt", "mimeType": "text/plain", "buffer": good.encode()}]
+        )
+        wait_until(page, f"{card} === 'stored'")
+        assert page.locator("#gcp-points li").all_text_contents() == ["g0", "g1", "g2"]
+        problems = page.locator("#gcp-problems li").all_text_contents()
+        assert any("<b>lone</b>: seen in one photo only" in p for p in problems), problems
+        assert any("image 'missing.png' is not in the project" in p for p in problems), problems
+        assert page.locator("#gcp-problems b").count() == 0  # a point's name is text, never markup
+        assert "3 usable points in EPSG:32632" in page.text_content("#gcp-status")
+        page.reload()
+        wait_until(page, f"{card} === 'stored'")
+        assert page.locator("#gcp-points li").all_text_contents() == ["g0", "g1", "g2"]
+        page.locator("#gcp-card").screenshot(path=tmp_path / "gcp.png")
+
+        bad = {"name": "bad.txt", "mimeType": "text/plain", "buffer": b"NAD99\n1 2 3 4 5 ground_00.png a\n"}
+        page.set_input_files("#gcp-input", [bad])
+        wait_until(page, "document.getElementById('gcp-status').dataset.state === 'error'")
+        assert "bad.txt was refused: line 1: unknown coordinate system" in page.text_content("#gcp-status")
+        assert page.locator("#gcp-points li").all_text_contents() == ["g0", "g1", "g2"]  # the stored one
+        assert c.get(f"/v1/projects/{pid}/gcp").json()["points"] == ["g0", "g1", "g2"]
+
+        page.fill("#checkpoints", "g1, g2")
+        with page.expect_request(lambda r: r.url.endswith("/reconstruct")) as sent:
+            page.click("#start-reconstruct")
+        assert sent.value.post_data_json == {"checkpoints": ["g1", "g2"]}
+        wait_until(page, "document.getElementById('notice').textContent.includes('nothing to reconstruct')")
+
+        page.click("#gcp-remove")
+        wait_until(page, f"{card} === 'none'")
+        assert c.get(f"/v1/projects/{pid}/gcp").status_code == 404

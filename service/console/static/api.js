@@ -120,6 +120,15 @@ export async function watchJob(jobId, onJob, signal) {
   }
 }
 
+// One file as a multipart field, replacing what the path holds (PUT): the ground control points.
+export async function putFile(path, field, file) {
+  const form = new FormData();
+  form.append(field, file, file.name);
+  const response = await fetch(`/v1${path}`, { method: "PUT", headers: auth(), body: form });
+  if (!response.ok) throw await failure(response);
+  return response.json();
+}
+
 // A multipart form (photos): the response's status too, since 200 and 202 mean different things.
 export async function postForm(path, form, signal) {
   const response = await fetch(`/v1${path}`, { method: "POST", headers: auth(), body: form, signal });

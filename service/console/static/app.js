@@ -1,9 +1,10 @@
 // The console's pages: key entry, projects, one project (upload, images, jobs, pairs, model; the
-// "Locate a photo" action is locate.js).
+// "Locate a photo" action is locate.js, the ground control points gcp.js).
 // Every string that comes from the server (names, messages) goes into the page as text
 // (textContent, text nodes), never as HTML: a file may be named "<img src=x onerror=...>.jpg".
 
 import * as api from "./api.js";
+import { bindGcp, checkpoints, describeGcp, loadGcp } from "./gcp.js";
 import { bindLocate, resetLocate, showLocate } from "./locate.js";
 import { Viewer } from "./viewer.js";
 
@@ -131,13 +132,14 @@ async function openProject(id) {
   $("camera-image").hidden = true;
   $("camera-caption").textContent = "Click a camera (orange) to see its image.";
   resetLocate();
+  $("checkpoints").value = "";
   await refreshProject();
   await resume();
 }
 
 async function refreshProject() {
   await loadModel(); // first: the thumbnails show each image's registration
-  await Promise.all([loadImages(), loadPairs()]);
+  await Promise.all([loadImages(), loadPairs(), loadGcp()]);
 }
 
 function pid() {
@@ -212,7 +214,7 @@ async function uploadFiles(files) {
       if (error.status === 401) fail(error);
     }
   }
-  await loadImages().catch(fail);
+  await Promise.all([loadImages(), loadGcp()]).catch(fail); // new images may make more points usable
 }
 
 function bindUpload() {
@@ -398,6 +400,8 @@ async function startReconstruct() {
   try {
     notice("");
     const body = $("mapper").value ? { mapper: $("mapper").value } : {};
+    const held = checkpoints();
+    if (held !== undefined) body.checkpoints = held;
     const accepted = await api.post(`/projects/${pid()}/reconstruct`, body);
     pollJobs();
     await follow([accepted.job_id]);
@@ -470,7 +474,8 @@ async function loadModel() {
   state.registered = new Set(summary.registered_names || []);
   $("model-summary").textContent =
     `${summary.registered} of ${summary.images} images registered, ${summary.points3D} points, ` +
-    `mean reprojection error ${Number(summary.mean_reprojection_error).toFixed(2)} px (${summary.mapper} mapper)`;
+    `mean reprojection error ${Number(summary.mean_reprojection_error).toFixed(2)} px (${summary.mapper} mapper).` +
+    describeGcp(summary);
   try {
     viewer.load(await api.get(`/projects/${pid()}/model?format=scene`));
   } catch (error) {
@@ -532,6 +537,7 @@ function start() {
   $("cancel-job").addEventListener("click", cancelJob);
   for (const b of document.querySelectorAll("[data-download]")) b.addEventListener("click", download);
   bindUpload();
+  bindGcp({ projectId: () => state.project.id, fail });
   bindLocate({ viewer, projectId: () => state.project.id, signal: () => state.controller.signal, fail });
   window.addEventListener("hashchange", route);
   loadChoices().catch(fail);
