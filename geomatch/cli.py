@@ -180,6 +180,25 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    import json
+
+    from .report import survey_report, to_markdown
+
+    path = args.out / "summary.json" if args.out.is_dir() else args.out
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        print(f"geomatch: error: {path}: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if not isinstance(summary, dict) or "registered" not in summary:
+        print(f"geomatch: error: {path} is not the summary of a run or a reconstruct job", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    report = summary.get("report") or survey_report(summary)  # older runs carry no report
+    print(json.dumps(report, indent=2) if args.json else to_markdown(report), end="\n" if args.json else "")
+    return 0
+
+
 def cmd_localize(args: argparse.Namespace) -> int:
     import json
 
@@ -366,6 +385,11 @@ def register(sub: Any) -> None:
         "--images", type=Path, default=None, help="the run's images (default: the folder the run read)"
     )
     x.set_defaults(func=cmd_export)
+
+    rp = sub.add_parser("report", help="a run's survey report (photos, points, GPS, GCP and check points)")
+    rp.add_argument("out", type=Path, help="the run's output folder, or a summary.json")
+    rp.add_argument("--json", action="store_true", help="the report as JSON instead of Markdown")
+    rp.set_defaults(func=cmd_report)
 
     lo = sub.add_parser(
         "localize", help="place new photos in a run's model (pose, and WGS84 when georeferenced)"

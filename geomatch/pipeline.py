@@ -28,6 +28,7 @@ from .geo.gcpfile import GcpError, GcpFile, read_gcp_file
 from .matching.matcher import config_from_options
 from .metadata import read_metadata
 from .options import DEFAULTS, cache_budget, parse_plan, resolve
+from .report import survey_report
 from .sfm import mapping
 from .sfm.colmapdb import ColmapDatabase, PairWrite
 from .steps import PipelineError as PipelineError  # a run's bad input; defined with the stages
@@ -249,6 +250,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         timings=timings,
         options={k: v for k, v in asdict(opts).items() if k not in ("progress", "verbose", "pairs_list")},
     )
+    summary["report"] = survey_report(summary)
     steps.export(out, summary)
     return summary
 

@@ -9,7 +9,7 @@ import pycolmap
 import pytest
 from scipy.spatial.transform import Rotation
 
-from geomatch.geo.gcp import MAX_REPROJECTION_PX, choose_checkpoints, georeference
+from geomatch.geo.gcp import MAX_REPROJECTION_PX, adjust_to_control, choose_checkpoints, georeference
 from geomatch.geo.gcpfile import GcpError, read_gcp_file
 
 pytestmark = pytest.mark.unit
@@ -83,6 +83,21 @@ def test_each_bad_line_is_named_and_the_rest_is_used() -> None:
 def test_an_unknown_coordinate_system_refuses_the_file_naming_line_1() -> None:
     with pytest.raises(GcpError, match=r"line 1: unknown coordinate system 'EPSG:999999'"):
         read_gcp_file("\n".join(["EPSG:999999", *GOOD]), SIZES)
+
+
+def test_earth_centred_coordinates_are_refused_and_degrees_out_of_range_named() -> None:
+    with pytest.raises(GcpError, match=r"line 1: .*not a map projection"):
+        read_gcp_file("EPSG:4978\n" + _line(4e6, 1e6, 4.8e6, 10, 10, "a.jpg", "g1"), SIZES)
+    lines = [
+        _line(-117.2 + k * 1e-4, 32.8, 0.0, 10 + k, 10, im, f"g{k}")
+        for k in range(3)
+        for im in ("a.jpg", "b.jpg")
+    ]
+    lines.append(_line(200.0, 32.8, 0.0, 10, 10, "a.jpg", "far"))
+    g = read_gcp_file("\n".join(["WGS84", *lines]), SIZES)
+    assert sorted(g.points) == ["g0", "g1", "g2"]
+    assert any("far: (200, 32.8) is not a longitude and latitude" in p for p in g.problems)
+    assert all(np.isfinite(p.xyz).all() for p in g.points.values())
 
 
 def test_a_file_with_fewer_than_three_usable_points_is_refused_with_the_reason() -> None:
@@ -174,3 +189,44 @@ def test_a_point_whose_observations_do_not_meet_is_reported_and_left_out() -> No
     assert control is not None and control[1] < 1e-6  # the other five fit exactly
     summary = report.as_dict(g)
     assert summary["control_rmse_3d_m"] < 1e-6 and "check_rmse_3d_m" not in summary
+
+
+def _bend(rec: pycolmap.Reconstruction, k: float) -> None:
+    """Bow the model: z grows with the squared distance from its centre, cameras and points alike
+    (a few pixels of reprojection error at the control points); no similarity undoes it, and an
+    adjustment that holds the surveyed points brings the model back onto them."""
+    pts = np.stack([p.xyz for p in rec.points3D.values()])
+    mid = pts.mean(axis=0)
+    extent = float(np.ptp(pts[:, :2], axis=0).max())
+
+    def bent(x: np.ndarray) -> np.ndarray:
+        d2 = float(np.sum((x[:2] - mid[:2]) ** 2))
+        return x + np.array([0.0, 0.0, k * d2 / extent])
+
+    for p in rec.points3D.values():
+        p.xyz = bent(np.asarray(p.xyz))
+    for frame in rec.frames.values():
+        pose = frame.rig_from_world
+        centre = -(pose.rotation.matrix().T @ pose.translation)
+        pose.translation = -(pose.rotation.matrix() @ bent(centre))
+        frame.rig_from_world = pose
+
+
+def test_the_adjustment_holding_the_control_points_undoes_a_bend_a_similarity_cannot() -> None:
+    rec = _model()
+    g = read_gcp_file(_gcp_text(rec, 10), _sizes(rec))  # surveyed on the true, unbent site
+    keypoints = {iid: im.num_points2D() for iid, im in rec.images.items()}
+    n_points = rec.num_points3D()
+    _bend(rec, 0.004)
+    report = georeference(rec, g, 3)
+    rec.transform(report.similarity.to_pycolmap())
+    before = report.rmse("check")
+    adjust_to_control(rec, g, report)
+    after = report.rmse("check")
+    assert before is not None and after is not None and report.adjusted
+    assert after[1] < before[1] / 3, (before, after)
+    # the control points' observations were lent to the adjustment and taken back: the model
+    # holds its own keypoints and points only
+    assert {iid: im.num_points2D() for iid, im in rec.images.items()} == keypoints
+    assert rec.num_points3D() == n_points
+    assert report.as_dict(g)["check_rmse_similarity_only_m"]["3d"] == round(before[1], 4)

@@ -50,6 +50,10 @@ def test_the_model_is_written_in_the_gcps_frame_and_judged_at_the_check_points(
     # points must come out within twice the coarser of those
     gsd = max(float(c.centre[2] / c.K[0, 0]) for c in cams if c.aerial)
     assert g["check_rmse_3d_m"] < 2 * gsd, g
+    # the adjustment holding the control points may only bring the check points nearer
+    assert g["bundle_adjusted"] and g["check_rmse_3d_m"] <= g["check_rmse_similarity_only_m"]["3d"] + 1e-3
+    # the survey report carries the same numbers
+    assert s["report"]["georeferencing"]["gcp"]["check_rmse_3d_m"] == g["check_rmse_3d_m"]
     # not only the report: the cameras as written, against where they truly stood
     rec = pycolmap.Reconstruction(str(run_dir / "sparse" / "0"))
     true_centre = {c.name: c.centre + OFFSET for c in cams}

@@ -33,6 +33,7 @@ RANKS = {
     "geomatch.lru": 0,
     "geomatch.weights": 0,
     "geomatch.geometry": 0,
+    "geomatch.report": 0,
     "geomatch.robust_f": 0,
     # backbones (whose dense head refines on the epipolar prior); geodesy, GPS, georeferencing
     "geomatch.features": 1,

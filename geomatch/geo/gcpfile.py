@@ -71,9 +71,17 @@ def parse_crs(text: str) -> pyproj.CRS:
     if spec.upper() == "WGS84":
         spec = "EPSG:4326"
     try:
-        return pyproj.CRS.from_user_input(spec)
+        crs = pyproj.CRS.from_user_input(spec)
     except CRSError as e:
         raise GcpError(f"line 1: unknown coordinate system {text.strip()!r} ({e})") from None
+    if not (crs.is_projected or crs.is_geographic):
+        # a geocentric (Earth-centred XYZ) or engineering system: its x and y are neither
+        # longitude/latitude nor map metres, and reading them as either places points anywhere
+        raise GcpError(
+            f"line 1: {crs.name} is not a map projection or longitude/latitude: give the points in a"
+            " projected system (e.g. their UTM zone's EPSG code) or in WGS84"
+        )
+    return crs
 
 
 def metric_frame(crs: pyproj.CRS, lon_lat: tuple[float, float] | None) -> pyproj.CRS:
@@ -112,6 +120,9 @@ def read_gcp_file(text: str, image_sizes: Mapping[str, tuple[int, int]]) -> GcpF
             problems.append(f"line {i}: a coordinate is not a finite number")
             continue
         name = fields[6] if len(fields) > 6 else f"{x:.3f},{y:.3f},{z:.3f}"
+        if not crs.is_projected and not (-180.0 <= x <= 180.0 and -90.0 <= y <= 90.0):
+            problems.append(f"line {i}: {name}: ({x:g}, {y:g}) is not a longitude and latitude")
+            continue
         size = image_sizes.get(image)
         if size is None:
             problems.append(f"line {i}: {name}: image {image!r} is not in the project")

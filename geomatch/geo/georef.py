@@ -45,6 +45,7 @@ class Alignment:
     residuals: np.ndarray  # (N,) metres, every correspondence
     up_images: int = 0  # images whose gimbal fixed the model's vertical (0: a free 7-parameter fit)
     heights: HeightUse | None = None  # the barometric heights the fit used, if any
+    names: tuple[str, ...] = ()  # the image of each correspondence (residuals, inliers)
 
     def as_dict(self) -> dict[str, Any]:
         r = self.residuals[self.inliers]
@@ -59,6 +60,13 @@ class Alignment:
             "height_images": self.heights.images if self.heights else 0,
             "height_sigma_m": self.heights.height_sigma_m if self.heights else None,
             "gps_sigma_m": self.heights.gps_sigma_m if self.heights else None,
+            # per photo: a survey report names the fixes that disagree with the model
+            "per_image": [
+                {"name": n, "residual_m": round(float(r), 4), "inlier": bool(i)}
+                for n, r, i in zip(self.names, self.residuals, self.inliers, strict=True)
+            ]
+            if len(self.names) == len(self.residuals)
+            else [],
         }
 
 
@@ -268,6 +276,7 @@ def _fit(
     result = robust_similarity(src, dst, threshold, up=gravity[0] if gravity else None)
     if result is None:
         return None
+    result = replace(result, names=tuple(names))
     if gravity is not None:
         result = replace(result, up_images=gravity[1])
         known = heights or {}

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pycolmap
 from tqdm import tqdm
 
@@ -53,7 +54,23 @@ def sfm_stats(rec: pycolmap.Reconstruction, n_images: int) -> dict[str, Any]:
         "mean_reprojection_error": float(rec.compute_mean_reprojection_error())
         if rec.num_points3D()
         else 0.0,
+        "track_lengths": track_length_histogram(rec),
     }
+
+
+TRACK_BINS = (2, 3, 4, 5, 6, 11, 21)  # lower edges: 2, 3, 4, 5, 6-10, 11-20, 21+
+
+
+def track_length_histogram(rec: pycolmap.Reconstruction) -> dict[str, int]:
+    """Points by the number of photos that see them: a mean hides whether a model is many short
+    tracks (weak geometry) or fewer long ones, which is what a survey's accuracy rests on."""
+    lengths = np.fromiter((p.track.length() for p in rec.points3D.values()), np.int64, rec.num_points3D())
+    out: dict[str, int] = {}
+    for lo, hi in zip(TRACK_BINS, (*TRACK_BINS[1:], None), strict=True):
+        label = str(lo) if hi == lo + 1 else (f"{lo}+" if hi is None else f"{lo}-{hi - 1}")
+        sel = lengths >= lo if hi is None else (lengths >= lo) & (lengths < hi)
+        out[label] = int(sel.sum())
+    return out
 
 
 def verify(database: Path, verbose: bool = False) -> int:
@@ -149,9 +166,10 @@ def reconstruct(
     lap("track_refine")
     db = pycolmap.Database.open(str(mapped))
     try:
-        n_images = int(db.num_images())
+        all_names = sorted(im.name for im in db.read_all_images())
     finally:
         db.close()
+    n_images = len(all_names)
     bar = tqdm(total=n_images, desc=f"mapping ({mapper})", unit="image", disable=not progress)
     with bar, colmap_log(verbose):
         if mapper == "incremental":
@@ -204,11 +222,13 @@ def reconstruct(
             georef.ply_origin_comment(out / "points.ply", gps.frame)
         summary.update(sfm_stats(best, n_images))
         summary["registered_names"] = sorted(im.name for im in best.images.values() if im.has_pose)
+        summary["unregistered_names"] = sorted(set(all_names) - set(summary["registered_names"]))
     else:
         (out / "points.ply").unlink(missing_ok=True)
         summary.update(
             registered=0, images=n_images, points3D=0, mean_track_length=0.0, mean_reprojection_error=0.0
         )
         summary["registered_names"] = []
+        summary["unregistered_names"] = all_names
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary

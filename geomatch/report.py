@@ -1,0 +1,198 @@
+"""The survey report: what a survey team checks before it delivers a model.
+
+A run's summary.json holds everything measured, keyed as the stages wrote it; the report picks
+what decides whether a survey is usable (photos left out, points and their track lengths,
+reprojection error, how well the model fits the photos' GPS and the ground control points, the
+check-point RMSE, pairs the view-graph checks dropped, time per stage) into one JSON (the
+summary's ``report``, also a job's result) and one Markdown page (``geomatch report OUT``), as
+OpenDroneMap's quality report does for a task. It reads a summary only: a report of an older run
+is built the same way from its summary.json.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+# GPS residuals beyond this many times the fit's median are listed by name: the fixes a survey
+# team looks at first (a photo taken during take-off, a fix from before the lock)
+GPS_OUTLIER_FACTOR = 3.0
+MIN_GPS_OUTLIER_M = 1.0
+
+
+def survey_report(summary: Mapping[str, Any]) -> dict[str, Any]:
+    """The report of a run or a reconstruct job from its summary."""
+    out: dict[str, Any] = {
+        "photos": _photos(summary),
+        "model": _model(summary),
+        "pairs": _pairs(summary),
+        "georeferencing": _georeferencing(summary),
+        "timings_s": _timings(summary),
+    }
+    return out
+
+
+def _photos(s: Mapping[str, Any]) -> dict[str, Any]:
+    return {
+        "images": s.get("images"),
+        "registered": s.get("registered"),
+        "unregistered": list(s.get("unregistered_names", [])),
+        "aerial": len(s.get("aerial", [])),
+        "with_gps": s.get("gps_images"),
+    }
+
+
+def _model(s: Mapping[str, Any]) -> dict[str, Any]:
+    return {
+        "models": s.get("models"),
+        "points3D": s.get("points3D"),
+        "observations": s.get("observations"),
+        "mean_track_length": _round(s.get("mean_track_length"), 3),
+        "track_lengths": dict(s.get("track_lengths", {})),
+        "mean_reprojection_error_px": _round(s.get("mean_reprojection_error"), 3),
+    }
+
+
+def _pairs(s: Mapping[str, Any]) -> dict[str, Any]:
+    db = s.get("database") or {}
+    vg = s.get("view_graph") or {}
+    dropped = [
+        {"pair": d["pair"], "check": "loops", "why": f"{d['broken_loops']} of {d['loops']} loops broken"}
+        for d in vg.get("dropped", [])
+    ] + [
+        {"pair": d["pair"], "check": "tree", "why": f"{d['degrees']} deg from the rest over {d['hops']} hops"}
+        for d in vg.get("tree_dropped", [])
+    ]
+    return {
+        "planned": s.get("pairs"),
+        "plan": s.get("pair_plan"),
+        "tiled": s.get("tiled_pairs"),
+        "verified": db.get("verified_pairs"),
+        "dropped_by_view_graph": dropped,
+    }
+
+
+def _georeferencing(s: Mapping[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {"georeferenced": bool(s.get("georeferenced")), "frame": s.get("frame")}
+    al = s.get("alignment")
+    if al:
+        rows = al.get("per_image", [])
+        median = al.get("median_m") or 0.0
+        limit = max(GPS_OUTLIER_FACTOR * median, MIN_GPS_OUTLIER_M)
+        out["gps"] = {
+            "images": al.get("correspondences"),
+            "inliers": al.get("inliers"),
+            "median_m": _round(al.get("median_m"), 3),
+            "rmse_m": _round(al.get("rmse_m"), 3),
+            "max_inlier_m": _round(al.get("max_inlier_m"), 3),
+            "largest": sorted(
+                (r for r in rows if r["residual_m"] > limit or not r["inlier"]),
+                key=lambda r: -r["residual_m"],
+            ),
+        }
+    gcp = s.get("gcp")
+    if gcp:
+        g: dict[str, Any] = {"crs": gcp.get("crs"), "points": gcp.get("points", [])}
+        if "error" in gcp:
+            g["error"] = gcp["error"]
+            g["problems"] = gcp.get("problems", [])
+            g["unusable"] = gcp.get("unusable", {})
+        for key in ("control", "check"):
+            for dim in ("horizontal", "3d"):
+                k = f"{key}_rmse_{dim}_m"
+                if k in gcp:
+                    g[k] = gcp[k]
+        out["gcp"] = g
+    return out
+
+
+def _timings(s: Mapping[str, Any]) -> dict[str, float]:
+    t = dict(s.get("timings", {}))
+    stages = {k: t[k] for k in ("plan", "matching", "writing", "mapping", "total") if k in t}
+    for k, v in (s.get("mapping_seconds") or {}).items():
+        stages[f"mapping: {k}"] = v
+    return {k: round(float(v), 2) for k, v in stages.items()}
+
+
+def _round(v: Any, nd: int) -> float | None:
+    return None if v is None else round(float(v), nd)
+
+
+def to_markdown(r: Mapping[str, Any], title: str = "Survey report") -> str:
+    """The report as a page a survey team reads (and pastes into a delivery note)."""
+    ph, mo, pa, ge = r["photos"], r["model"], r["pairs"], r["georeferencing"]
+    lines = [f"# {title}", ""]
+    lines += ["## Photos", ""]
+    lines += [
+        f"- registered: {ph['registered']} of {ph['images']}"
+        + (f" (aerial: {ph['aerial']})" if ph.get("aerial") else ""),
+        f"- with GPS: {ph['with_gps'] if ph.get('with_gps') is not None else 'none'}",
+    ]
+    if ph["unregistered"]:
+        lines.append(f"- not registered: {', '.join(ph['unregistered'])}")
+    lines += ["", "## Model", ""]
+    lines += [
+        f"- models: {mo['models']} (the largest is reported)",
+        f"- 3D points: {mo['points3D']}, observations: {mo['observations']}",
+        f"- mean track length: {mo['mean_track_length']}, mean reprojection error: "
+        f"{mo['mean_reprojection_error_px']} px",
+    ]
+    if mo["track_lengths"]:
+        lines += ["", "| track length | " + " | ".join(mo["track_lengths"]) + " |"]
+        lines += ["|---|" + "---:|" * len(mo["track_lengths"])]
+        lines += ["| points | " + " | ".join(str(v) for v in mo["track_lengths"].values()) + " |"]
+    lines += ["", "## Pairs", ""]
+    lines += [
+        f"- planned: {pa['planned']} ({pa['plan']})" + (f", tiled: {pa['tiled']}" if pa.get("tiled") else ""),
+        f"- verified: {pa['verified']}",
+        f"- dropped by the view-graph checks: {len(pa['dropped_by_view_graph'])}",
+    ]
+    lines += [f"  - {' x '.join(d['pair'])}: {d['why']}" for d in pa["dropped_by_view_graph"]]
+    lines += ["", "## Georeferencing", ""]
+    frame = {"ENU": "ENU metres around the photos' GPS", "GCP": "the GCPs' coordinate system"}
+    lines.append(
+        f"- frame: {frame.get(ge['frame'], ge['frame'])}" if ge["georeferenced"] else "- not georeferenced"
+    )
+    if "gps" in ge:
+        gp = ge["gps"]
+        lines.append(
+            f"- camera centres vs GPS: median {gp['median_m']} m, RMSE {gp['rmse_m']} m, largest inlier "
+            f"{gp['max_inlier_m']} m ({gp['inliers']} of {gp['images']} fixes used)"
+        )
+        for row in gp["largest"]:
+            note = "" if row["inlier"] else " (not used: outlier)"
+            lines.append(f"  - {row['name']}: {row['residual_m']} m{note}")
+    if "gcp" in ge:
+        lines += _gcp_markdown(ge["gcp"])
+    lines += ["", "## Time per stage (s)", "", "| stage | s |", "|---|---:|"]
+    lines += [f"| {k} | {v} |" for k, v in r["timings_s"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def _gcp_markdown(g: Mapping[str, Any]) -> list[str]:
+    lines = ["", "### Ground control points", "", f"- coordinate system: {g.get('crs')}"]
+    if "error" in g:
+        lines.append(f"- not georeferenced by the GCPs: {g['error']}")
+    for key, label in (("check", "check-point RMSE"), ("control", "control-point RMSE")):
+        if f"{key}_rmse_horizontal_m" in g:
+            lines.append(
+                f"- {label}: {g[f'{key}_rmse_horizontal_m']} m horizontal, {g[f'{key}_rmse_3d_m']} m 3D"
+            )
+    if g.get("points"):
+        lines += ["", "| point | role | photos (registered) | dx m | dy m | dz m | 3D m | note |"]
+        lines += ["|---|---|---:|---:|---:|---:|---:|---|"]
+        for p in g["points"]:
+            cells = [_cell(p.get(k)) for k in ("dx_m", "dy_m", "dz_m", "3d_m")]
+            note = p.get("reason") or (
+                f"reprojection {p['reprojection_px']} px" if p.get("reprojection_px") is not None else ""
+            )
+            lines.append(
+                f"| {p['name']} | {p['role']} | {p['observations']} ({p['observations_registered']}) | "
+                + " | ".join(cells)
+                + f" | {note} |"
+            )
+    return lines
+
+
+def _cell(v: Any) -> str:
+    return "" if v is None else f"{v:.3f}"
