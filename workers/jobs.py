@@ -237,6 +237,7 @@ def _image_id(db: Any, name: str) -> int:
 def reconstruct(ctx: Context, job_id: str) -> str:
     from geomatch import steps
     from geomatch.geo import gps
+    from geomatch.report import survey_report
     from geomatch.sfm import mapping
     from geomatch.sfm.colmapdb import ColmapDatabase
 
@@ -272,6 +273,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         _georeference_by_gcps(ctx, job, out, summary)
         summary["timings"] = {"mapping": round(time.perf_counter() - t0, 3)}
         summary["job_id"] = job_id
+        summary["report"] = survey_report(summary)
         steps.export(out, summary, archive=True)
         if not jobstate.is_active(ctx.store, job_id):
             return "cancelled"

@@ -213,6 +213,9 @@ def test_reconstruct_georeferences_by_the_gcps_and_judges_at_the_check_points(
     assert any(ELSEWHERE in p for p in g["problems"]), g
     # the ground views see these points 10-30 m away, matched at 320 px: 0.16 m check RMSE measured
     assert 0 <= g["check_rmse_3d_m"] < 1.0 and g["control_rmse_3d_m"] < 0.5, g
+    # the job's result is the survey report too, with the same check points
+    assert result["report"]["georeferencing"]["gcp"]["check_rmse_3d_m"] == g["check_rmse_3d_m"]
+    assert result["report"]["photos"]["registered"] == result["registered"]
     assert c.get(f"/v1/projects/{pid}/model", params={"format": "json"}).json() == result
     print(
         f"GCP end to end: {time.monotonic() - t0:.0f} s, check RMSE 3D {g['check_rmse_3d_m']} m, "
