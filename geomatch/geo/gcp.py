@@ -235,9 +235,12 @@ def adjust_to_control(rec: pycolmap.Reconstruction, gcps: GcpFile, report: GcpRe
     options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     options.ceres.loss_function_scale = ADJUST_LOSS_PX
     options.print_summary = False
+    loglevel = int(pycolmap.logging.minloglevel)
+    pycolmap.logging.minloglevel = max(loglevel, 2)  # Ceres' report is not the user's business
     try:
         pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
     finally:
+        pycolmap.logging.minloglevel = loglevel
         for pid in added:
             rec.delete_point3D(pid)
         for iid, n in appended.items():
