@@ -1,4 +1,4 @@
-"""/v1/projects/{id}/model, /database, /pairs and a pair's matches.png.
+"""/v1/projects/{id}/model, /report, /database, /pairs and a pair's matches.png.
 
 The router is made with each app (:func:`router`): the model's formats are the export table's
 (``geomatch.export.formats``) as it is then, and the OpenAPI schema lists them.
@@ -9,8 +9,10 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Response
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, JSONResponse
 from starlette.background import BackgroundTask
+
+from geomatch.report import to_markdown
 
 from ..schemas import PairOut, PairsOut, SceneOut
 from ..usecases.outputs import export_formats, model_files, remove_quietly
@@ -49,6 +51,21 @@ def router() -> APIRouter:
         responses={200: {"content": {m: {} for m in media.values()}}},
     )
     out.add_api_route(
+        "/projects/{project_id}/report",
+        report,
+        methods=["GET"],
+        response_class=JSONResponse,
+        responses={
+            200: {
+                "description": "the report: JSON (format=json) or a Markdown page (format=md)",
+                "content": {
+                    "application/json": {"schema": {"type": "object"}},
+                    MARKDOWN: {"schema": {"type": "string"}},
+                },
+            }
+        },
+    )
+    out.add_api_route(
         "/projects/{project_id}/database",
         database,
         methods=["GET"],
@@ -64,6 +81,29 @@ def router() -> APIRouter:
         responses={200: {"content": {"image/png": {}}}},
     )
     return out
+
+
+MARKDOWN = "text/markdown"
+
+
+def report(
+    project_id: str,
+    svc: Svc,
+    tenant_id: Tenant,
+    format: Annotated[
+        Literal["json", "md"], Query(description="json: the report's fields; md: the page to read")
+    ] = "json",
+) -> Response:
+    """The survey report of the project's model (photos registered and left out, points and track
+    lengths, reprojection error, the fit to the photos' GPS and to the ground control points with
+    the check-point RMSE, pairs the view-graph checks dropped, time per stage): the reconstruct
+    job's ``report`` (a model made before reports is reported from its summary). 404 before the
+    first model."""
+    view = svc.survey_report(tenant_id, project_id)
+    if format == "md":
+        page = to_markdown(view.report, title=f"Survey report: {view.project_name}")
+        return Response(page, media_type=f"{MARKDOWN}; charset=utf-8")
+    return JSONResponse(view.report)
 
 
 def database(project_id: str, svc: Svc, tenant_id: Tenant) -> FileResponse:

@@ -1,10 +1,13 @@
 """Outputs: the model in its formats (the export table's included), the scene for a viewer, the
-matched pairs, a snapshot of the COLMAP database, the picture of a pair's matches."""
+survey report, the matched pairs, a snapshot of the COLMAP database, the picture of a pair's
+matches."""
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
+import math
 import os
 import shutil
 from dataclasses import dataclass
@@ -14,6 +17,7 @@ from typing import Any
 from sqlalchemy import select
 
 from geomatch.export.formats import DATABASE, FORMATS, ExportFormat
+from geomatch.report import survey_report
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
 from geomatch_core.errors import InvalidRequest, NotFound, Unavailable
 from geomatch_core.models import Image
@@ -23,6 +27,7 @@ from ..ids import known_name
 from ..modelscene import read_scene
 from ..pairlist import PairView, read_pairs
 from .base import UseCases
+from .views import ReportView
 
 
 @dataclass(frozen=True)
@@ -115,6 +120,19 @@ class OutputUseCases(UseCases):
         with self.heavy.open(tenant_id):  # parses every point of the model's text files
             return read_scene(self.storage.model_dir(project_id))
 
+    def survey_report(self, tenant_id: str, project_id: str) -> ReportView:
+        """The survey report of the project's model (geomatch.report): the one its reconstruct
+        job wrote into summary.json, or, for a model made before reports existed, built now from
+        that summary (the same function builds both)."""
+        with self.store.session() as s:
+            name = self._project(s, tenant_id, project_id).name
+        try:
+            summary = json.loads((self.storage.model_dir(project_id) / "summary.json").read_bytes())
+        except FileNotFoundError:
+            raise NotFound(f"project {project_id} has no model yet: POST .../reconstruct") from None
+        report = summary.get("report") or survey_report(summary)
+        return ReportView(project_name=name, report=_finite(report))
+
     def list_pairs(self, tenant_id: str, project_id: str) -> list[PairView]:
         """The project's matched pairs and their counts (none before the first match job)."""
         self._owned(tenant_id, project_id)
@@ -172,6 +190,18 @@ class OutputUseCases(UseCases):
         if out.get("error"):
             raise Unavailable(f"drawing the picture failed: {out['error']}")
         return path
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with NaN and infinities as None: summary.json is Python's JSON, which writes them,
+    and a JSON answer may not hold them."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
 
 
 def remove_quietly(path: Path) -> None:

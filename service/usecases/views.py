@@ -80,6 +80,14 @@ class GcpView:
 
 
 @dataclass(frozen=True)
+class ReportView:
+    """A model's survey report (geomatch.report.survey_report) and the name of its project."""
+
+    project_name: str
+    report: dict[str, Any]
+
+
+@dataclass(frozen=True)
 class MatchRequest:
     pairs: str | list[list[str]] | None = None
     method: str | None = None

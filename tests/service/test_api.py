@@ -116,6 +116,7 @@ def test_another_tenants_project_and_jobs_are_404(
         ("GET", f"/v1/projects/{project}/images"),
         ("POST", f"/v1/projects/{project}/reconstruct"),
         ("GET", f"/v1/projects/{project}/model"),
+        ("GET", f"/v1/projects/{project}/report"),
         ("GET", f"/v1/projects/{project}/database"),
         ("GET", f"/v1/projects/{project}/pairs/ground_00.png/ground_01.png/matches.png"),
         ("GET", f"/v1/jobs/{job_id}"),
@@ -242,6 +243,7 @@ def test_unknown_project_and_job_are_404(a: httpx.Client) -> None:
         ("GET", f"/v1/projects/{missing}/images"),
         ("POST", f"/v1/projects/{missing}/reconstruct"),
         ("GET", f"/v1/projects/{missing}/model"),
+        ("GET", f"/v1/projects/{missing}/report"),
         ("GET", f"/v1/jobs/{missing}"),
         ("DELETE", f"/v1/jobs/{missing}"),
         ("GET", f"/v1/jobs/{missing}/events"),
@@ -348,6 +350,7 @@ def test_health_metrics_and_docs(deployment: Deployment) -> None:
         "/v1/projects/{project_id}/reconstruct",
         "/v1/jobs/{job_id}/events",
         "/v1/projects/{project_id}/model",
+        "/v1/projects/{project_id}/report",
         "/v1/projects/{project_id}/database",
         "/v1/projects/{project_id}/pairs/{name0}/{name1}/matches.png",
     ):

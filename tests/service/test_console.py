@@ -14,8 +14,6 @@ from __future__ import annotations
 import base64
 import contextlib
 import io
-import os
-import shutil
 import time
 import zipfile
 from collections.abc import Iterator
@@ -41,12 +39,6 @@ pytestmark = pytest.mark.browser
 IMAGES = ["ground_00.png", "ground_01.png", "ground_02.png", "ground_03.png"]
 RESIZE = 480
 METHOD = "sparse"
-# GEOMATCH_README_SHOTS=docs/img: the README's pictures (console-*.png) from this run's screenshots
-README_SHOTS = {
-    "project-top.png": "console-project.png",
-    "model.png": "console-model.png",
-    "phone.png": "console-phone.png",
-}
 XSS = "<img src=x onerror=alert(1)>"
 JOB_TIMEOUT_MS = 20 * 60 * 1000  # generous: CI machines are shared
 DESKTOP = {"width": 1280, "height": 800}
@@ -302,7 +294,8 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         assert len(scene_json["cameras"]) == summary["registered"]
         assert sorted(cam["name"] for cam in scene_json["cameras"]) == summary["registered_names"]
 
-        # what the viewer drew: every point (the first view frames the whole model) and every camera
+        # what the viewer drew: every point (the first view frames the whole model: the synthetic
+        # one has no far strays, which the viewer leaves out of its framing) and every camera
         wait_until(page, f"window.geomatchViewer && window.geomatchViewer.points === {summary['points3D']}")
         drawn = page.evaluate(
             "(({points, cameras, drawnPoints, frames}) => ({points, cameras, drawnPoints, frames}))"
@@ -311,6 +304,21 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         assert drawn["points"] == drawn["drawnPoints"] == summary["points3D"], drawn
         assert drawn["cameras"] == summary["registered"], drawn
         assert page.get_attribute("#viewer", "data-points") == str(summary["points3D"])
+
+        # the survey report card: the report endpoint's numbers (no GCPs here: no GCP table)
+        report = c.get(f"/v1/projects/{pid}/report").json()
+        wait_until(page, "document.getElementById('report-card').dataset.state === 'shown'")
+        card = facts(page)
+        assert card["registered"] == f"{summary['registered']} of {len(IMAGES)}", card
+        assert card["unregistered"] == "none" and card["points"] == str(summary["points3D"]), card
+        assert card["reprojection"] == f"{report['model']['mean_reprojection_error_px']} px", card
+        assert page.is_hidden("#report-gcp")
+        lengths = page.locator("#report-tracks tr:last-child td").all_text_contents()
+        assert lengths == [str(v) for v in report["model"]["track_lengths"].values()] and lengths
+        stages = page.eval_on_selector_all(
+            "#report-timings tr[data-stage]", "els => els.map(e => e.dataset.stage)"
+        )
+        assert stages == list(report["timings_s"]) and "mapping" in stages, stages
 
         wait_until(
             page,
@@ -389,7 +397,16 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         assert page.text_content("#camera-caption") in summary["registered_names"]
         page.locator("#model-title").scroll_into_view_if_needed()
         page.screenshot(path=tmp_path / "model.png")
+        page.locator("#report-card").screenshot(path=tmp_path / "report.png")
         page.screenshot(path=tmp_path / "project.png", full_page=True)
+
+        # the report's Markdown page, downloaded as the other files are (the key in a header)
+        with page.expect_download() as download:
+            page.click("button[data-download='report?format=md']")
+        assert download.value.suggested_filename == f"{pid}-report.md"
+        page_md = Path(download.value.path()).read_text()
+        assert page_md.startswith("# Survey report: console e2e\n") and f"of {len(IMAGES)}" in page_md
+        assert page_md == c.get(f"/v1/projects/{pid}/report", params={"format": "md"}).text
 
         # a download: the model's zip, fetched with the key and saved from a blob: URL
         with page.expect_download() as download:
@@ -409,10 +426,60 @@ def test_photos_to_point_cloud(console: Console, scene: Path, tmp_path: Path) ->
         page.wait_for_timeout(300)
         assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
         page.screenshot(path=tmp_path / "phone.png")
-        if readme := os.environ.get("GEOMATCH_README_SHOTS"):
-            for shot, name in README_SHOTS.items():
-                shutil.copyfile(tmp_path / shot, Path(readme) / name)
+
+        # a report with ground control points (as a reconstruct with a gcp_list.txt writes it:
+        # tests/service/test_gcp_api.py makes a real one) shows their table and RMSE, names as text
+        page.set_viewport_size(DESKTOP)
+        page.route(f"**/v1/projects/{pid}/report?format=json", with_gcps)
+        page.reload()
+        wait_until(page, "document.getElementById('report-card').dataset.state === 'shown'")
+        page.wait_for_selector("#report-gcp:not([hidden])")
+        rows = page.eval_on_selector_all(
+            "#report-gcp-rows tr", "els => els.map(r => [...r.cells].map(c => c.textContent))"
+        )
+        assert rows == [
+            ["gcp00", "control", "3 (3)", "0.012", "-0.020", "0.031", "0.039", "reprojection 0.8 px"],
+            [XSS, "check", "2 (2)", "0.110", "0.040", "-0.105", "0.157", "reprojection 1.2 px"],
+            ["gcp09", "unused", "1 (1)", "", "", "", "", "seen in one photo only"],
+        ], rows
+        assert facts(page)["check-rmse"] == "0.117 m horizontal, 0.157 m 3D"
+        assert facts(page)["control-rmse"] == "0.012 m horizontal, 0.039 m 3D"
+        assert page.locator("#report-gcp-rows img").count() == 0  # a point's name is text, never markup
+        page.locator("#report-card").screenshot(path=tmp_path / "report-gcp.png")
         print(f"console: photos to point cloud in {time.monotonic() - t0:.0f}s; screenshots in {tmp_path}")
+
+
+def facts(page: Any) -> dict[str, str]:
+    """The survey report card's facts, by their data-fact keys."""
+    return dict(
+        page.eval_on_selector_all(
+            "#report-card dd[data-fact]", "els => els.map(e => [e.dataset.fact, e.textContent])"
+        )
+    )
+
+
+# the georeferencing.gcp of a report, as geomatch.report copies it from the reconstruct's gcp
+GCP_IN_REPORT = {
+    "crs": "EPSG:32632",
+    "points": [
+        {"name": "gcp00", "role": "control", "observations": 3, "observations_registered": 3,
+         "reprojection_px": 0.8, "dx_m": 0.012, "dy_m": -0.02, "dz_m": 0.031, "3d_m": 0.039},
+        {"name": XSS, "role": "check", "observations": 2, "observations_registered": 2,
+         "reprojection_px": 1.2, "dx_m": 0.11, "dy_m": 0.04, "dz_m": -0.105, "3d_m": 0.157},
+        {"name": "gcp09", "role": "unused", "observations": 1, "observations_registered": 1,
+         "reason": "seen in one photo only"},
+    ],
+    "control_rmse_horizontal_m": 0.012, "control_rmse_3d_m": 0.039,
+    "check_rmse_horizontal_m": 0.117, "check_rmse_3d_m": 0.157,
+}  # fmt: skip
+
+
+def with_gcps(route: Any) -> None:
+    """The server's report with GCP_IN_REPORT in it (a Playwright route handler)."""
+    response = route.fetch()
+    report = response.json()
+    report["georeferencing"]["gcp"] = GCP_IN_REPORT
+    route.fulfill(response=response, json=report)
 
 
 def test_cancel_from_the_page(console: Console, scene: Path, tmp_path: Path) -> None:

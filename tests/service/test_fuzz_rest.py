@@ -21,10 +21,10 @@ Three checks are tuned, for reasons no schema can carry (see ``CONFIG``):
   of an accepted format is one (400, 413, 415 otherwise), whether a match job can start depends
   on the project's images (at least two; explicit pairs must name them): 422 otherwise, and a GCP
   file is any text to the schema but one the project's images can use only when it names them;
-- ensure_resource_availability, for the project's COLMAP database, its model, match pictures and
-  GCP file: those are made by jobs or by a PUT of their own, not by creating the project, and until
-  then 404 is the documented answer (the stateful phase links them to POST /v1/projects and would
-  call the 404 a lost resource);
+- ensure_resource_availability, for the project's COLMAP database, its model and survey report,
+  match pictures and GCP file: those are made by jobs or by a PUT of their own, not by creating
+  the project, and until then 404 is the documented answer (the stateful phase links them to
+  POST /v1/projects and would call the 404 a lost resource);
 - not_a_server_error on /readyz: with no worker its 503 is the answer a load balancer needs.
 """
 
@@ -84,7 +84,7 @@ include-name = "GET /readyz"
 checks.not_a_server_error.enabled = false
 
 [[operations]]
-include-path-regex = "^/v1/projects/\\\\{{project_id\\\\}}/(database|model|pairs/|gcp)"
+include-path-regex = "^/v1/projects/\\\\{{project_id\\\\}}/(database|model|report|pairs/|gcp)"
 checks.ensure_resource_availability.enabled = false
 """
 

@@ -9,6 +9,7 @@ photo the project does not have, which must be reported, not refused.
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -184,6 +185,8 @@ def test_reconstruct_georeferences_by_the_gcps_and_judges_at_the_check_points(
     assert c.put(f"/v1/projects/{pid}/gcp", content=gcp_list).status_code == 200
     match = wait_job(c, c.post(f"/v1/projects/{pid}/match", json={"resize": 320}).json()["job_id"])
     assert match["state"] == "succeeded", (match, dep.logs())
+    r = c.get(f"/v1/projects/{pid}/report")  # matched, not reconstructed: no report yet
+    assert r.status_code == 404 and "has no model yet" in r.json()["detail"], r.text
 
     # check points are checked against the file before a job is queued
     for bad, reason in [
@@ -217,7 +220,32 @@ def test_reconstruct_georeferences_by_the_gcps_and_judges_at_the_check_points(
     assert result["report"]["georeferencing"]["gcp"]["check_rmse_3d_m"] == g["check_rmse_3d_m"]
     assert result["report"]["photos"]["registered"] == result["registered"]
     assert c.get(f"/v1/projects/{pid}/model", params={"format": "json"}).json() == result
+    check_report_endpoint(dep, c, pid, result)
     print(
         f"GCP end to end: {time.monotonic() - t0:.0f} s, check RMSE 3D {g['check_rmse_3d_m']} m, "
         f"control {g['control_rmse_3d_m']} m"
     )
+
+
+def check_report_endpoint(dep: GrpcDeployment, c: httpx.Client, pid: str, result: dict[str, Any]) -> None:
+    """GET .../report: the job's report as JSON, the Markdown page with the check points, another
+    tenant's 404, and the report of a model from before reports, built from its summary."""
+    r = c.get(f"/v1/projects/{pid}/report")
+    assert r.status_code == 200 and r.headers["content-type"] == "application/json", r.text
+    assert r.json() == result["report"]
+    assert c.get(f"/v1/projects/{pid}/report", params={"format": "json"}).json() == result["report"]
+    md = c.get(f"/v1/projects/{pid}/report", params={"format": "md"})
+    assert md.status_code == 200 and md.headers["content-type"] == "text/markdown; charset=utf-8"
+    gcp = result["report"]["georeferencing"]["gcp"]
+    assert md.text.startswith("# Survey report: gcp-e2e\n"), md.text
+    assert f"- registered: {result['registered']} of {len(GROUND)}" in md.text
+    rmse = f"{gcp['check_rmse_horizontal_m']} m horizontal, {gcp['check_rmse_3d_m']} m 3D"
+    assert f"- check-point RMSE: {rmse}" in md.text, md.text
+    assert sum(line.startswith("| gcp0") for line in md.text.splitlines()) == len(gcp["points"])
+    assert c.get(f"/v1/projects/{pid}/report", params={"format": "pdf"}).status_code == 422
+    assert dep.client(dep.create_key("report-other")).get(f"/v1/projects/{pid}/report").status_code == 404
+
+    summary = dep.home / "projects" / pid / "model" / "summary.json"
+    older = {k: v for k, v in result.items() if k != "report"}
+    summary.write_text(json.dumps(older))
+    assert c.get(f"/v1/projects/{pid}/report").json() == result["report"]

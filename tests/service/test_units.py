@@ -234,8 +234,8 @@ def test_service_modules_do_not_import_torch() -> None:
         "service.api, geomatch_app.bootstrap, geomatch_app.cli, service.cli, "
         "workers.celery_queue, workers.local, workers.tasks, workers.jobs, workers.steps"
     )
-    # the option vocabulary, the export table, the command's parser and the SQLite snapshot
-    # (standard library only) are all the API reads of the library
+    # the option vocabulary, the export table, the command's parser, the survey report and the
+    # SQLite snapshot (standard library only) are all the API reads of the library
     loaded = loaded_after(modules, ("torch", "geomatch", "cv2"))
     assert loaded == [
         "geomatch",
@@ -244,6 +244,7 @@ def test_service_modules_do_not_import_torch() -> None:
         "geomatch.export.formats",
         "geomatch.export.source",
         "geomatch.options",
+        "geomatch.report",
         "geomatch.sfm",
         "geomatch.sfm.sqlitecopy",
     ]

@@ -1,11 +1,13 @@
 // The console's pages: key entry, projects, one project (upload, images, jobs, pairs, model; the
-// "Locate a photo" action is locate.js, the ground control points gcp.js).
+// "Locate a photo" action is locate.js, the ground control points gcp.js, the survey report
+// report.js).
 // Every string that comes from the server (names, messages) goes into the page as text
 // (textContent, text nodes), never as HTML: a file may be named "<img src=x onerror=...>.jpg".
 
 import * as api from "./api.js";
 import { bindGcp, checkpoints, describeGcp, loadGcp } from "./gcp.js";
 import { bindLocate, resetLocate, showLocate } from "./locate.js";
+import { showReport } from "./report.js";
 import { Viewer } from "./viewer.js";
 
 const $ = (id) => document.getElementById(id);
@@ -132,6 +134,7 @@ async function openProject(id) {
   $("camera-image").hidden = true;
   $("camera-caption").textContent = "Click a camera (orange) to see its image.";
   resetLocate();
+  showReport(null);
   $("checkpoints").value = "";
   await refreshProject();
   await resume();
@@ -466,6 +469,7 @@ async function loadModel() {
       $("model-summary").textContent = "No model yet: start a match with reconstruct.";
       viewer.clear();
       showLocate(false);
+      showReport(null);
       return;
     }
   }
@@ -476,6 +480,12 @@ async function loadModel() {
     `${summary.registered} of ${summary.images} images registered, ${summary.points3D} points, ` +
     `mean reprojection error ${Number(summary.mean_reprojection_error).toFixed(2)} px (${summary.mapper} mapper).` +
     describeGcp(summary);
+  try {
+    showReport(await api.get(`/projects/${pid()}/report?format=json`));
+  } catch (error) {
+    if (error.status !== 404) throw error;
+    showReport(null);
+  }
   try {
     viewer.load(await api.get(`/projects/${pid()}/model?format=scene`));
   } catch (error) {
@@ -497,7 +507,12 @@ async function showCamera(cam) {
 
 async function download(e) {
   const what = e.currentTarget.dataset.download;
-  const names = { "model?format=zip": "model.zip", "model?format=ply": "points.ply", database: "database.db" };
+  const names = {
+    "model?format=zip": "model.zip",
+    "model?format=ply": "points.ply",
+    database: "database.db",
+    "report?format=md": "report.md",
+  };
   try {
     const url = objectUrl(await api.blob(`/projects/${pid()}/${what}`, state.controller.signal));
     const a = el("a", { href: url, download: `${state.project.id}-${names[what]}` });

@@ -48,6 +48,21 @@ function frustum(cam, depth) {
   return { centre: cam.center, corners };
 }
 
+const median = (values) => {
+  const v = Float64Array.from(values).sort();
+  return v.length ? v[Math.floor(v.length / 2)] : 0;
+};
+
+// The points within 3x the 95th percentile of their distances from the median point.
+function inliers(points) {
+  if (points.length < 20) return points;
+  const m = [0, 1, 2].map((k) => median(points.map((p) => p[k])));
+  const d = points.map((p) => Math.hypot(...sub(p, m)));
+  const sorted = Float64Array.from(d).sort();
+  const limit = 3 * sorted[Math.floor(0.95 * (sorted.length - 1))];
+  return limit > 0 ? points.filter((_, i) => d[i] <= limit) : points;
+}
+
 export class Viewer {
   constructor(canvas, onPick) {
     this.canvas = canvas;
@@ -78,10 +93,13 @@ export class Viewer {
     this.selected = -1;
     const n = scene.points;
     const xyz = scene.xyz;
-    // frame everything: the bounding box's centre and the farthest point or camera from it
-    const all = [];
-    for (let i = 0; i < n; i++) all.push([xyz[3 * i], xyz[3 * i + 1], xyz[3 * i + 2]]);
-    for (const c of scene.cameras) all.push(c.center);
+    // frame the model: the bounding box's centre and the farthest camera or point from it, of the
+    // points within 3x the 95th percentile of their distances from the median point (a real
+    // survey has a few points triangulated far away from near-parallel rays, which would leave
+    // the model a speck in a corner; turning and zooming reach them)
+    const pts = [];
+    for (let i = 0; i < n; i++) pts.push([xyz[3 * i], xyz[3 * i + 1], xyz[3 * i + 2]]);
+    const all = [...inliers(pts), ...scene.cameras.map((c) => c.center)];
     const lo = [Infinity, Infinity, Infinity];
     const hi = [-Infinity, -Infinity, -Infinity];
     for (const p of all) {
