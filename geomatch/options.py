@@ -344,3 +344,43 @@ def parse_spec(spec: str) -> tuple[str, int]:
     if k < 1:
         raise PairSpecError(f"bad pair spec {spec!r}: K must be at least 1")
     return m.group(2), k
+
+
+# -- the size of a plan, before it is made ------------------------------------------------------
+def all_pairs(n: int) -> int:
+    """Pairs of every two of ``n`` images: what ``exhaustive`` plans."""
+    return n * (n - 1) // 2
+
+
+def fewest_pairs(spec: str, n: int) -> tuple[int, bool]:
+    """The fewest pairs a plan of ``spec`` can have over ``n`` images, by arithmetic alone (no
+    image read), and whether that is the plan's exact count: exact for ``exhaustive`` and
+    ``sequential:K``; for ``gps:K`` and ``retrieval:K`` each image has min(K, n-1) partners and a
+    pair has two images, so at least n*min(K, n-1)/2; ``auto`` depends on the images' GPS
+    (pairs.auto_pairs), 0 here. A union has at least what its largest part has."""
+    fewest, parts = 0, parse_plan(spec)
+    for kind, k in parts:
+        if kind == "exhaustive":
+            count = all_pairs(n)
+        elif kind == "sequential":
+            count = all_pairs(n) if k >= n - 1 else k * n - k * (k + 1) // 2
+        elif kind in ("gps", "retrieval"):
+            count = -(-n * min(k, max(n - 1, 0)) // 2)
+        else:
+            count = 0
+        fewest = max(fewest, count)
+    exact = len(parts) == 1 and parts[0][0] in ("exhaustive", "sequential")
+    return fewest, exact
+
+
+def too_many_pairs(pairs: int, n: int, limit: int, plan: str, exact: bool = True) -> str:
+    """The refusal of a match job whose plan is over ``limit`` pairs, with how to split the work."""
+    k = max(1, limit // max(n, 1))
+    count = f"{pairs}" if exact else f"at least {pairs}"
+    return (
+        f"this match would plan {count} pairs ({plan} over {n} images), over the limit of {limit} "
+        f"pairs per job (GEOMATCH_MAX_PAIRS_PER_JOB). Split the work: pair each image with its K "
+        f'nearest instead of every other, "gps:{k}" (photos with GPS), "retrieval:{k}" (by '
+        f'appearance) or "sequential:{k}" (a video or a flight line), about {k * n} pairs here; '
+        "or match the project in parts with explicit pair lists"
+    )

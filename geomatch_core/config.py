@@ -53,6 +53,15 @@ class Settings:
     render_timeout_s: int = 120  # GEOMATCH_RENDER_TIMEOUT: how long a matches.png request waits
     grpc_tenant_streams: int = 16  # GEOMATCH_GRPC_TENANT_STREAMS: streaming calls one tenant may hold open
     grpc_stream_idle_s: int = 120  # GEOMATCH_GRPC_STREAM_IDLE: a request stream quiet this long is cut
+    # GEOMATCH_GRPC_FIRST_MESSAGE_S: a unary gRPC call (health checks too) whose request message has
+    # not come this long after the call opened ends with DEADLINE_EXCEEDED
+    grpc_first_message_s: float = 10.0
+    # GEOMATCH_MAX_PAIRS_PER_JOB: the most pairs one match job may plan (0: no limit): a larger
+    # request is refused before anything is planned, or its job fails before a pair row is written
+    max_pairs_per_job: int = 20_000
+    # GEOMATCH_HEAD_TIMEOUT_S: an HTTP request head (or a new connection's first one) must be in
+    # within this many seconds of its first byte (of the connection's opening): 408 and closed
+    head_timeout_s: float = 10.0
     # GEOMATCH_MAX_REQUEST_MB: a whole upload request (every file of it, multipart or gRPC stream)
     max_request_bytes: int = 1024 * 1024 * 1024
     max_json_bytes: int = 4 * 1024 * 1024  # GEOMATCH_MAX_JSON_MB: any other request body
@@ -97,6 +106,9 @@ class Settings:
             render_timeout_s=_int("GEOMATCH_RENDER_TIMEOUT", 120),
             grpc_tenant_streams=max(1, _int("GEOMATCH_GRPC_TENANT_STREAMS", 16)),
             grpc_stream_idle_s=max(1, _int("GEOMATCH_GRPC_STREAM_IDLE", 120)),
+            grpc_first_message_s=max(0.1, _float("GEOMATCH_GRPC_FIRST_MESSAGE_S", 10.0)),
+            max_pairs_per_job=max(0, _int("GEOMATCH_MAX_PAIRS_PER_JOB", 20_000)),
+            head_timeout_s=max(0.1, _float("GEOMATCH_HEAD_TIMEOUT_S", 10.0)),
             max_request_bytes=max(1, _int("GEOMATCH_MAX_REQUEST_MB", 1024)) * 1024 * 1024,
             max_json_bytes=max(1, _int("GEOMATCH_MAX_JSON_MB", 4)) * 1024 * 1024,
             quota_projects=max(0, _int("GEOMATCH_QUOTA_PROJECTS", 1000)),

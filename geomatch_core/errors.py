@@ -24,6 +24,11 @@ class InvalidRequest(DomainError):
     """The request is well-formed but its values do not make sense for this project."""
 
 
+class PlanTooLarge(InvalidRequest):
+    """A job would plan more work than one job may hold (pairs per job): the message says how to
+    split it. REST 422, as any invalid request; gRPC RESOURCE_EXHAUSTED, a limit."""
+
+
 class BadFile(DomainError):
     """An uploaded file is not a usable image or has an unacceptable name."""
 

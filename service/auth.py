@@ -41,10 +41,13 @@ def create_key(store: MetadataStore, tenant_name: str) -> str:
     return key
 
 
+MISSING_KEY = "missing API key: send 'Authorization: Bearer KEY'"
+
+
 def authenticate(store: MetadataStore, key: str | None) -> str:
     """The tenant id of a valid, unrevoked key."""
     if not key:
-        raise Unauthenticated("missing API key: send 'Authorization: Bearer KEY'")
+        raise Unauthenticated(MISSING_KEY)
     with store.session() as s:
         row = s.scalar(select(ApiKey).where(ApiKey.digest == digest(key), ApiKey.revoked_at.is_(None)))
         if row is None:

@@ -26,7 +26,7 @@ from typing import Any
 
 from sqlalchemy import exists, select, update
 
-from geomatch.options import DEFAULTS, PROJECT_OPTIONS
+from geomatch.options import DEFAULTS, PROJECT_OPTIONS, fewest_pairs, too_many_pairs
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
 from geomatch_core import jobstate
 from geomatch_core.models import Image, Job, JobPair
@@ -72,12 +72,20 @@ def _plan(ctx: Context, job: Job) -> None:
             )
     spec = opts["pairs"] if isinstance(opts["pairs"], str) else DEFAULTS["pairs"]
     pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
+    limit = ctx.settings.max_pairs_per_job
+    least, exact = fewest_pairs(spec, len(names)) if pairs_list is None else (len(pairs_list), True)
+    if limit and least > limit:  # the API refused this at its image count: images were added since
+        plan = spec if pairs_list is None else "the pair list"
+        raise PermanentError(too_many_pairs(least, len(names), limit, plan, exact))
     # retrieval's global descriptors and a survey's quarter turns (steps.image_turns)
     retrieval = "retrieval" in spec and pairs_list is None
     matcher = runtime.matcher(ctx, opts) if retrieval or (aerial and aerial >= set(names)) else None
     planned = steps.plan(
         image_dir, names, aerial, spec, pairs_list, opts["tiling"], matcher, fixes=fixes, metas=metas
     )
+    if limit and len(planned) > limit:  # auto, gps:K, retrieval:K: known once planned; no row written
+        plan = steps.plan_in_words(spec, names, fixes, metas) if pairs_list is None else "the pair list"
+        raise PermanentError(too_many_pairs(len(planned), len(names), limit, plan))
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
             return

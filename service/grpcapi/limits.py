@@ -1,9 +1,9 @@
 """What keeps one client from stalling the gRPC server.
 
-grpcio's synchronous server runs every call, health checks included, on one pool of threads, and
-a streaming call holds its thread for as long as it is open: unchecked, 70 idle UploadImages
-streams of one tenant take all 64, and health and GetProject wait for a thread that never comes.
-Three rules keep the server answering:
+The servicer's methods run on one pool of threads (``server.py``: calls waiting for their request,
+and health checks, are held on the event loop, ``bridge.py``), and a request stream holds its thread
+for as long as it is open: unchecked, 70 idle UploadImages streams of one tenant took all 64, and
+GetProject waited for a thread that never came. Three rules keep the server answering:
 
 - streaming calls (UploadImages, MatchPair, WatchJob, GetModel) hold at most ``STREAMS`` threads in
   all, so ``RESERVED`` threads are always left for unary calls and health checks;

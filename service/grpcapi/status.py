@@ -23,6 +23,7 @@ log = logging.getLogger("geomatch.service.grpc")
 CODES: dict[type[errors.DomainError], grpc.StatusCode] = {
     errors.NotFound: grpc.StatusCode.NOT_FOUND,
     errors.Unauthenticated: grpc.StatusCode.UNAUTHENTICATED,
+    errors.PlanTooLarge: grpc.StatusCode.RESOURCE_EXHAUSTED,  # before its base, InvalidRequest
     errors.InvalidRequest: grpc.StatusCode.INVALID_ARGUMENT,
     errors.BadFile: grpc.StatusCode.INVALID_ARGUMENT,
     errors.UnsupportedFormat: grpc.StatusCode.INVALID_ARGUMENT,
@@ -58,7 +59,12 @@ def code_of(exc: errors.DomainError) -> grpc.StatusCode:
 
 
 def bearer_key(context: grpc.ServicerContext) -> str | None:
-    for key, value in context.invocation_metadata() or ():
+    return bearer_key_in(context.invocation_metadata())
+
+
+def bearer_key_in(metadata: Any) -> str | None:
+    """The key of ``authorization: Bearer KEY`` in a call's metadata, None without one."""
+    for key, value in metadata or ():
         if key == "authorization" and isinstance(value, str):
             scheme, _, token = value.strip().partition(" ")
             if scheme.lower() == "bearer" and token.strip():

@@ -10,9 +10,9 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from geomatch.options import PROJECT_OPTIONS
+from geomatch.options import PROJECT_OPTIONS, fewest_pairs, too_many_pairs
 from geomatch_core import jobstate
-from geomatch_core.errors import Conflict, InvalidRequest, NotFound, Unavailable
+from geomatch_core.errors import Conflict, InvalidRequest, NotFound, PlanTooLarge, Unavailable
 from geomatch_core.models import JOB_STATES, Image, Job
 from geomatch_core.queue import ENTRY_STEP
 
@@ -37,6 +37,7 @@ class JobUseCases(UseCases):
             opts = {**DEFAULTS, **check_config(dict(p.config)), **check_config(given)}
             if isinstance(opts["pairs"], list):
                 opts["pairs"] = check_pair_list(opts["pairs"], names)
+            self._check_plan_size(opts["pairs"], len(names))
             mapper = opts.pop("mapper")
             job = Job(project_id=project_id, tenant_id=tenant_id, kind="match", options=opts)
             s.add(job)
@@ -45,6 +46,21 @@ class JobUseCases(UseCases):
             views = job_view(job), job_view(follower) if follower else None
         self._enqueue(views[0])
         return views
+
+    def _check_plan_size(self, pairs: str | list[Any], n: int) -> None:
+        """``GEOMATCH_MAX_PAIRS_PER_JOB``, on arithmetic alone (nothing planned): a plan sure to
+        pass the limit is refused here; one that may (``auto``, ``gps:K``, ``retrieval:K`` over
+        GPS and appearance the API does not read) is measured by the job's plan step, which fails
+        the job before it writes a pair."""
+        limit = self.settings.max_pairs_per_job
+        if not limit:
+            return
+        if isinstance(pairs, list):
+            count, exact, plan = len(pairs), True, "the pair list"
+        else:
+            (count, exact), plan = fewest_pairs(pairs, n), pairs
+        if count > limit:
+            raise PlanTooLarge(too_many_pairs(count, n, limit, plan, exact))
 
     def start_reconstruct(
         self,
