@@ -1,15 +1,13 @@
-"""Regression tests for issue 39's probes: what a client can hold or start without it costing the
-server more than it may.
+"""What a client can hold or start must not cost the server more than it may.
 
 - gRPC calls that open and never send their request message, without a key (GetProject, health
-  checks) or with a wrong one: grpcio's synchronous server gave each a handler thread until the
-  message came, and 64-80 of them kept health checks and every tenant's calls from answering
-  (measured: DEADLINE_EXCEEDED at 3 s on SQLite and PostgreSQL). Under grpc.aio they wait on the
-  event loop; a keyless Matching call is refused before it is read; the rest end after
-  GEOMATCH_GRPC_FIRST_MESSAGE_S. On both metadata stores.
-- HTTP heads: a malformed head followed by more than 16 KiB of body is 400 (it was 431), and a
-  head dribbled slower than GEOMATCH_HEAD_TIMEOUT_S is answered 408 and closed (it was held for
-  as long as the client liked), while keep-alive and slow bodies are untouched.
+  checks) or with a wrong one: each must leave health checks and other tenants' calls answering.
+  Under grpc.aio they wait on the event loop and hold no handler thread; a keyless Matching call
+  is refused before it is read; the rest end after GEOMATCH_GRPC_FIRST_MESSAGE_S. On both metadata
+  stores.
+- HTTP heads: a malformed head followed by more than 16 KiB of body is 400, not 431, and a head
+  dribbled slower than GEOMATCH_HEAD_TIMEOUT_S is answered 408 and closed, while keep-alive and
+  slow bodies are untouched.
 - pairs per job (GEOMATCH_MAX_PAIRS_PER_JOB): an exhaustive match over too many images is refused
   before anything is planned (REST 422, gRPC RESOURCE_EXHAUSTED) with the limit, the count and how
   to split the work; a plan only its step can size (``auto``) fails its job before a pair row is
