@@ -9,23 +9,12 @@
 // text.
 
 import * as api from "./api.js";
+import { $, setStatus, text } from "./dom.js";
 
-const $ = (id) => document.getElementById(id);
 
 let ctx = null; // { projectId(), fail(error) } from app.js
 
-function text(tag, className, value) {
-  const node = document.createElement(tag);
-  if (className) node.className = className;
-  node.textContent = value;
-  return node;
-}
-
-function status(state, message) {
-  const s = $("gcp-status");
-  s.dataset.state = state;
-  s.textContent = message;
-}
+const status = (state, message) => setStatus("gcp-status", state, message);
 
 const path = () => `/projects/${api.seg(ctx.projectId())}/gcp`;
 

@@ -7,24 +7,13 @@
 // Every string from the server goes in as text.
 
 import * as api from "./api.js";
+import { $, setStatus, text } from "./dom.js";
 
-const $ = (id) => document.getElementById(id);
 
 let ctx = null; // { viewer, projectId(), signal(), fail(error) } from app.js
 let located = []; // the viewer's cameras of located photos, for this project page
 
-function text(tag, className, value) {
-  const node = document.createElement(tag);
-  if (className) node.className = className;
-  node.textContent = value;
-  return node;
-}
-
-function status(state, message) {
-  const s = $("locate-status");
-  s.dataset.state = state;
-  s.textContent = message;
-}
+const status = (state, message) => setStatus("locate-status", state, message);
 
 // The rotation world to camera of a unit quaternion (w, x, y, z), as rows: COLMAP's convention.
 export function rotation([w, x, y, z]) {
