@@ -59,6 +59,14 @@ class Settings:
     # GEOMATCH_MAX_PAIRS_PER_JOB: the most pairs one match job may plan (0: no limit): a larger
     # request is refused before anything is planned, or its job fails before a pair row is written
     max_pairs_per_job: int = 20_000
+    # GEOMATCH_MAX_QUEUED_PAIRS: pairs one tenant's unfinished match jobs may hold in all (0: no
+    # limit): a match past it is 429 / RESOURCE_EXHAUSTED until some of that work is done
+    max_queued_pairs: int = 50_000
+    # GEOMATCH_PAIRS_IN_FLIGHT: pair steps one match job keeps queued or running at once; the next
+    # is queued as one ends, so other jobs' steps interleave with a long job's. 0: the runner's
+    # own slots (embedded: its threads; Celery: two per live worker, the one it runs and the one
+    # it prefetches)
+    pairs_in_flight: int = 0
     # GEOMATCH_HEAD_TIMEOUT_S: an HTTP request head (or a new connection's first one) must be in
     # within this many seconds of its first byte (of the connection's opening): 408 and closed
     head_timeout_s: float = 10.0
@@ -108,6 +116,8 @@ class Settings:
             grpc_stream_idle_s=max(1, _int("GEOMATCH_GRPC_STREAM_IDLE", 120)),
             grpc_first_message_s=max(0.1, _float("GEOMATCH_GRPC_FIRST_MESSAGE_S", 10.0)),
             max_pairs_per_job=max(0, _int("GEOMATCH_MAX_PAIRS_PER_JOB", 20_000)),
+            max_queued_pairs=max(0, _int("GEOMATCH_MAX_QUEUED_PAIRS", 50_000)),
+            pairs_in_flight=max(0, _int("GEOMATCH_PAIRS_IN_FLIGHT", 0)),
             head_timeout_s=max(0.1, _float("GEOMATCH_HEAD_TIMEOUT_S", 10.0)),
             max_request_bytes=max(1, _int("GEOMATCH_MAX_REQUEST_MB", 1024)) * 1024 * 1024,
             max_json_bytes=max(1, _int("GEOMATCH_MAX_JSON_MB", 4)) * 1024 * 1024,

@@ -57,6 +57,11 @@ class RateLimited(Overloaded):
         self.retry_after_s = retry_after_s
 
 
+class WorkQueued(RateLimited):
+    """The tenant's unfinished match jobs already hold as many pairs as it may queue: retry once
+    some have finished, or cancel one. REST 429 with Retry-After, gRPC RESOURCE_EXHAUSTED."""
+
+
 class QuotaExceeded(DomainError):
     """The call would take the tenant past a quota (projects, images, stored bytes): nothing was
     kept; deleting what the tenant no longer needs makes room."""

@@ -61,6 +61,63 @@ def mark_pair_done(store: MetadataStore, job_id: str, idx: int, matches: int, in
         return bool(flipped)
 
 
+def claim_pairs(store: MetadataStore, job_id: str, window: int) -> list[int]:
+    """The pairs a running match job may hand to the queue now: the next ones by index while
+    fewer than ``window`` are queued or running (``dispatched - done``). One conditional UPDATE per
+    pair, so steps ending together never hand out the same pair twice."""
+    claimed: list[int] = []
+    while True:
+        with store.session() as s:
+            row = s.execute(
+                update(Job)
+                .where(
+                    Job.id == job_id,
+                    Job.state == "running",
+                    Job.planned.is_(True),
+                    Job.dispatched < Job.total,
+                    Job.dispatched - Job.done < window,
+                )
+                .values(dispatched=Job.dispatched + 1)
+                .returning(Job.dispatched)
+            ).first()
+        if row is None:
+            return claimed
+        claimed.append(int(row[0]) - 1)
+
+
+def queued_pairs(
+    store: MetadataStore, tenant_id: str, other_than: str | None = None
+) -> tuple[int, int, list[Job]]:
+    """What a tenant's unfinished match jobs hold: pairs planned and not done, how many planned
+    jobs hold them, and the jobs not planned yet (whose counts only their plan step knows)."""
+    with store.session() as s:
+        rows = s.scalars(
+            select(Job).where(
+                Job.tenant_id == tenant_id,
+                Job.kind == "match",
+                Job.state.in_(("queued", "running")),
+                Job.id != (other_than or ""),
+            )
+        ).all()
+        planned = [j for j in rows if j.planned]
+        return (
+            sum(max(0, j.total - j.done) for j in planned),
+            len(planned),
+            [j for j in rows if not j.planned],
+        )
+
+
+def too_much_queued(queued: int, jobs: int, adding: int, limit: int, exact: bool = True) -> str:
+    """The refusal of a match past a tenant's queued pairs (``GEOMATCH_MAX_QUEUED_PAIRS``)."""
+    more = f"{adding}" if exact else f"at least {adding}"
+    return (
+        f"this tenant's unfinished match jobs ({jobs}) hold {queued} pairs not matched yet and this "
+        f"match would add {more}, over the limit of {limit} queued pairs per tenant "
+        "(GEOMATCH_MAX_QUEUED_PAIRS). Retry when some of them have finished, cancel one, or plan "
+        'fewer pairs ("gps:K", "retrieval:K" or "sequential:K" instead of exhaustive)'
+    )
+
+
 def set_progress(store: MetadataStore, job_id: str, done: int) -> bool:
     """A one-step job's own count of what it has done (a localize job's photos): moves only up,
     and only while the job runs, so a late report never rewinds or revives a finished job."""

@@ -33,11 +33,17 @@ def _rotate_backfill() -> Executable:
     return update(JobPair).where(JobPair.done.is_(False), aerial_side).values(rotate=True)
 
 
+def _dispatched_backfill() -> Executable:
+    """A job planned before the window queued every pair it had at once."""
+    return update(Job).where(Job.planned.is_(True)).values(dispatched=Job.total)
+
+
 # the table's columns are typed loosely by SQLAlchemy's declarative stubs
 ADDED: tuple[tuple[Column[object], Callable[[], Executable] | None], ...] = (
     (cast("Column[object]", JobPair.__table__.c.rotate), _rotate_backfill),
     # pairs planned before headings were read keep their probe (-1)
     (cast("Column[object]", JobPair.__table__.c.turn), None),
+    (cast("Column[object]", Job.__table__.c.dispatched), _dispatched_backfill),
 )
 
 

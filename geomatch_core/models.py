@@ -119,6 +119,9 @@ class Job(Base):
     planned: Mapped[bool] = mapped_column(Boolean, default=False)
     done: Mapped[int] = mapped_column(Integer, default=0)
     total: Mapped[int] = mapped_column(Integer, default=0)
+    # a match job's pairs handed to the queue so far (idx < dispatched): a window over its pairs
+    # (workers.jobs), so another job's steps never queue behind all of a long job's
+    dispatched: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
     error: Mapped[str | None] = mapped_column(Text, default=None)
     result: Mapped[dict[str, Any] | None] = mapped_column(default=None)
     after_job_id: Mapped[str | None] = mapped_column(String(32), default=None, index=True)

@@ -31,6 +31,10 @@ class JobQueue(Protocol):
     def ping(self) -> None:
         """Raise if the queue cannot accept work."""
 
+    def slots(self) -> int:
+        """Steps the runners take at once, counting what a worker prefetches: a match job keeps
+        about this many of its pair steps queued or running (``GEOMATCH_PAIRS_IN_FLIGHT``)."""
+
     def workers_alive(self) -> int | None:
         """How many worker processes were heard from within their lease; None where the queue
         runs the work itself (embedded), so there is no worker to miss."""

@@ -41,6 +41,10 @@ class CeleryQueue:
     def ping(self) -> None:
         self._redis.ping()
 
+    def slots(self) -> int:
+        """Two per live worker: the step it runs and the one it prefetched."""
+        return 2 * max(1, len(self._workers.alive()))
+
     def workers_alive(self) -> int:
         return len(self._workers.alive())
 

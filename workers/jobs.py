@@ -30,7 +30,7 @@ from geomatch.options import DEFAULTS, PROJECT_OPTIONS, fewest_pairs, too_many_p
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
 from geomatch_core import jobstate
 from geomatch_core.models import Image, Job, JobPair
-from geomatch_core.queue import EXTRACT, LOCALIZE, MATCH_PAIR, RENDER_PAIR
+from geomatch_core.queue import LOCALIZE, MATCH_PAIR, RENDER_PAIR
 
 from . import redact, runtime
 from .context import Context, PermanentError
@@ -94,6 +94,11 @@ def _plan(ctx: Context, job: Job) -> None:
             todo = steps.unmatched(db, ids, planned)
         if fixes is not None:
             gps.write_pose_priors(ctx.storage.database_path(pid), ids, fixes)
+    queue_limit = ctx.settings.max_queued_pairs
+    if queue_limit:  # the API counted this job by the fewest pairs its plan could have
+        queued, jobs, _ = jobstate.queued_pairs(ctx.store, job.tenant_id, other_than=job.id)
+        if queued + len(todo) > queue_limit:
+            raise PermanentError(jobstate.too_much_queued(queued, jobs, len(todo), queue_limit))
     with ctx.store.session() as s:
         row = s.get(Job, job.id, with_for_update=True)
         if row is None or row.planned:  # a duplicate of this step planned it first
@@ -124,28 +129,39 @@ def _plan(ctx: Context, job: Job) -> None:
 
 
 def _dispatch(ctx: Context, job_id: str) -> str:
-    """Queue the steps of every pair not done yet (again, after a redelivery: duplicates skip)."""
+    """Queue the pair steps the job's window holds: again those handed out before and not done
+    (after a redelivery or a restart that lost the queue: duplicates skip), then new ones up to
+    the window. Each pair step queues the next as it ends (:func:`_next_pairs`), so a job of
+    thousands of pairs keeps only a few steps in the queue and another job's steps are never
+    behind all of it. Features are made by the first pair step that needs them (on disk for the
+    rest), which keeps extraction inside the window too."""
     with ctx.store.session() as s:
+        job = s.get(Job, job_id)
+        handed = job.dispatched if job is not None else 0
         pending = s.scalars(
-            select(JobPair).where(JobPair.job_id == job_id, JobPair.done.is_(False)).order_by(JobPair.idx)
+            select(JobPair.idx)
+            .where(JobPair.job_id == job_id, JobPair.done.is_(False), JobPair.idx < handed)
+            .order_by(JobPair.idx)
         ).all()
-    if not pending:
+    if job is None:
+        return "skipped"
+    if job.done >= job.total:
         if jobstate.finish_if_complete(ctx.store, job_id):
             jobstate.release_followers(ctx.store, ctx.queue, job_id)
         return "nothing to match"
-    full: set[str] = set()
-    crops: set[str] = set()
-    for p in pending:
-        if p.tiled:
-            (crops if p.aerial_first else full).add(p.name0)
-            (full if p.aerial_first else crops).add(p.name1)
-        else:
-            full.update((p.name0, p.name1))
-    for name in sorted(full | crops):  # features first: the pair steps then find them on disk
-        ctx.queue.enqueue(EXTRACT, job_id, name, name in full, name in crops)
-    for p in pending:
-        ctx.queue.enqueue(MATCH_PAIR, job_id, p.idx)
-    return f"dispatched {len(pending)} pairs"
+    for idx in pending:
+        ctx.queue.enqueue(MATCH_PAIR, job_id, idx)
+    fresh = _next_pairs(ctx, job_id)
+    return f"dispatched {len(pending) + fresh} pairs"
+
+
+def _next_pairs(ctx: Context, job_id: str) -> int:
+    """Hand the queue the job's next pairs while its window has room; how many."""
+    window = ctx.settings.pairs_in_flight or ctx.queue.slots()
+    claimed = jobstate.claim_pairs(ctx.store, job_id, max(1, window))
+    for idx in claimed:
+        ctx.queue.enqueue(MATCH_PAIR, job_id, idx)
+    return len(claimed)
 
 
 def extract(ctx: Context, job_id: str, name: str, full: bool, crops: bool) -> str:
@@ -217,6 +233,8 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
     if jobstate.finish_if_complete(ctx.store, job_id):
         log.info("match job succeeded", extra={"job_id": job_id, "project_id": pid})
         jobstate.release_followers(ctx.store, ctx.queue, job_id)
+    else:  # a redelivered step whose pair was done hands out one too: the window only grows by it
+        _next_pairs(ctx, job_id)
     return "done"
 
 

@@ -70,6 +70,9 @@ class LocalQueue:
         if self._closed.is_set():
             raise RuntimeError("the embedded job runner is shut down")
 
+    def slots(self) -> int:
+        return self.ctx.settings.embedded_threads
+
     def workers_alive(self) -> int | None:
         return None  # the API process runs the steps: no worker to miss
 

@@ -12,7 +12,8 @@ from sqlalchemy.orm import Session
 
 from geomatch.options import PROJECT_OPTIONS, fewest_pairs, too_many_pairs
 from geomatch_core import jobstate
-from geomatch_core.errors import Conflict, InvalidRequest, NotFound, PlanTooLarge, Unavailable
+from geomatch_core.errors import Conflict, InvalidRequest, NotFound, PlanTooLarge, Unavailable, WorkQueued
+from geomatch_core.jobstate import too_much_queued
 from geomatch_core.models import JOB_STATES, Image, Job
 from geomatch_core.queue import ENTRY_STEP
 
@@ -38,6 +39,7 @@ class JobUseCases(UseCases):
             if isinstance(opts["pairs"], list):
                 opts["pairs"] = check_pair_list(opts["pairs"], names)
             self._check_plan_size(opts["pairs"], len(names))
+            self._check_queued(s, tenant_id, opts["pairs"], len(names))
             mapper = opts.pop("mapper")
             job = Job(project_id=project_id, tenant_id=tenant_id, kind="match", options=opts)
             s.add(job)
@@ -61,6 +63,23 @@ class JobUseCases(UseCases):
             (count, exact), plan = fewest_pairs(pairs, n), pairs
         if count > limit:
             raise PlanTooLarge(too_many_pairs(count, n, limit, plan, exact))
+
+    def _check_queued(self, s: Session, tenant_id: str, pairs: str | list[Any], n: int) -> None:
+        """``GEOMATCH_MAX_QUEUED_PAIRS``: what the tenant's unfinished match jobs hold (planned
+        ones by their rows, the others by the fewest pairs their plan can have) plus the fewest
+        this one can add. A plan only its step can size is measured again there."""
+        limit = self.settings.max_queued_pairs
+        if not limit:
+            return
+        queued, jobs, unplanned = jobstate.queued_pairs(self.store, tenant_id)
+        for j in unplanned:
+            images = s.scalar(select(func.count()).select_from(Image).where(Image.project_id == j.project_id))
+            spec = j.options.get("pairs", DEFAULTS["pairs"])
+            queued += len(spec) if isinstance(spec, list) else fewest_pairs(spec, images or 0)[0]
+        jobs += len(unplanned)
+        adding, exact = (len(pairs), True) if isinstance(pairs, list) else fewest_pairs(pairs, n)
+        if queued + adding > limit:
+            raise WorkQueued(too_much_queued(queued, jobs, adding, limit, exact), retry_after_s=60)
 
     def start_reconstruct(
         self,

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import re
 import struct
+import threading
+import time
 import uuid
 import zlib
 from collections.abc import Iterator
@@ -365,6 +367,63 @@ def test_pairs_count_once_and_jobs_finish_once(store: MetadataStore) -> None:
     job = jobstate.get(store, job_id)
     assert job is not None and (job.state, job.done, job.total) == ("succeeded", 2, 2)
     assert jobstate.claim(store, job_id) is None  # finished jobs are not run again
+
+
+def test_a_jobs_window_hands_out_each_pair_once_and_no_more_than_it_holds(store: MetadataStore) -> None:
+    job_id = _match_job(store, 7)
+    assert jobstate.claim_pairs(store, job_id, 3) == []  # queued: nothing handed out before it runs
+    assert jobstate.claim(store, job_id) is not None
+    assert jobstate.claim_pairs(store, job_id, 3) == [0, 1, 2]
+    assert jobstate.claim_pairs(store, job_id, 3) == []  # the window is full
+    jobstate.mark_pair_done(store, job_id, 1, 1, 1)
+    assert jobstate.claim_pairs(store, job_id, 3) == [3]  # one ended, one more
+    # steps ending together on several threads: every pair handed out exactly once
+    handed: list[int] = []
+    lock = threading.Lock()
+
+    def step_loop() -> None:
+        while True:
+            with lock:
+                mine = [i for i in handed_now if i not in taken]
+                taken.update(mine)
+            for i in mine:
+                jobstate.mark_pair_done(store, job_id, i, 1, 1)
+            got = jobstate.claim_pairs(store, job_id, 3)
+            with lock:
+                handed.extend(got)
+                handed_now.extend(got)
+                if not got and len(taken) == 7:
+                    return
+            if not got:
+                time.sleep(0.01)
+
+    taken: set[int] = {1}
+    handed_now: list[int] = [0, 2, 3]
+    threads = [threading.Thread(target=step_loop) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert sorted(handed) == [4, 5, 6]
+    job = jobstate.get(store, job_id)
+    assert job is not None and (job.done, job.dispatched) == (7, 7)
+    assert jobstate.finish_if_complete(store, job_id)
+    assert jobstate.claim_pairs(store, job_id, 3) == []  # finished
+
+
+def test_a_tenants_queued_pairs_count_planned_rows_not_done(store: MetadataStore) -> None:
+    job_id = _match_job(store, 5)
+    with store.session() as s:
+        tenant = s.scalar(select(Job.tenant_id).where(Job.id == job_id))
+    assert jobstate.queued_pairs(store, tenant)[:2] == (5, 1)
+    jobstate.claim(store, job_id)
+    jobstate.mark_pair_done(store, job_id, 0, 1, 1)
+    assert jobstate.queued_pairs(store, tenant)[:2] == (4, 1)
+    assert jobstate.queued_pairs(store, tenant, other_than=job_id)[:2] == (0, 0)
+    jobstate.cancel(store, job_id)
+    assert jobstate.queued_pairs(store, tenant)[:2] == (0, 0)
+    message = jobstate.too_much_queued(4, 1, 10, 12)
+    assert "limit of 12 queued pairs per tenant" in message and "GEOMATCH_MAX_QUEUED_PAIRS" in message
 
 
 def test_terminal_states_are_final(store: MetadataStore) -> None:
