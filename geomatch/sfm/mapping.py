@@ -137,7 +137,7 @@ def reconstruct(
     and the summary lists the dropped pairs (``view_graph``) and the moved points
     (``track_refinement``). ``verbose`` lets COLMAP's own
     log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
-    line a user watching a terminal needs. ``min_pose_inliers`` 0 is COLMAP's 30, or 15 where
+    line a user watching a terminal needs. ``min_pose_inliers`` 0 is COLMAP's 30, or 20 where
     the project has tiled aerial x ground pairs (``tiled``; options.TILED_MIN_POSE_INLIERS).
     """
     if mapper not in MAPPERS:
