@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -72,7 +72,65 @@ TILING = ("auto", "on", "off")
 CAMERAS = ("auto", "per-image")
 CAPTURES = ("aerial", "ground", "auto")  # how an uploaded image was taken (auto: EXIF/XMP decides)
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
-PAIR_SPEC_HELP = "auto | exhaustive | sequential:K | retrieval:K | gps:K | a union such as gps:K+retrieval:K"
+
+
+# -- pair kinds: the one table ------------------------------------------------------------------
+def all_pairs(n: int) -> int:
+    """Pairs of every two of ``n`` images: what ``exhaustive`` plans."""
+    return n * (n - 1) // 2
+
+
+def _next_k(n: int, k: int) -> int:
+    return all_pairs(n) if k >= n - 1 else k * n - k * (k + 1) // 2
+
+
+def _k_nearest(n: int, k: int) -> int:
+    """Each image with min(K, n-1) partners and a pair has two images: at least n*min(K, n-1)/2."""
+    return -(-n * min(k, max(n - 1, 0)) // 2)
+
+
+@dataclass(frozen=True)
+class PairKind:
+    """One way of choosing the pairs to match. What names the kinds derives from
+    :data:`PAIR_KINDS`: the grammar and its messages, the CLI help, the REST pattern
+    (service.schemas), the plan-size arithmetic, whether the plan needs a matcher; the planner is
+    ``steps.PLANNERS[name]``; the proto's comments, the console's hint and the README are checked
+    against it (tests/test_pair_kinds.py)."""
+
+    name: str
+    takes_k: bool  # written ``name:K`` (K >= 1, and may join a union); else it stands alone
+    means: str  # what it plans, in a few words
+    fewest: Callable[[int, int], int]  # (images, K) -> the fewest pairs its plan can have
+    exact: bool  # ``fewest`` is the plan's exact count (nothing but the names decides it)
+    needs_matcher: bool = False  # the plan reads the images' features
+
+
+PAIR_KINDS: tuple[PairKind, ...] = (
+    PairKind("auto", False, "exhaustive, or gps:K for a larger project with GPS", lambda n, k: 0, False),
+    PairKind("exhaustive", False, "every two images", lambda n, k: all_pairs(n), True),
+    PairKind(
+        "sequential", True, "each image with the next K by name (a video, a flight line)", _next_k, True
+    ),
+    PairKind(
+        "retrieval",
+        True,
+        "each image with its K nearest by appearance, and every aerial x ground pair",
+        _k_nearest,
+        False,
+        needs_matcher=True,
+    ),
+    PairKind("gps", True, "each image with its K nearest by GPS", _k_nearest, False),
+)
+PAIR_KIND: dict[str, PairKind] = {k.name: k for k in PAIR_KINDS}
+PAIR_KIND_SPELLINGS = tuple(k.name + (":K" if k.takes_k else "") for k in PAIR_KINDS)
+# "auto | exhaustive | sequential:K | retrieval:K | gps:K": the proto's and the console's words
+PAIR_SPEC_LIST = " | ".join(PAIR_KIND_SPELLINGS)
+PAIR_SPEC_HELP = PAIR_SPEC_LIST + " | a union such as gps:K+retrieval:K"
+PAIR_SPEC_WORDS = ", ".join(PAIR_KIND_SPELLINGS[:-1]) + " or " + PAIR_KIND_SPELLINGS[-1]
+_ALONE = "|".join(k.name for k in PAIR_KINDS if not k.takes_k)
+_WITH_K = "|".join(k.name for k in PAIR_KINDS if k.takes_k)
+_SPEC = re.compile(rf"({_ALONE})|({_WITH_K}):(\d+)")
+
 
 # COLMAP registers an image from 30 PnP inliers, a count made for sparse SIFT matches. With dense
 # matches a genuinely overlapping image has hundreds of 2D-3D correspondences, while a repeated
@@ -167,8 +225,8 @@ class Option:
                 parse_plan(value)
             except PairSpecError:
                 raise OptionError(
-                    f"bad pairs {value!r}: use exhaustive, sequential:K, retrieval:K, gps:K (K >= 1), "
-                    "a union of those joined by + or a list of name pairs"
+                    f"bad pairs {value!r}: use {PAIR_SPEC_WORDS} (K >= 1), a union of the kinds with "
+                    "a K joined by + or a list of name pairs"
                 ) from None
             return value.strip()
         if self.choices:
@@ -308,21 +366,17 @@ def given(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Any]:
 
 
 # -- the pair-spec grammar ---------------------------------------------------------------------
-_SPEC = re.compile(r"(exhaustive|auto)|(sequential|retrieval|gps):(\d+)")
-
-
 def parse_plan(spec: str) -> list[tuple[str, int]]:
-    """A plan: one spec, or a union of ``sequential:K`` / ``retrieval:K`` / ``gps:K`` parts
-    joined by ``+`` (``gps:10+retrieval:5``: a drone project's neighbours by position plus
-    those by appearance); ``exhaustive`` stands alone (a union with it is exhaustive). A kind
-    named twice is the union of both, which is its larger K (``gps:3+gps:4`` is ``gps:4``): the
-    service's published pattern cannot tell repeats apart, so the library gives them a meaning
-    rather than refusing what the schema allows."""
+    """A plan: one spec, or a union of parts with a K joined by ``+`` (``gps:10+retrieval:5``: a
+    drone project's neighbours by position plus those by appearance); a kind without a K
+    (``exhaustive``, ``auto``) stands alone. A kind named twice is the union of both, which is its
+    larger K (``gps:3+gps:4`` is ``gps:4``): the service's published pattern cannot tell repeats
+    apart, so the library gives them a meaning rather than refusing what the schema allows."""
     parts = [parse_spec(p) for p in spec.strip().split("+")] if spec.strip() else [parse_spec(spec)]
-    kinds = [k for k, _ in parts]
-    for alone in ("exhaustive", "auto"):
-        if len(parts) > 1 and alone in kinds:
-            raise PairSpecError(f"bad pair spec {spec!r}: {alone} stands alone, not in a union")
+    if len(parts) > 1:
+        for kind, _ in parts:
+            if not PAIR_KIND[kind].takes_k:
+                raise PairSpecError(f"bad pair spec {spec!r}: {kind} stands alone, not in a union")
     largest: dict[str, int] = {}
     for kind, k in parts:
         largest[kind] = max(k, largest.get(kind, 0))
@@ -330,14 +384,11 @@ def parse_plan(spec: str) -> list[tuple[str, int]]:
 
 
 def parse_spec(spec: str) -> tuple[str, int]:
-    """``exhaustive`` -> ("exhaustive", 0); ``auto`` -> ("auto", 0) (pairs.auto_plan decides);
-    ``sequential:K`` / ``retrieval:K`` / ``gps:K`` -> (kind, K >= 1). One part of a plan
-    (:func:`parse_plan` reads unions)."""
+    """One part of a plan (:func:`parse_plan` reads unions): a kind without a K -> (kind, 0);
+    ``kind:K`` -> (kind, K >= 1)."""
     m = _SPEC.fullmatch(spec.strip())
     if not m:
-        raise PairSpecError(
-            f"bad pair spec {spec!r}: use auto, exhaustive, sequential:K, retrieval:K or gps:K"
-        )
+        raise PairSpecError(f"bad pair spec {spec!r}: use {PAIR_SPEC_WORDS}")
     if m.group(1):
         return m.group(1), 0
     k = int(m.group(3))
@@ -346,30 +397,20 @@ def parse_spec(spec: str) -> tuple[str, int]:
     return m.group(2), k
 
 
+def plan_needs_matcher(spec: str) -> bool:
+    """Whether planning ``spec`` reads the images' features (a worker then loads its networks)."""
+    return any(PAIR_KIND[kind].needs_matcher for kind, _ in parse_plan(spec))
+
+
 # -- the size of a plan, before it is made ------------------------------------------------------
-def all_pairs(n: int) -> int:
-    """Pairs of every two of ``n`` images: what ``exhaustive`` plans."""
-    return n * (n - 1) // 2
-
-
 def fewest_pairs(spec: str, n: int) -> tuple[int, bool]:
     """The fewest pairs a plan of ``spec`` can have over ``n`` images, by arithmetic alone (no
-    image read), and whether that is the plan's exact count: exact for ``exhaustive`` and
-    ``sequential:K``; for ``gps:K`` and ``retrieval:K`` each image has min(K, n-1) partners and a
-    pair has two images, so at least n*min(K, n-1)/2; ``auto`` depends on the images' GPS
-    (pairs.auto_pairs), 0 here. A union has at least what its largest part has."""
-    fewest, parts = 0, parse_plan(spec)
-    for kind, k in parts:
-        if kind == "exhaustive":
-            count = all_pairs(n)
-        elif kind == "sequential":
-            count = all_pairs(n) if k >= n - 1 else k * n - k * (k + 1) // 2
-        elif kind in ("gps", "retrieval"):
-            count = -(-n * min(k, max(n - 1, 0)) // 2)
-        else:
-            count = 0
-        fewest = max(fewest, count)
-    exact = len(parts) == 1 and parts[0][0] in ("exhaustive", "sequential")
+    image read), and whether that is the plan's exact count (``PairKind.fewest``, ``.exact``;
+    ``auto`` depends on the images' GPS, pairs.auto_pairs: 0 here). A union has at least what its
+    largest part has."""
+    parts = parse_plan(spec)
+    fewest = max((PAIR_KIND[kind].fewest(n, k) for kind, k in parts), default=0)
+    exact = len(parts) == 1 and PAIR_KIND[parts[0][0]].exact
     return fewest, exact
 
 
@@ -383,4 +424,16 @@ def too_many_pairs(pairs: int, n: int, limit: int, plan: str, exact: bool = True
         f'nearest instead of every other, "gps:{k}" (photos with GPS), "retrieval:{k}" (by '
         f'appearance) or "sequential:{k}" (a video or a flight line), about {k * n} pairs here; '
         "or match the project in parts with explicit pair lists"
+    )
+
+
+def too_much_queued(queued: int, jobs: int, adding: int, limit: int, exact: bool = True) -> str:
+    """The refusal of a match past a tenant's queued pairs (``GEOMATCH_MAX_QUEUED_PAIRS``)."""
+    more = f"{adding}" if exact else f"at least {adding}"
+    nearest = " or ".join(f'"{k.name}:K"' for k in PAIR_KINDS if k.takes_k)
+    return (
+        f"this tenant's unfinished match jobs ({jobs}) hold {queued} pairs not matched yet and this "
+        f"match would add {more}, over the limit of {limit} queued pairs per tenant "
+        "(GEOMATCH_MAX_QUEUED_PAIRS). Retry when some of them have finished, cancel one, or plan "
+        f"fewer pairs ({nearest} instead of exhaustive)"
     )

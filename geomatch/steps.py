@@ -317,6 +317,41 @@ def aerial_set(
     return out
 
 
+@dataclass(frozen=True)
+class PlanInputs:
+    """What the planners of a plan's parts read (one spec's parts share it)."""
+
+    names: list[str]
+    kinds: set[str]  # the plan's kinds: a union's parts may leave an image to another part
+    aerial: set[str]
+    gps_enu: Mapping[str, np.ndarray]
+    footprints: Mapping[str, np.ndarray] | None
+    matcher: Matcher | None
+    images: Images
+    progress: bool
+
+
+def _gps_planner(p: PlanInputs, k: int) -> list[tuple[str, str]]:
+    unlocated_all = "retrieval" not in p.kinds  # else retrieval pairs the images without a fix
+    return pairing.gps_neighbours(p.names, p.gps_enu, k, unlocated_all, footprints=p.footprints)
+
+
+def _retrieval_planner(p: PlanInputs, k: int) -> list[tuple[str, str]]:
+    assert p.matcher is not None  # options.PairKind.needs_matcher: the caller built one
+    descriptors = global_descriptors(p.matcher, p.images, p.names, p.progress)
+    return pairing.nearest_neighbours(descriptors, p.names, k) + pairing.cross_view(p.names, p.aerial)
+
+
+# the planner of each kind of options.PAIR_KINDS that plans by itself (``auto`` chooses between
+# the others: pairs.auto_pairs); tests/test_pair_kinds.py holds the two tables together
+PLANNERS: dict[str, Callable[[PlanInputs, int], list[tuple[str, str]]]] = {
+    "exhaustive": lambda p, k: pairing.exhaustive(p.names),
+    "sequential": lambda p, k: pairing.sequential(p.names, k),
+    "retrieval": _retrieval_planner,
+    "gps": _gps_planner,
+}
+
+
 def plan(
     image_dir: Path,
     names: Sequence[str],
@@ -352,20 +387,18 @@ def plan(
         if parts == [("auto", 0)]:
             raw, _ = pairing.auto_pairs(names, gps_enu, footprints)
             parts = []
-        kinds = {kind for kind, _ in parts}
+        inputs = PlanInputs(
+            names,
+            {kind for kind, _ in parts},
+            aerial,
+            gps_enu,
+            footprints,
+            matcher,
+            images or Images(image_dir),
+            progress,
+        )
         for kind, k in parts:
-            if kind == "exhaustive":
-                raw += pairing.exhaustive(names)
-            elif kind == "sequential":
-                raw += pairing.sequential(names, k)
-            elif kind == "gps":
-                unlocated_all = "retrieval" not in kinds  # else retrieval pairs the images without a fix
-                raw += pairing.gps_neighbours(names, gps_enu, k, unlocated_all, footprints=footprints)
-            else:
-                assert matcher is not None
-                descriptors = global_descriptors(matcher, images or Images(image_dir), names, progress)
-                raw += pairing.nearest_neighbours(descriptors, names, k)
-                raw += pairing.cross_view(names, aerial)
+            raw += PLANNERS[kind](inputs, k)
     planned = pairing.finalize(raw, aerial, tiling)
     # a survey (every image aerial) gets its turns once per image and its pairs the guided matcher;
     # a project with ground images keeps the per-pair probe and geo (Matcher.for_pair)

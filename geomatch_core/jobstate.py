@@ -107,17 +107,6 @@ def queued_pairs(
         )
 
 
-def too_much_queued(queued: int, jobs: int, adding: int, limit: int, exact: bool = True) -> str:
-    """The refusal of a match past a tenant's queued pairs (``GEOMATCH_MAX_QUEUED_PAIRS``)."""
-    more = f"{adding}" if exact else f"at least {adding}"
-    return (
-        f"this tenant's unfinished match jobs ({jobs}) hold {queued} pairs not matched yet and this "
-        f"match would add {more}, over the limit of {limit} queued pairs per tenant "
-        "(GEOMATCH_MAX_QUEUED_PAIRS). Retry when some of them have finished, cancel one, or plan "
-        'fewer pairs ("gps:K", "retrieval:K" or "sequential:K" instead of exhaustive)'
-    )
-
-
 def set_progress(store: MetadataStore, job_id: str, done: int) -> bool:
     """A one-step job's own count of what it has done (a localize job's photos): moves only up,
     and only while the job runs, so a late report never rewinds or revives a finished job."""

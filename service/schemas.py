@@ -49,11 +49,13 @@ Timestamp = Annotated[
 ]
 
 
-# What parse_spec takes, as a pattern (ASCII digits and white space: the JSON Schema dialect's \\d and
-# \\s are narrower than Python's, and the schema must not promise what the server refuses)
-# (a union may name a kind twice: options.parse_plan reads it as the larger K)
-_PART = r"[ \t\n\r]*(?:sequential|retrieval|gps):0*[1-9][0-9]*[ \t\n\r]*"
-PAIR_SPEC_PATTERN = rf"^(?:[ \t\n\r]*(?:exhaustive|auto)[ \t\n\r]*|{_PART}(?:\+{_PART})*)$"
+# What options.parse_plan takes, as a pattern built from options.PAIR_KINDS (ASCII digits and
+# white space: the JSON Schema dialect's \\d and \\s are narrower than Python's, and the schema must
+# not promise what the server refuses); a union may name a kind twice (parse_plan: the larger K)
+_WS = r"[ \t\n\r]*"
+_ALONE = "|".join(k.name for k in options.PAIR_KINDS if not k.takes_k)
+_PART = _WS + "(?:" + "|".join(k.name for k in options.PAIR_KINDS if k.takes_k) + r"):0*[1-9][0-9]*" + _WS
+PAIR_SPEC_PATTERN = rf"^(?:{_WS}(?:{_ALONE}){_WS}|{_PART}(?:\+{_PART})*)$"
 
 
 def _option_schema(o: options.Option) -> dict[str, Any]:
@@ -80,9 +82,7 @@ def _checked(name: str) -> Any:
         if isinstance(value, list):
             return value
         if name == "pairs" and not re.fullmatch(PAIR_SPEC_PATTERN, value):
-            raise ValueError(
-                f"bad pairs {value!r}: use exhaustive, sequential:K, retrieval:K, gps:K (K >= 1) or a union"
-            )
+            raise ValueError(f"bad pairs {value!r}: use {options.PAIR_SPEC_WORDS} (K >= 1) or a union")
         return options.check(name, value)
 
     return AfterValidator(check)

@@ -26,7 +26,14 @@ from typing import Any
 
 from sqlalchemy import exists, select, update
 
-from geomatch.options import DEFAULTS, PROJECT_OPTIONS, fewest_pairs, too_many_pairs
+from geomatch.options import (
+    DEFAULTS,
+    PROJECT_OPTIONS,
+    fewest_pairs,
+    plan_needs_matcher,
+    too_many_pairs,
+    too_much_queued,
+)
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
 from geomatch_core import jobstate
 from geomatch_core.models import Image, Job, JobPair
@@ -78,8 +85,8 @@ def _plan(ctx: Context, job: Job) -> None:
         plan = spec if pairs_list is None else "the pair list"
         raise PermanentError(too_many_pairs(least, len(names), limit, plan, exact))
     # retrieval's global descriptors and a survey's quarter turns (steps.image_turns)
-    retrieval = "retrieval" in spec and pairs_list is None
-    matcher = runtime.matcher(ctx, opts) if retrieval or (aerial and aerial >= set(names)) else None
+    features = pairs_list is None and plan_needs_matcher(spec)
+    matcher = runtime.matcher(ctx, opts) if features or (aerial and aerial >= set(names)) else None
     planned = steps.plan(
         image_dir, names, aerial, spec, pairs_list, opts["tiling"], matcher, fixes=fixes, metas=metas
     )
@@ -98,7 +105,7 @@ def _plan(ctx: Context, job: Job) -> None:
     if queue_limit:  # the API counted this job by the fewest pairs its plan could have
         queued, jobs, _ = jobstate.queued_pairs(ctx.store, job.tenant_id, other_than=job.id)
         if queued + len(todo) > queue_limit:
-            raise PermanentError(jobstate.too_much_queued(queued, jobs, len(todo), queue_limit))
+            raise PermanentError(too_much_queued(queued, jobs, len(todo), queue_limit))
     with ctx.store.session() as s:
         row = s.get(Job, job.id, with_for_update=True)
         if row is None or row.planned:  # a duplicate of this step planned it first

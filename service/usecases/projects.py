@@ -7,6 +7,7 @@ from typing import Any
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
+from geomatch.options import PAIR_SPEC_WORDS
 from geomatch_core import jobstate
 from geomatch_core.errors import InvalidRequest, NotFound, QuotaExceeded
 from geomatch_core.models import Image, Job, Project
@@ -22,9 +23,7 @@ class ProjectUseCases(UseCases):
         name = check_project_name(name)
         cfg = check_config(config or {})
         if isinstance(cfg.get("pairs"), list):
-            raise InvalidRequest(
-                "a project's default pairs is a spec (auto, exhaustive, sequential:K, retrieval:K, gps:K)"
-            )
+            raise InvalidRequest(f"a project's default pairs is a spec ({PAIR_SPEC_WORDS}), not a list")
         with self.store.session() as s:
             self._within_project_quota(s, tenant_id)
             p = Project(tenant_id=tenant_id, name=name, config=cfg)

@@ -19,6 +19,7 @@ from PIL import Image as PILImage
 from sqlalchemy import select
 
 from geomatch import steps
+from geomatch.options import too_much_queued
 from geomatch.sfm.pairs import PairSpecError, parse_plan
 from geomatch.synth.photos import WarpedPair
 from geomatch_core import jobstate
@@ -422,7 +423,7 @@ def test_a_tenants_queued_pairs_count_planned_rows_not_done(store: MetadataStore
     assert jobstate.queued_pairs(store, tenant, other_than=job_id)[:2] == (0, 0)
     jobstate.cancel(store, job_id)
     assert jobstate.queued_pairs(store, tenant)[:2] == (0, 0)
-    message = jobstate.too_much_queued(4, 1, 10, 12)
+    message = too_much_queued(4, 1, 10, 12)
     assert "limit of 12 queued pairs per tenant" in message and "GEOMATCH_MAX_QUEUED_PAIRS" in message
 
 
