@@ -127,9 +127,7 @@ PAIR_KIND_SPELLINGS = tuple(k.name + (":K" if k.takes_k else "") for k in PAIR_K
 PAIR_SPEC_LIST = " | ".join(PAIR_KIND_SPELLINGS)
 PAIR_SPEC_HELP = PAIR_SPEC_LIST + " | a union such as gps:K+retrieval:K"
 PAIR_SPEC_WORDS = ", ".join(PAIR_KIND_SPELLINGS[:-1]) + " or " + PAIR_KIND_SPELLINGS[-1]
-_ALONE = "|".join(k.name for k in PAIR_KINDS if not k.takes_k)
-_WITH_K = "|".join(k.name for k in PAIR_KINDS if k.takes_k)
-_SPEC = re.compile(rf"({_ALONE})|({_WITH_K}):(\d+)")
+_SPEC = re.compile(r"([a-z][a-z0-9-]*)(?::(\d+))?")  # a kind of PAIR_KIND, looked up when read
 
 
 # COLMAP registers an image from 30 PnP inliers, a count made for sparse SIFT matches. With dense
@@ -387,14 +385,15 @@ def parse_spec(spec: str) -> tuple[str, int]:
     """One part of a plan (:func:`parse_plan` reads unions): a kind without a K -> (kind, 0);
     ``kind:K`` -> (kind, K >= 1)."""
     m = _SPEC.fullmatch(spec.strip())
-    if not m:
+    kind = PAIR_KIND.get(m.group(1)) if m else None
+    if m is None or kind is None or kind.takes_k != (m.group(2) is not None):
         raise PairSpecError(f"bad pair spec {spec!r}: use {PAIR_SPEC_WORDS}")
-    if m.group(1):
-        return m.group(1), 0
-    k = int(m.group(3))
+    if not kind.takes_k:
+        return kind.name, 0
+    k = int(m.group(2))
     if k < 1:
         raise PairSpecError(f"bad pair spec {spec!r}: K must be at least 1")
-    return m.group(2), k
+    return kind.name, k
 
 
 def plan_needs_matcher(spec: str) -> bool:

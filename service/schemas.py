@@ -11,6 +11,7 @@ with no fraction (``640.0``) where an integer is, as JSON Schema defines them.
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -53,9 +54,15 @@ Timestamp = Annotated[
 # white space: the JSON Schema dialect's \\d and \\s are narrower than Python's, and the schema must
 # not promise what the server refuses); a union may name a kind twice (parse_plan: the larger K)
 _WS = r"[ \t\n\r]*"
-_ALONE = "|".join(k.name for k in options.PAIR_KINDS if not k.takes_k)
-_PART = _WS + "(?:" + "|".join(k.name for k in options.PAIR_KINDS if k.takes_k) + r"):0*[1-9][0-9]*" + _WS
-PAIR_SPEC_PATTERN = rf"^(?:{_WS}(?:{_ALONE}){_WS}|{_PART}(?:\+{_PART})*)$"
+
+
+def pair_spec_pattern(kinds: Sequence[options.PairKind]) -> str:
+    alone = "|".join(k.name for k in kinds if not k.takes_k)
+    part = _WS + "(?:" + "|".join(k.name for k in kinds if k.takes_k) + r"):0*[1-9][0-9]*" + _WS
+    return rf"^(?:{_WS}(?:{alone}){_WS}|{part}(?:\+{part})*)$"
+
+
+PAIR_SPEC_PATTERN = pair_spec_pattern(options.PAIR_KINDS)
 
 
 def _option_schema(o: options.Option) -> dict[str, Any]:

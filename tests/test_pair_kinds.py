@@ -74,4 +74,27 @@ def test_docs_that_list_the_kinds_list_all_of_them(doc: str) -> None:
     for para in re.split(r"\n\s*\n", (ROOT / doc).read_text()):
         named = {n for n, s in spellings.items() if s in para}
         if len(named) >= len(spellings) - 1:
-            assert named == set(spellings), f"{doc}: names {sorted(named)}, not {sorted(spellings)}:\n{para[:300]}"
+            assert named == set(spellings), (
+                f"{doc}: names {sorted(named)}, not {sorted(spellings)}:\n{para[:300]}"
+            )
+
+
+def test_a_new_kind_is_a_row_and_a_planner(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """``every:K``, each image with every K-th after it by name: one row and one planner, and the
+    grammar (alone and in a union), the plan-size arithmetic, the REST pattern and the plan take it."""
+    from service.schemas import pair_spec_pattern
+
+    def every(names: list[str], k: int) -> list[tuple[str, str]]:
+        return [(a, b) for i, a in enumerate(names) for b in names[i + k :: k]]
+
+    row = options.PairKind("every", True, "each image with every K-th after it", lambda n, k: 0, False)
+    monkeypatch.setitem(PAIR_KIND, "every", row)
+    monkeypatch.setitem(steps.PLANNERS, "every", lambda p, k: every(p.names, k))
+
+    assert parse_plan("every:2+gps:3") == [("every", 2), ("gps", 3)]
+    assert fewest_pairs("every:2", 6) == (0, False)
+    assert not options.plan_needs_matcher("every:2")
+    assert re.fullmatch(pair_spec_pattern((*PAIR_KINDS, row)), "every:2 + gps:3")
+    names = [f"{i}.png" for i in range(6)]
+    planned = steps.plan(tmp_path, names, set(), "every:2")
+    assert {p.key for p in planned} == set(every(names, 2))
