@@ -93,7 +93,7 @@ def _k_nearest(n: int, k: int) -> int:
 class PairKind:
     """One way of choosing the pairs to match. What names the kinds derives from
     :data:`PAIR_KINDS`: the grammar and its messages, the CLI help, the REST pattern
-    (service.schemas), the plan-size arithmetic, whether the plan needs a matcher; the planner is
+    (service.http.schemas), the plan-size arithmetic, whether the plan needs a matcher; the planner is
     ``steps.PLANNERS[name]``; the proto's comments, the console's hint and the README are checked
     against it (tests/test_pair_kinds.py)."""
 

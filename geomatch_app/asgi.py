@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from geomatch_core.config import Settings
 from service import logs
-from service.api import create_app
+from service.http.api import create_app
 
 from .bootstrap import build_service
 

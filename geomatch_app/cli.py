@@ -86,8 +86,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     from geomatch_core.config import Settings
     from service import logs
-    from service.api import create_app
-    from service.httpserver import H11Protocol
+    from service.http.api import create_app
+    from service.http.server import H11Protocol
 
     from .bootstrap import build_service, close_service
 
@@ -107,7 +107,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         curl_base=base,
     )
     # no `server: uvicorn` banner: it tells a scanner which parser's bugs to try, and no client needs
-    # it; the protocol answers a head over h11's limit with a 431 the client can read (httpserver.py)
+    # it; the protocol answers a head over h11's limit with a 431 the client can read (service/http/server.py)
     server = uvicorn.Server(
         uvicorn.Config(
             create_app(service),

@@ -96,11 +96,11 @@ def cmd_keys_revoke(args: argparse.Namespace) -> int:
 
 # -- submit ----------------------------------------------------------------------------------------
 def cmd_submit(args: argparse.Namespace) -> int:
-    from .submit import HttpSubmitClient, SubmitClient, submit
+    from .clients.submit import HttpSubmitClient, SubmitClient, submit
 
     def connect() -> SubmitClient:
         if args.grpc:
-            from .grpcapi.submit import GrpcSubmitClient
+            from .clients.grpc_submit import GrpcSubmitClient
 
             return GrpcSubmitClient(args.grpc_server, args.key)
         return HttpSubmitClient(args.server, args.key)

@@ -13,10 +13,10 @@ import pytest
 from geomatch.export.formats import FORMATS, ExportFormat, register, unregister
 from geomatch_app.bootstrap import build_service, close_service
 from geomatch_core.config import Settings
-from service.api import create_app
+from service.clients.grpc_client import FORMAT
 from service.grpcapi import convert
-from service.grpcapi.client import FORMAT
 from service.grpcapi.pb import pb2
+from service.http.api import create_app
 from service.usecases.outputs import model_formats
 
 pytestmark = pytest.mark.unit

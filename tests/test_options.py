@@ -79,7 +79,7 @@ def test_submit_leaves_defaults_to_the_server() -> None:
 
 # -- the service ---------------------------------------------------------------------------------
 def test_rest_schema_is_the_options() -> None:
-    from service import schemas
+    from service.http import schemas
 
     assert tuple(schemas.ProjectConfig.model_fields) == PROJECT_OPTIONS
     assert set(schemas.MatchIn.model_fields) == {*PROJECT_OPTIONS, "reconstruct"}

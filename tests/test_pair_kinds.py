@@ -62,7 +62,7 @@ def test_the_proto_and_the_console_list_every_kind() -> None:
     assert listing, "the proto no longer lists the pair kinds in a comment"
     for line in listing:
         assert PAIR_SPEC_LIST in line, line
-    page = (ROOT / "service" / "console" / "static" / "index.html").read_text()
+    page = (ROOT / "service" / "http" / "console" / "static" / "index.html").read_text()
     hint = re.search(r'<input id="pairs" placeholder="([^"]*)"', page)
     assert hint is not None and hint.group(1) == PAIR_SPEC_LIST
 
@@ -82,7 +82,7 @@ def test_docs_that_list_the_kinds_list_all_of_them(doc: str) -> None:
 def test_a_new_kind_is_a_row_and_a_planner(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """``every:K``, each image with every K-th after it by name: one row and one planner, and the
     grammar (alone and in a union), the plan-size arithmetic, the REST pattern and the plan take it."""
-    from service.schemas import pair_spec_pattern
+    from service.http.schemas import pair_spec_pattern
 
     def every(names: list[str], k: int) -> list[tuple[str, str]]:
         return [(a, b) for i, a in enumerate(names) for b in names[i + k :: k]]

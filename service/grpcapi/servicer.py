@@ -44,29 +44,44 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
 
     # -- projects ----------------------------------------------------------------------------
     @rpc
-    def CreateProject(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+    def CreateProject(
+        self, request: pb2.CreateProjectRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.Project:
         config = convert.optional_fields(request.config, convert.CONFIG_FIELDS)
-        return convert.project(self.service.create_project(tenant_id, request.name, config))
+        return convert.project(self.service.projects.create_project(tenant_id, request.name, config))
 
     @rpc
-    def GetProject(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        return convert.project(self.service.get_project(tenant_id, request.project_id))
+    def GetProject(
+        self, request: pb2.GetProjectRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.Project:
+        return convert.project(self.service.projects.get_project(tenant_id, request.project_id))
 
     @rpc
-    def ListProjects(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        page = self.service.list_projects(tenant_id, offset_of(request.page_token), request.page_size)
+    def ListProjects(
+        self, request: pb2.ListProjectsRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.ListProjectsResponse:
+        page = self.service.projects.list_projects(
+            tenant_id, offset_of(request.page_token), request.page_size
+        )
         return pb2.ListProjectsResponse(
             projects=[convert.project(p) for p in page.items], next_page_token=token_of(page.next_offset)
         )
 
     @rpc
-    def DeleteProject(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        self.service.delete_project(tenant_id, request.project_id)
+    def DeleteProject(
+        self, request: pb2.DeleteProjectRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.DeleteProjectResponse:
+        self.service.projects.delete_project(tenant_id, request.project_id)
         return pb2.DeleteProjectResponse()
 
     # -- images ------------------------------------------------------------------------------
     @rpc
-    def UploadImages(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+    def UploadImages(
+        self,
+        request_iterator: Iterator[pb2.UploadImagesRequest],
+        context: grpc.ServicerContext,
+        tenant_id: str,
+    ) -> pb2.UploadImagesResponse:
         with self.streams.open(tenant_id), self.idle.watch(context) as heard:
             messages = Messages(request_iterator, context.is_active, heard)
             first = _first_message(messages, "UploadImages")
@@ -74,12 +89,14 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
             uploads = images(
                 messages, settings.max_upload_bytes, first.project_id, settings.max_request_bytes
             )
-            views = self.service.upload_images(tenant_id, first.project_id, uploads)
+            views = self.service.images.upload_images(tenant_id, first.project_id, uploads)
         return pb2.UploadImagesResponse(images=[convert.image(v) for v in views])
 
     @rpc
-    def ListImages(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        page = self.service.list_images(
+    def ListImages(
+        self, request: pb2.ListImagesRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.ListImagesResponse:
+        page = self.service.images.list_images(
             tenant_id, request.project_id, offset_of(request.page_token), request.page_size
         )
         return pb2.ListImagesResponse(
@@ -88,23 +105,31 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
 
     # -- ground control points ----------------------------------------------------------------
     @rpc
-    def PutGcp(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+    def PutGcp(
+        self, request: pb2.PutGcpRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.GcpSummary:
         data = request.text.encode("utf-8")
-        return convert.gcp(self.service.put_gcp(tenant_id, request.project_id, data))
+        return convert.gcp(self.service.gcp.put_gcp(tenant_id, request.project_id, data))
 
     @rpc
-    def GetGcp(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        return convert.gcp(self.service.get_gcp(tenant_id, request.project_id))
+    def GetGcp(
+        self, request: pb2.GetGcpRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.GcpSummary:
+        return convert.gcp(self.service.gcp.get_gcp(tenant_id, request.project_id))
 
     @rpc
-    def DeleteGcp(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        self.service.delete_gcp(tenant_id, request.project_id)
+    def DeleteGcp(
+        self, request: pb2.DeleteGcpRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.DeleteGcpResponse:
+        self.service.gcp.delete_gcp(tenant_id, request.project_id)
         return pb2.DeleteGcpResponse()
 
     # -- jobs --------------------------------------------------------------------------------
     @rpc
-    def SubmitMatching(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        job, follower = self.service.start_match(
+    def SubmitMatching(
+        self, request: pb2.SubmitMatchingRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.SubmitMatchingResponse:
+        job, follower = self.service.jobs.start_match(
             tenant_id, request.project_id, convert.match_request(request)
         )
         out = pb2.SubmitMatchingResponse(job=convert.job(job))
@@ -113,17 +138,23 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
         return out
 
     @rpc
-    def SubmitReconstruction(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+    def SubmitReconstruction(
+        self, request: pb2.SubmitReconstructionRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.Job:
         mapper = request.mapper if request.HasField("mapper") else None
         checkpoints = convert.checkpoints(request)
-        return convert.job(self.service.start_reconstruct(tenant_id, request.project_id, mapper, checkpoints))
+        return convert.job(
+            self.service.jobs.start_reconstruct(tenant_id, request.project_id, mapper, checkpoints)
+        )
 
     @rpc
-    def ListJobs(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+    def ListJobs(
+        self, request: pb2.ListJobsRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.ListJobsResponse:
         state = convert.JOB_STATE_NAMES.get(request.state) if request.state else None
         if request.state and state is None:
             raise InvalidRequest(f"unknown job state {request.state}")
-        page = self.service.list_jobs(
+        page = self.service.jobs.list_jobs(
             tenant_id, request.project_id, offset_of(request.page_token), request.page_size, state
         )
         return pb2.ListJobsResponse(
@@ -131,15 +162,17 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
         )
 
     @rpc
-    def GetJob(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        return convert.job(self.service.get_job(tenant_id, request.job_id))
+    def GetJob(self, request: pb2.GetJobRequest, context: grpc.ServicerContext, tenant_id: str) -> pb2.Job:
+        return convert.job(self.service.jobs.get_job(tenant_id, request.job_id))
 
     @rpc_stream
-    def WatchJob(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Iterator[Any]:
+    def WatchJob(
+        self, request: pb2.WatchJobRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> Iterator[pb2.JobEvent]:
         # watch_job yields None when nothing changed for LIVENESS_S: the moment to notice a client
         # that went away (or whose deadline passed) and stop polling the store for it
         with self.streams.open(tenant_id):
-            for job in self.service.watch_job(
+            for job in self.service.jobs.watch_job(
                 tenant_id, request.job_id, interval_s=WATCH_POLL_S, heartbeat_s=LIVENESS_S
             ):
                 if not context.is_active():
@@ -148,16 +181,20 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
                     yield pb2.JobEvent(job=convert.job(job))
 
     @rpc
-    def CancelJob(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
-        return convert.job(self.service.cancel_job(tenant_id, request.job_id))
+    def CancelJob(
+        self, request: pb2.CancelJobRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.Job:
+        return convert.job(self.service.jobs.cancel_job(tenant_id, request.job_id))
 
     # -- models ------------------------------------------------------------------------------
     @rpc_stream
-    def GetModel(self, request: Any, context: grpc.ServicerContext, tenant_id: str) -> Iterator[Any]:
+    def GetModel(
+        self, request: pb2.GetModelRequest, context: grpc.ServicerContext, tenant_id: str
+    ) -> Iterator[pb2.GetModelResponse]:
         fmt = convert.MODEL_FORMATS.get(request.format)
         if fmt is None:
             raise InvalidRequest(f"unknown model format {request.format}")
-        path = self.service.model_file(tenant_id, request.project_id, fmt)
+        path = self.service.outputs.model_file(tenant_id, request.project_id, fmt)
         # open first: a reconstruction that swaps the model folder meanwhile does not tear what
         # this stream sends (the open file outlives the swap)
         with self.streams.open(tenant_id), path.open("rb") as f:
@@ -179,11 +216,15 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
 
     # -- pairwise matching -------------------------------------------------------------------
     @rpc
-    def MatchPair(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+    def MatchPair(
+        self, request_iterator: Iterator[pb2.MatchPairRequest], context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.MatchPairResponse:
         with self.streams.open(tenant_id), self.idle.watch(context) as heard:
             return self._match_pair(Messages(request_iterator, context.is_active, heard), context, tenant_id)
 
-    def _match_pair(self, messages: Messages, context: grpc.ServicerContext, tenant_id: str) -> Any:
+    def _match_pair(
+        self, messages: Messages, context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.MatchPairResponse:
         options: dict[str, Any] = {}
         first = messages.next()
         if first is not None and first.WhichOneof("part") == "options":
@@ -197,7 +238,7 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
         remaining = context.time_remaining()
         timeout = MATCH_PAIR_TIMEOUT_S if remaining is None else max(0.1, remaining - DEADLINE_MARGIN_S)
         try:
-            matches = self.service.match_two(tenant_id, uploads, options, timeout_s=timeout)
+            matches = self.service.pairtools.match_two(tenant_id, uploads, options, timeout_s=timeout)
         except Unavailable:
             left = context.time_remaining()
             if left is not None and left <= 2 * DEADLINE_MARGIN_S:  # we stopped waiting for the deadline
@@ -209,7 +250,9 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
 
     # -- localization ------------------------------------------------------------------------
     @rpc
-    def Localize(self, request_iterator: Any, context: grpc.ServicerContext, tenant_id: str) -> Any:
+    def Localize(
+        self, request_iterator: Iterator[pb2.LocalizeRequest], context: grpc.ServicerContext, tenant_id: str
+    ) -> pb2.LocalizeResponse:
         with self.streams.open(tenant_id), self.idle.watch(context) as heard:
             messages = Messages(request_iterator, context.is_active, heard)
             first = _first_message(messages, "Localize", options="options")
@@ -224,7 +267,7 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
             if remaining is not None:
                 left = max(0.0, remaining - 2 * DEADLINE_MARGIN_S)
                 wait = left if wait is None else min(wait, left)
-            job = self.service.localize(tenant_id, first.project_id, photos, add=add, wait_s=wait)
+            job = self.service.localize.localize(tenant_id, first.project_id, photos, add=add, wait_s=wait)
         answers = localizations(job) or []
         return pb2.LocalizeResponse(
             job=convert.job(job), localizations=[convert.localization(a) for a in answers]

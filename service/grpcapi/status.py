@@ -1,6 +1,6 @@
 """Where domain errors become gRPC status codes, and where every call is authenticated.
 
-The one table of the gRPC side, as ``service/api.py`` holds the HTTP one. A method of the servicer
+The one table of the gRPC side, as ``service/http/api.py`` holds the HTTP one. A method of the servicer
 is written as ``method(self, request, context, tenant_id)``; ``rpc`` (unary responses) and
 ``rpc_stream`` (streamed responses) check the bearer key, hand the tenant in, and turn what the use
 cases raise into ``context.abort(code, message)``.

@@ -64,8 +64,10 @@ def choice(key: str, value: Any, allowed: Sequence[str]) -> str:
     return str(value)
 
 
-class UseCases:
-    """The parts every use case works with; ``Service`` is the use cases of every concern."""
+class Context:
+    """The parts that every use case of one ``Service`` shares: one store, storage, queue, set of
+    locks and settings, and the limits that hold across concerns (a tenant's request rate, the
+    heavy calls in flight), so that each concern's object sees the same ones."""
 
     def __init__(
         self,
@@ -86,6 +88,14 @@ class UseCases:
         # snapshots): bounded, so that one tenant's calls cannot hold every thread of the server
         self.heavy = FairSlots("heavy calls", settings.heavy_slots, settings.heavy_tenant_slots)
 
+
+class UseCases:
+    """One concern's use cases over the shared :class:`Context`, with the lookups and the staging
+    that every concern needs."""
+
+    def __init__(self, ctx: Context) -> None:
+        self.ctx = ctx
+
     def _project(self, s: Session, tenant_id: str, project_id: str) -> Project:
         """The tenant's project: every use case that takes a project id looks it up here."""
         p = s.get(Project, known_id("project", project_id))
@@ -95,7 +105,7 @@ class UseCases:
 
     def _owned(self, tenant_id: str, project_id: str) -> None:
         """NotFound unless the tenant has this project."""
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             self._project(s, tenant_id, project_id)
 
     @contextmanager
@@ -116,21 +126,21 @@ class UseCases:
             raise
 
     def _stage(self, name: str, stream: BinaryIO) -> Staged:
-        fd, tmp = self.storage.temp_file()
+        fd, tmp = self.ctx.storage.temp_file()
         h, size = hashlib.sha256(), 0
         try:
             with os.fdopen(fd, "wb") as f:
                 while chunk := stream.read(_CHUNK):
                     size += len(chunk)
-                    if size > self.settings.max_upload_bytes:
+                    if size > self.ctx.settings.max_upload_bytes:
                         raise TooLarge(
                             f"{name}: larger than the upload limit of "
-                            f"{self.settings.max_upload_bytes // (1024 * 1024)} MiB"
+                            f"{self.ctx.settings.max_upload_bytes // (1024 * 1024)} MiB"
                         )
                     h.update(chunk)
-                    self.storage.check_space(len(chunk))
+                    self.ctx.storage.check_space(len(chunk))
                     f.write(chunk)
-            info = check_image(tmp, name, self.settings.max_pixels)
+            info = check_image(tmp, name, self.ctx.settings.max_pixels)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise

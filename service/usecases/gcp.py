@@ -140,14 +140,14 @@ class GcpUseCases(UseCases):
         """Check ``data`` against the project's images and store it in place of the earlier file;
         a file that cannot be used is refused with the reason, and the earlier one stays."""
         with self._unless_deleted(tenant_id, project_id):
-            with self.store.session() as s:
+            with self.ctx.store.session() as s:
                 self._project(s, tenant_id, project_id)  # an unknown project first, whatever the body
                 sizes = image_sizes(s, project_id)
             text = gcp_text(data)
             gcps = read_gcps(text, sizes)
             stored = text.encode("utf-8")
             try:
-                self.storage.put_file(self.storage.gcp_path(project_id), stored)
+                self.ctx.storage.put_file(self.ctx.storage.gcp_path(project_id), stored)
             except OSError as e:
                 if e.errno in (errno.ENOSPC, errno.EDQUOT):
                     raise InsufficientStorage(
@@ -161,10 +161,10 @@ class GcpUseCases(UseCases):
         """The stored file's summary, read again against the project's images now (images added
         since may see points that had none). A file that no longer fits them is answered with
         ``error``; a reconstruct job then leaves the model in its frame."""
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             self._project(s, tenant_id, project_id)
             sizes = image_sizes(s, project_id)
-        text = stored_text(self.storage, project_id)
+        text = stored_text(self.ctx.storage, project_id)
         if text is None:
             raise NotFound(f"project {project_id} has no ground control points")
         size = len(text.encode("utf-8"))
@@ -176,9 +176,9 @@ class GcpUseCases(UseCases):
             return _view({"crs": header}, size, e.message)
 
     def delete_gcp(self, tenant_id: str, project_id: str) -> None:
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             self._project(s, tenant_id, project_id)
         try:
-            self.storage.gcp_path(project_id).unlink()
+            self.ctx.storage.gcp_path(project_id).unlink()
         except FileNotFoundError:
             raise NotFound(f"project {project_id} has no ground control points") from None

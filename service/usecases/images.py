@@ -55,14 +55,14 @@ class ImageUseCases(UseCases):
         with self._unless_deleted(tenant_id, project_id):
             views = self._store(tenant_id, project_id, uploads, capture)
         new = [v for v in views if v.created]
-        if self.on_upload is not None and new:
-            self.on_upload(len(new), sum(v.size_bytes for v in new))
+        if self.ctx.on_upload is not None and new:
+            self.ctx.on_upload(len(new), sum(v.size_bytes for v in new))
         return views
 
     def _store(
         self, tenant_id: str, project_id: str, uploads: Iterable[Upload], capture: str
     ) -> list[ImageView]:
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             self._project(s, tenant_id, project_id)
         staged: list[Staged] = []
         moved: list[Path] = []
@@ -80,7 +80,7 @@ class ImageUseCases(UseCases):
             if not staged:
                 raise InvalidRequest("no images were sent")
             try:
-                with self.store.session() as s:
+                with self.ctx.store.session() as s:
                     self._project(s, tenant_id, project_id)
                     views = self._register(s, tenant_id, project_id, staged, capture, moved)
                     committing = True
@@ -164,7 +164,7 @@ class ImageUseCases(UseCases):
         self._within_image_quotas(s, tenant_id, [st for st, _ in new])
         s.add_all([img for _, img in new])
         s.flush()
-        images_dir = self.storage.images_dir(project_id)
+        images_dir = self.ctx.storage.images_dir(project_id)
         images_dir.mkdir(parents=True, exist_ok=True)
         for st, img in new:
             dest = images_dir / img.name
@@ -177,7 +177,7 @@ class ImageUseCases(UseCases):
         staged copy takes the missing file's place. A row can outlive its file when an earlier
         request's commit reached the database but its acknowledgement was lost with the
         connection, and the request's cleanup removed the file it had moved into place."""
-        dest = self.storage.images_dir(project_id) / img.name
+        dest = self.ctx.storage.images_dir(project_id) / img.name
         if dest.is_file() and dest.stat().st_size == img.size_bytes:
             return
         dest.parent.mkdir(parents=True, exist_ok=True)
@@ -186,7 +186,7 @@ class ImageUseCases(UseCases):
     def _within_image_quotas(self, s: Session, tenant_id: str, new: list[Staged]) -> None:
         """QuotaExceeded when the new images would take the tenant past ``quota_images`` or
         ``quota_bytes`` (all its projects together); the request then stores nothing."""
-        n_quota, bytes_quota = self.settings.quota_images, self.settings.quota_bytes
+        n_quota, bytes_quota = self.ctx.settings.quota_images, self.ctx.settings.quota_bytes
         if not new or not (n_quota or bytes_quota):
             return
         n, size = s.execute(
@@ -208,14 +208,14 @@ class ImageUseCases(UseCases):
 
     def image_file(self, tenant_id: str, project_id: str, name: str) -> tuple[Path, str]:
         """An uploaded image's bytes and media type, for a browser to show it (thumbnails)."""
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             self._project(s, tenant_id, project_id)
             name = known_name(project_id, name)
             img = s.scalar(select(Image).where(Image.project_id == project_id, Image.name == name))
             if img is None:
                 raise NotFound(f"image {name!r} not found in project {project_id}")
             fmt = img.format
-        path = self.storage.image_path(project_id, name)
+        path = self.ctx.storage.image_path(project_id, name)
         if not path.is_file():
             raise NotFound(f"image {name!r} not found in project {project_id}")
         return path, IMAGE_MEDIA.get(fmt, "application/octet-stream")
@@ -225,7 +225,7 @@ class ImageUseCases(UseCases):
     ) -> Page[ImageView]:
         """One page of the project's images by name (``paging.IMAGES``: its sizes)."""
         limit = IMAGES.clamp(limit)
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             self._project(s, tenant_id, project_id)
             rows = s.scalars(
                 select(Image)

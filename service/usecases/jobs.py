@@ -28,7 +28,7 @@ class JobUseCases(UseCases):
     def start_match(
         self, tenant_id: str, project_id: str, req: MatchRequest
     ) -> tuple[JobView, JobView | None]:
-        with self._unless_deleted(tenant_id, project_id), self.store.session() as s:
+        with self._unless_deleted(tenant_id, project_id), self.ctx.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             names = set(s.scalars(select(Image.name).where(Image.project_id == project_id)))
             if len(names) < 2:
@@ -45,7 +45,7 @@ class JobUseCases(UseCases):
             s.flush()
             follower = _reconstruct_job(s, project_id, tenant_id, mapper, job.id) if req.reconstruct else None
             views = job_view(job), job_view(follower) if follower else None
-        self._enqueue(views[0])
+        self.enqueue(views[0])
         return views
 
     def _check_plan_size(self, pairs: str | list[Any], n: int) -> None:
@@ -53,7 +53,7 @@ class JobUseCases(UseCases):
         pass the limit is refused here; one that may (``auto``, ``gps:K``, ``retrieval:K`` over
         GPS and appearance the API does not read) is measured by the job's plan step, which fails
         the job before it writes a pair."""
-        limit = self.settings.max_pairs_per_job
+        limit = self.ctx.settings.max_pairs_per_job
         if not limit:
             return
         if isinstance(pairs, list):
@@ -67,10 +67,10 @@ class JobUseCases(UseCases):
         """``GEOMATCH_MAX_QUEUED_PAIRS``: what the tenant's unfinished match jobs hold (planned
         ones by their rows, the others by the fewest pairs their plan can have) plus the fewest
         this one can add. A plan only its step can size is measured again there."""
-        limit = self.settings.max_queued_pairs
+        limit = self.ctx.settings.max_queued_pairs
         if not limit:
             return
-        queued, jobs, unplanned = jobstate.queued_pairs(self.store, tenant_id)
+        queued, jobs, unplanned = jobstate.queued_pairs(self.ctx.store, tenant_id)
         for j in unplanned:
             images = s.scalar(select(func.count()).select_from(Image).where(Image.project_id == j.project_id))
             spec = j.options.get("pairs", DEFAULTS["pairs"])
@@ -89,7 +89,7 @@ class JobUseCases(UseCases):
     ) -> JobView:
         """``checkpoints``: ground control points held out of the fit to judge it (names, or how
         many, spread over the points' sorted names), checked against the project's GCP file."""
-        with self._unless_deleted(tenant_id, project_id), self.store.session() as s:
+        with self._unless_deleted(tenant_id, project_id), self.ctx.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             mapper = check_option("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"])
             matched = s.scalar(
@@ -102,21 +102,22 @@ class JobUseCases(UseCases):
                     "nothing to reconstruct yet: no match job of this project has succeeded "
                     '(POST .../match first, or with "reconstruct": true to chain both)'
                 )
-            held_out = check_checkpoints(s, self.storage, project_id, checkpoints)
+            held_out = check_checkpoints(s, self.ctx.storage, project_id, checkpoints)
             view = job_view(_reconstruct_job(s, project_id, tenant_id, mapper, checkpoints=held_out))
-        self._enqueue(view)
+        self.enqueue(view)
         return view
 
-    def _enqueue(self, job: JobView) -> None:
+    def enqueue(self, job: JobView) -> None:
+        """The job handed to the queue; a queue that cannot take it fails the job (Unavailable)."""
         try:
-            self.queue.enqueue(ENTRY_STEP[job.kind], job.id)
+            self.ctx.queue.enqueue(ENTRY_STEP[job.kind], job.id)
         except Exception as e:
-            jobstate.fail(self.store, job.id, f"could not queue the job: {e}")
+            jobstate.fail(self.ctx.store, job.id, f"could not queue the job: {e}")
             raise Unavailable(f"the job queue is not reachable ({e}); the job was not started") from None
 
     def get_job(self, tenant_id: str, job_id: str) -> JobView:
         """Every use case that takes a job id (cancel, watch) looks it up here."""
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             job = s.get(Job, known_id("job", job_id))
             if job is None or job.tenant_id != tenant_id:
                 raise NotFound(f"job {job_id} not found")
@@ -134,7 +135,7 @@ class JobUseCases(UseCases):
         when ``state`` is given. The jobs live in the store, not in a client: any tab, device or
         program that holds a key of the tenant finds the running and past ones here."""
         limit = JOBS.clamp(limit)
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             self._project(s, tenant_id, project_id)
             query = select(Job).where(Job.project_id == project_id, Job.tenant_id == tenant_id)
             if state is not None:
@@ -147,8 +148,8 @@ class JobUseCases(UseCases):
     def cancel_job(self, tenant_id: str, job_id: str) -> JobView:
         """Idempotent: a finished job is returned as it is."""
         self.get_job(tenant_id, job_id)
-        if jobstate.cancel(self.store, job_id, "cancelled by the client"):
-            jobstate.release_followers(self.store, self.queue, job_id)
+        if jobstate.cancel(self.ctx.store, job_id, "cancelled by the client"):
+            jobstate.release_followers(self.ctx.store, self.ctx.queue, job_id)
         return self.get_job(tenant_id, job_id)
 
     def watch_job(
@@ -168,15 +169,15 @@ class JobWatch:
     """Change detection over a job, one poll at a time, so that a caller may wait between polls
     however it likes (a thread sleeping in ``watch_job``, an event loop in the SSE route)."""
 
-    def __init__(self, service: JobUseCases, tenant_id: str, job_id: str, heartbeat_s: float = 15.0) -> None:
-        self.service, self.tenant_id, self.job_id, self.heartbeat_s = service, tenant_id, job_id, heartbeat_s
+    def __init__(self, jobs: JobUseCases, tenant_id: str, job_id: str, heartbeat_s: float = 15.0) -> None:
+        self.jobs, self.tenant_id, self.job_id, self.heartbeat_s = jobs, tenant_id, job_id, heartbeat_s
         self.finished = False
         self._last: tuple[Any, ...] | None = None
         self._quiet_since = time.monotonic()
 
     def poll(self) -> tuple[bool, JobView | None]:
         """(True, job) when it changed, (True, None) when a keep-alive is due, else (False, None)."""
-        job = self.service.get_job(self.tenant_id, self.job_id)
+        job = self.jobs.get_job(self.tenant_id, self.job_id)
         key = (job.state, job.done, job.total, job.error)
         now = time.monotonic()
         if key != self._last:

@@ -27,7 +27,7 @@ from geomatch_core.errors import BadFile, Conflict, InvalidRequest, NotFound, Ov
 from geomatch_core.models import Job, new_id
 
 from ..validation import check_name
-from .base import DEFAULTS, Staged, check_config, choice
+from .base import DEFAULTS, Context, Staged, UseCases, check_config, choice
 from .images import ImageUseCases
 from .jobs import JobUseCases
 from .views import JobView, Upload, job_view
@@ -35,8 +35,14 @@ from .views import JobView, Upload, job_view
 WAIT_POLL_S = 0.1  # how often a waiting request reads its job
 
 
-class LocalizeUseCases(ImageUseCases, JobUseCases):
-    """Built on the uploads (``add``) and the jobs (queueing, reading) of the project."""
+class LocalizeUseCases(UseCases):
+    """Built on the uploads (``add``) and the jobs (queueing, reading) of the project: the
+    service's own image and job use cases, over the same context."""
+
+    def __init__(self, ctx: Context, images: ImageUseCases, jobs: JobUseCases) -> None:
+        super().__init__(ctx)
+        self.images = images
+        self.jobs = jobs
 
     def localize(
         self,
@@ -54,32 +60,32 @@ class LocalizeUseCases(ImageUseCases, JobUseCases):
         capture = choice("capture", capture, CAPTURES)
         wait = self._localize_wait(wait_s)
         with self._unless_deleted(tenant_id, project_id):
-            with self.store.session() as s:
+            with self.ctx.store.session() as s:
                 config = dict(self._project(s, tenant_id, project_id).config)
             self._model_ready(project_id)
             job_id = new_id()
             if add:
-                views = self.upload_images(tenant_id, project_id, uploads, capture)
+                views = self.images.upload_images(tenant_id, project_id, uploads, capture)
                 photos = [(v.name, v.capture) for v in views]
             else:
                 photos = self._stage_photos(project_id, job_id, uploads, capture)
             try:
-                with self.store.session() as s:
+                with self.ctx.store.session() as s:
                     self._project(s, tenant_id, project_id)
                     job = self._localize_job(s, job_id, project_id, tenant_id, config, photos, add)
                     view = job_view(job)
             except BaseException:
-                shutil.rmtree(self.storage.localize_dir(project_id, job_id), ignore_errors=True)
+                shutil.rmtree(self.ctx.storage.localize_dir(project_id, job_id), ignore_errors=True)
                 raise
         try:
-            self._enqueue(view)
+            self.jobs.enqueue(view)
         except BaseException:
-            shutil.rmtree(self.storage.localize_dir(project_id, job_id), ignore_errors=True)
+            shutil.rmtree(self.ctx.storage.localize_dir(project_id, job_id), ignore_errors=True)
             raise
         return self._wait_for(tenant_id, view, wait)
 
     def _localize_wait(self, wait_s: float | None) -> float:
-        most = self.settings.localize_wait_s
+        most = self.ctx.settings.localize_wait_s
         if wait_s is None:
             return most
         if not wait_s >= 0:  # negative, or NaN
@@ -88,7 +94,7 @@ class LocalizeUseCases(ImageUseCases, JobUseCases):
 
     def _model_ready(self, project_id: str) -> None:
         """Conflict unless the project has a model with registered images to localize against."""
-        model = self.storage.model_dir(project_id)
+        model = self.ctx.storage.model_dir(project_id)
         if not (model / "summary.json").is_file():
             raise Conflict(
                 f"project {project_id} has no model yet: localizing needs one "
@@ -105,7 +111,7 @@ class LocalizeUseCases(ImageUseCases, JobUseCases):
     ) -> list[tuple[str, str]]:
         """Every photo checked as an upload is and put in the job's folder, or none (the folder is
         removed on any error); with its capture (the file's own, else the request's)."""
-        folder = self.storage.localize_dir(project_id, job_id)
+        folder = self.ctx.storage.localize_dir(project_id, job_id)
         photos: list[tuple[str, str]] = []
         try:
             for up in uploads:
@@ -164,7 +170,7 @@ class LocalizeUseCases(ImageUseCases, JobUseCases):
         if wait_s <= 0:
             return job
         try:
-            self.heavy.acquire(tenant_id)
+            self.ctx.heavy.acquire(tenant_id)
         except Overloaded:
             return job
         try:
@@ -172,12 +178,12 @@ class LocalizeUseCases(ImageUseCases, JobUseCases):
             while not job.terminal and time.monotonic() < deadline:
                 time.sleep(min(WAIT_POLL_S, max(0.0, deadline - time.monotonic())))
                 try:
-                    job = self.get_job(tenant_id, job.id)
+                    job = self.jobs.get_job(tenant_id, job.id)
                 except NotFound:  # the project was deleted meanwhile: as any job of it, gone
                     raise NotFound(f"project {job.project_id} not found") from None
             return job
         finally:
-            self.heavy.release(tenant_id)
+            self.ctx.heavy.release(tenant_id)
 
 
 def localizations(job: JobView) -> list[dict[str, Any]] | None:

@@ -68,9 +68,9 @@ class OutputUseCases(UseCases):
         self._owned(tenant_id, project_id)
         if fmt not in files:
             return self._model_export(tenant_id, project_id, fmt)
-        path = self.storage.model_dir(project_id) / files[fmt]
+        path = self.ctx.storage.model_dir(project_id) / files[fmt]
         if not path.is_file():
-            if not (self.storage.model_dir(project_id) / "summary.json").is_file():
+            if not (self.ctx.storage.model_dir(project_id) / "summary.json").is_file():
                 raise NotFound(f"project {project_id} has no model yet: POST .../reconstruct")
             raise NotFound(f"the model of project {project_id} has no {fmt} (no 3D points)")
         return path
@@ -89,7 +89,7 @@ class OutputUseCases(UseCases):
         """
         from geomatch.export import ExportError, export_zip, model_dir, open_run
 
-        model = self.storage.model_dir(project_id)
+        model = self.ctx.storage.model_dir(project_id)
         try:
             summary = (model / "summary.json").read_bytes()
         except FileNotFoundError:
@@ -101,12 +101,12 @@ class OutputUseCases(UseCases):
             return path
         snapshot = None
         try:
-            with self.heavy.open(tenant_id):
+            with self.ctx.heavy.open(tenant_id):
                 if DATABASE in FORMATS[fmt].needs:
-                    fd, snapshot = self.storage.temp_file()
+                    fd, snapshot = self.ctx.storage.temp_file()
                     os.close(fd)
-                    snapshot_sqlite(self.storage.database_path(project_id), snapshot)
-                source = open_run(model, images=self.storage.images_dir(project_id), database=snapshot)
+                    snapshot_sqlite(self.ctx.storage.database_path(project_id), snapshot)
+                source = open_run(model, images=self.ctx.storage.images_dir(project_id), database=snapshot)
                 return export_zip(source, fmt, path)
         except ExportError as e:  # the model folder lacks an input (the images were deleted ...)
             raise NotFound(f"project {project_id}: {e}") from None
@@ -117,17 +117,17 @@ class OutputUseCases(UseCases):
     def model_scene(self, tenant_id: str, project_id: str) -> dict[str, Any]:
         """Points with colours and posed cameras of the largest model, for a 3D viewer."""
         self._owned(tenant_id, project_id)
-        with self.heavy.open(tenant_id):  # parses every point of the model's text files
-            return read_scene(self.storage.model_dir(project_id))
+        with self.ctx.heavy.open(tenant_id):  # parses every point of the model's text files
+            return read_scene(self.ctx.storage.model_dir(project_id))
 
     def survey_report(self, tenant_id: str, project_id: str) -> ReportView:
         """The survey report of the project's model (geomatch.report): the one its reconstruct
         job wrote into summary.json, or, for a model made before reports existed, built now from
         that summary (the same function builds both)."""
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             name = self._project(s, tenant_id, project_id).name
         try:
-            summary = json.loads((self.storage.model_dir(project_id) / "summary.json").read_bytes())
+            summary = json.loads((self.ctx.storage.model_dir(project_id) / "summary.json").read_bytes())
         except FileNotFoundError:
             raise NotFound(f"project {project_id} has no model yet: POST .../reconstruct") from None
         report = summary.get("report") or survey_report(summary)
@@ -136,21 +136,21 @@ class OutputUseCases(UseCases):
     def list_pairs(self, tenant_id: str, project_id: str) -> list[PairView]:
         """The project's matched pairs and their counts (none before the first match job)."""
         self._owned(tenant_id, project_id)
-        return read_pairs(self.storage.database_path(project_id))
+        return read_pairs(self.ctx.storage.database_path(project_id))
 
     def database_snapshot(self, tenant_id: str, project_id: str) -> Path:
         """A consistent copy of the project's COLMAP database (SQLite's online backup), which the
         caller deletes: the live file may be mid-transaction at any moment."""
         self._owned(tenant_id, project_id)
-        src = self.storage.database_path(project_id)
+        src = self.ctx.storage.database_path(project_id)
         if not src.is_file():
             raise NotFound(
                 f"project {project_id} has no COLMAP database yet: it is created by its first match job"
             )
-        fd, tmp = self.storage.temp_file()
+        fd, tmp = self.ctx.storage.temp_file()
         os.close(fd)
         try:
-            with self.heavy.open(tenant_id):
+            with self.ctx.heavy.open(tenant_id):
                 snapshot_sqlite(src, tmp)
         except BaseException:
             tmp.unlink(missing_ok=True)
@@ -158,7 +158,7 @@ class OutputUseCases(UseCases):
         return tmp
 
     def matches_picture(self, tenant_id: str, project_id: str, name0: str, name1: str) -> Path:
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             self._project(s, tenant_id, project_id)
             name0, name1 = known_name(project_id, name0), known_name(project_id, name1)
             known = set(
@@ -171,19 +171,19 @@ class OutputUseCases(UseCases):
                 raise NotFound(f"image {n!r} not found in project {project_id}")
         if name0 == name1:
             raise InvalidRequest("a pair has two different images")
-        path = self.storage.picture_path(project_id, name0, name1)
+        path = self.ctx.storage.picture_path(project_id, name0, name1)
         if path.is_file():
             return path
         # waiting for a worker holds a thread of the API for up to render_timeout_s: a heavy slot.
         # Without one, 45 waiting pictures of one tenant took every thread, /healthz included
         try:
-            with self.heavy.open(tenant_id):
-                out = self.queue.call(
-                    RENDER_PAIR, project_id, name0, name1, timeout=self.settings.render_timeout_s
+            with self.ctx.heavy.open(tenant_id):
+                out = self.ctx.queue.call(
+                    RENDER_PAIR, project_id, name0, name1, timeout=self.ctx.settings.render_timeout_s
                 )
         except TimeoutError:
             raise Unavailable(
-                f"no worker drew the picture within {self.settings.render_timeout_s}s; retry later"
+                f"no worker drew the picture within {self.ctx.settings.render_timeout_s}s; retry later"
             ) from None
         if out.get("error") == "not_matched":
             raise NotFound(f"pair ({name0}, {name1}) has not been matched in project {project_id}")

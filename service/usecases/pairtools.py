@@ -39,7 +39,7 @@ class PairToolUseCases(UseCases):
         if extra:
             raise InvalidRequest(f"option(s) {', '.join(extra)} do not apply to a single pair")
         opts = {k: opts.get(k, DEFAULTS[k]) for k in PAIR_OPTIONS}
-        work = self.storage.tmp_dir / f"pair-{uuid.uuid4().hex}"  # shared with the workers
+        work = self.ctx.storage.tmp_dir / f"pair-{uuid.uuid4().hex}"  # shared with the workers
         work.mkdir(parents=True)
         try:
             captures: list[str] = []
@@ -53,7 +53,7 @@ class PairToolUseCases(UseCases):
                 raise InvalidRequest(f"a pair is two images; {len(captures)} were sent")
             deadline = time.time() + timeout_s
             try:
-                out = self.queue.call(MATCH_TWO, work.name, captures, opts, deadline, timeout=timeout_s)
+                out = self.ctx.queue.call(MATCH_TWO, work.name, captures, opts, deadline, timeout=timeout_s)
             except TimeoutError:
                 raise Unavailable(f"no worker matched the pair within {timeout_s:.0f}s") from None
             if out.get("error"):

@@ -24,7 +24,7 @@ class ProjectUseCases(UseCases):
         cfg = check_config(config or {})
         if isinstance(cfg.get("pairs"), list):
             raise InvalidRequest(f"a project's default pairs is a spec ({PAIR_SPEC_WORDS}), not a list")
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             self._within_project_quota(s, tenant_id)
             p = Project(tenant_id=tenant_id, name=name, config=cfg)
             s.add(p)
@@ -34,7 +34,7 @@ class ProjectUseCases(UseCases):
     def _within_project_quota(self, s: Session, tenant_id: str) -> None:
         """QuotaExceeded at ``quota_projects``. Checked in the creating transaction, not locked:
         concurrent creates may pass it by a few, which a quota against slow exhaustion allows."""
-        quota = self.settings.quota_projects
+        quota = self.ctx.settings.quota_projects
         if not quota:
             return
         n = s.scalar(select(func.count()).select_from(Project).where(Project.tenant_id == tenant_id)) or 0
@@ -46,7 +46,7 @@ class ProjectUseCases(UseCases):
     def list_projects(self, tenant_id: str, offset: int = 0, limit: int | None = None) -> Page[ProjectView]:
         """One page of the tenant's projects, oldest first (``paging.PROJECTS``: its sizes)."""
         limit = PROJECTS.clamp(limit)
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             rows = s.scalars(
                 select(Project)
                 .where(Project.tenant_id == tenant_id)
@@ -57,26 +57,26 @@ class ProjectUseCases(UseCases):
             return page_of([self._project_view(s, p) for p in rows], offset, limit)
 
     def get_project(self, tenant_id: str, project_id: str) -> ProjectView:
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             return self._project_view(s, self._project(s, tenant_id, project_id))
 
     def delete_project(self, tenant_id: str, project_id: str) -> None:
         """Of concurrent deletes of one project exactly one succeeds, the others find it gone: the
         row is deleted by one statement whose row count says who did it."""
-        with self.store.session() as s:
+        with self.ctx.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             jobs = s.scalars(select(Job.id).where(Job.project_id == p.id)).all()
         for job_id in jobs:  # workers see their job gone or cancelled and stop
-            jobstate.cancel(self.store, job_id, "project deleted")
-        with self.store.session() as s:
+            jobstate.cancel(self.ctx.store, job_id, "project deleted")
+        with self.ctx.store.session() as s:
             gone = s.execute(delete(Project).where(Project.id == project_id, Project.tenant_id == tenant_id))
             if gone.rowcount != 1:  # type: ignore[attr-defined]  # typed Result; a DELETE gets a CursorResult
                 raise NotFound(f"project {project_id} not found")
         # the writer lock: a worker writing this project right now finishes before the files go
-        with self.locks.project(project_id):
-            self.storage.delete_project(project_id)
+        with self.ctx.locks.project(project_id):
+            self.ctx.storage.delete_project(project_id)
 
     def _project_view(self, s: Session, p: Project) -> ProjectView:
         n = s.scalar(select(func.count()).select_from(Image).where(Image.project_id == p.id)) or 0
-        has_model = (self.storage.model_dir(p.id) / "summary.json").is_file()
+        has_model = (self.ctx.storage.model_dir(p.id) / "summary.json").is_file()
         return ProjectView(p.id, p.name, dict(p.config), p.created_at, int(n), has_model)

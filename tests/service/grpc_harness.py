@@ -16,7 +16,7 @@ from typing import Any
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from service.grpcapi.client import GrpcClient
+from service.clients.grpc_client import GrpcClient
 
 from .harness import Deployment, free_port, metadata_database
 

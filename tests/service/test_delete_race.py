@@ -18,7 +18,7 @@ import grpc
 import httpx
 import pytest
 
-from service.grpcapi.client import GrpcClient, ImageSource
+from service.clients.grpc_client import GrpcClient, ImageSource
 
 from .grpc_harness import GrpcDeployment, serving_on_store
 from .harness import noise_png, noise_project

@@ -33,7 +33,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from service.grpcapi.client import ImageSource
+from service.clients.grpc_client import ImageSource
 from service.grpcapi.pb import SERVICE, pb2
 
 from .grpc_harness import GrpcDeployment, running_grpc

@@ -31,7 +31,7 @@ import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha.proto_reflection_descriptor_database import ProtoReflectionDescriptorDatabase
 
-from service.grpcapi.client import GrpcClient, ImageSource, to_dict
+from service.clients.grpc_client import GrpcClient, ImageSource, to_dict
 from service.grpcapi.pb import pb2
 
 from ..small_scene import PAIRS  # the measured pair list (tests/small_scene.py)
@@ -692,7 +692,7 @@ def test_upload_past_its_deadline_leaves_nothing(
 CLIENT = """
 import sys, threading
 from service.grpcapi.pb import pb2
-from service.grpcapi.client import GrpcClient
+from service.clients.grpc_client import GrpcClient
 target, key, project, path = sys.argv[1:]
 data = open(path, "rb").read()
 def messages():

@@ -18,8 +18,8 @@ from pathlib import Path
 import grpc
 import pytest
 
+from service.clients.grpc_client import GrpcClient, ImageSource
 from service.grpcapi import codegen
-from service.grpcapi.client import GrpcClient, ImageSource
 
 from .grpc_harness import GrpcDeployment, running_grpc
 from .harness import GEOMATCH, free_port, upload
@@ -86,7 +86,7 @@ def geomatch(args: list[str]) -> subprocess.CompletedProcess[str]:
 @pytest.mark.parametrize("transport", ["grpc", "http"])
 def test_submit(both: GrpcDeployment, key: str, scene: Path, tmp_path: Path, transport: str) -> None:
     """`geomatch submit [--grpc] --out`: upload, match, reconstruct, wait, unpack the model; the one
-    flow (service.submit) through each client, with the same lines and exit codes."""
+    flow (service.clients.submit) through each client, with the same lines and exit codes."""
     folder = tmp_path / "batch"
     folder.mkdir()
     for n in GROUND:

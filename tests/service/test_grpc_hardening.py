@@ -18,7 +18,7 @@ import grpc
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from service.grpcapi.client import GrpcClient, ImageSource
+from service.clients.grpc_client import GrpcClient, ImageSource
 from service.grpcapi.limits import STREAMS
 from service.grpcapi.pb import pb2
 

@@ -25,7 +25,7 @@ from typing import Any
 import grpc
 import pytest
 
-from service.grpcapi.client import GrpcClient, ImageSource
+from service.clients.grpc_client import GrpcClient, ImageSource
 from service.grpcapi.limits import STREAMS
 from service.grpcapi.pb import pb2
 

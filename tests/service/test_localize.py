@@ -24,7 +24,7 @@ from PIL import Image
 
 from geomatch.geo.geodesy import EnuFrame
 from geomatch.synth.aerial import write_scene
-from service.grpcapi.client import ImageSource, to_dict
+from service.clients.grpc_client import ImageSource, to_dict
 from service.grpcapi.pb import pb2
 
 from .grpc_harness import GrpcDeployment, error_of

@@ -58,7 +58,7 @@ from .test_api import big_bmp_cut_short, bmp_header
 def test_pair_grammar_is_the_librarys(spec: str) -> None:
     """The service, its OpenAPI pattern and the library take the same specs (a repeated kind
     included: schemathesis sends what the pattern allows and expects it accepted)."""
-    from service.schemas import PAIR_SPEC_PATTERN
+    from service.http.schemas import PAIR_SPEC_PATTERN
 
     try:
         parse_plan(spec)
@@ -234,7 +234,7 @@ def test_project_name_pattern_is_the_use_cases_rule() -> None:
 @pytest.mark.unit
 def test_service_modules_do_not_import_torch() -> None:
     modules = (
-        "service.api, geomatch_app.bootstrap, geomatch_app.cli, service.cli, "
+        "service.http.api, geomatch_app.bootstrap, geomatch_app.cli, service.cli, "
         "workers.celery_queue, workers.local, workers.tasks, workers.jobs, workers.steps"
     )
     # the option vocabulary, the export table, the command's parser, the survey report and the
@@ -463,7 +463,7 @@ def test_the_job_list_filters_by_the_states_jobs_have() -> None:
     import typing
 
     from geomatch_core.models import JOB_STATES
-    from service.routes.jobs import list_jobs
+    from service.http.routes.jobs import list_jobs
 
     hint = typing.get_type_hints(list_jobs, include_extras=True)["state"]
     literal = typing.get_args(typing.get_args(hint)[0])[0]
@@ -494,7 +494,7 @@ def test_localization_answers_keep_every_field_over_rest_and_grpc() -> None:
     nothing of a pose is invented for a photo that was not localized."""
     from geomatch.localize import Localization
     from service.grpcapi import convert
-    from service.schemas import LocalizationOut
+    from service.http.schemas import LocalizationOut
 
     placed = Localization(
         name="new.jpg",

@@ -1,4 +1,4 @@
-"""``geomatch submit IMAGES --grpc``: the batch flow (``service.submit``) over gRPC.
+"""``geomatch submit IMAGES --grpc``: the batch flow (``service.clients.submit``) over gRPC.
 
 Uploads go as streams of a few images each: one stream per folder would make a late failure resend
 it all, one per image would pay a round trip each. Re-sending is safe (same bytes, same image), so
@@ -16,9 +16,9 @@ import grpc
 
 from geomatch.options import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_UNREACHABLE
 
-from ..submit import JobView
-from .client import GrpcClient, ImageSource, to_dict
-from .pb import pb2
+from ..grpcapi.pb import pb2
+from .grpc_client import GrpcClient, ImageSource, to_dict
+from .submit import JobView
 
 BATCH_BYTES = 64 * 1024 * 1024
 BATCH_IMAGES = 16
@@ -47,7 +47,7 @@ def batches(images: list[ImageSource]) -> Iterator[list[ImageSource]]:
 
 
 class GrpcSubmitClient:
-    """``service.submit.SubmitClient`` over ``GrpcClient``."""
+    """``service.clients.submit.SubmitClient`` over ``GrpcClient``."""
 
     def __init__(self, target: str, key: str, **options: Any) -> None:
         self.target = target

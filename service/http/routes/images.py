@@ -7,10 +7,10 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import FileResponse
 
-from ..paging import IMAGES
+from ...paging import IMAGES
+from ...usecases.images import IMAGE_MEDIA
+from ...usecases.views import Upload
 from ..schemas import ImageOut, ImagesOut
-from ..usecases.images import IMAGE_MEDIA
-from ..usecases.views import Upload
 from .deps import MAX_OFFSET, Svc, Tenant, link_next
 
 router = APIRouter(tags=["images"])
@@ -28,7 +28,9 @@ def upload_images(
         Literal["aerial", "ground", "auto"], Form(description="auto: EXIF/XMP decides")
     ] = "auto",
 ) -> ImagesOut:
-    views = svc.upload_images(tenant_id, project_id, [Upload(f.filename, f.file) for f in files], capture)
+    views = svc.images.upload_images(
+        tenant_id, project_id, [Upload(f.filename, f.file) for f in files], capture
+    )
     return ImagesOut(images=[ImageOut.model_validate(v, from_attributes=True) for v in views])
 
 
@@ -50,7 +52,7 @@ def list_images(
     ] = IMAGES.default,
 ) -> ImagesOut:
     """The project's images by name, one page at a time."""
-    page = svc.list_images(tenant_id, project_id, offset, limit)
+    page = svc.images.list_images(tenant_id, project_id, offset, limit)
     link_next(request, response, page.next_offset, limit)
     return ImagesOut(images=[ImageOut.model_validate(v, from_attributes=True) for v in page.items])
 
@@ -62,5 +64,5 @@ def list_images(
 )
 def image_file(project_id: str, name: str, svc: Svc, tenant_id: Tenant) -> FileResponse:
     """The uploaded bytes, typed by the format the upload check found (never sniffed)."""
-    path, media = svc.image_file(tenant_id, project_id, name)
+    path, media = svc.images.image_file(tenant_id, project_id, name)
     return FileResponse(path, media_type=media, headers={"X-Content-Type-Options": "nosniff"})

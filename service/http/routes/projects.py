@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response
 
-from ..paging import PROJECTS
+from ...paging import PROJECTS
 from ..schemas import ProjectCreate, ProjectOut
 from .deps import MAX_OFFSET, Svc, Tenant, link_next
 
@@ -16,7 +16,9 @@ router = APIRouter(tags=["projects"])
 @router.post("/projects", status_code=201, response_model=ProjectOut)
 def create_project(body: ProjectCreate, svc: Svc, tenant_id: Tenant) -> ProjectOut:
     config = body.config.model_dump(exclude_none=True) if body.config else {}
-    return ProjectOut.model_validate(svc.create_project(tenant_id, body.name, config), from_attributes=True)
+    return ProjectOut.model_validate(
+        svc.projects.create_project(tenant_id, body.name, config), from_attributes=True
+    )
 
 
 @router.get("/projects", response_model=list[ProjectOut])
@@ -36,17 +38,17 @@ def list_projects(
     ] = PROJECTS.default,
 ) -> list[ProjectOut]:
     """The tenant's projects, oldest first, one page at a time."""
-    page = svc.list_projects(tenant_id, offset, limit)
+    page = svc.projects.list_projects(tenant_id, offset, limit)
     link_next(request, response, page.next_offset, limit)
     return [ProjectOut.model_validate(p, from_attributes=True) for p in page.items]
 
 
 @router.get("/projects/{project_id}", response_model=ProjectOut)
 def get_project(project_id: str, svc: Svc, tenant_id: Tenant) -> ProjectOut:
-    return ProjectOut.model_validate(svc.get_project(tenant_id, project_id), from_attributes=True)
+    return ProjectOut.model_validate(svc.projects.get_project(tenant_id, project_id), from_attributes=True)
 
 
 @router.delete("/projects/{project_id}", status_code=204)
 def delete_project(project_id: str, svc: Svc, tenant_id: Tenant) -> Response:
-    svc.delete_project(tenant_id, project_id)
+    svc.projects.delete_project(tenant_id, project_id)
     return Response(status_code=204)

@@ -18,7 +18,7 @@ middleware runs first, on the request head:
 
 Answering without reading the body is only half of it: a server that closes a socket with unread
 bytes makes the kernel reset the connection, and the client, still sending, loses the answer.
-``service/httpserver.py`` keeps reading and discarding for a short while after such an answer.
+``service/http/server.py`` keeps reading and discarding for a short while after such an answer.
 """
 
 from __future__ import annotations
@@ -33,9 +33,9 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from geomatch_core.config import Settings
 from geomatch_core.errors import DomainError, Unauthenticated
 
-from .httperrors import error_headers, status_of
-from .usecases import Service
-from .usecases.gcp import MAX_GCP_BYTES
+from ..usecases import Service
+from ..usecases.gcp import MAX_GCP_BYTES
+from .errors import error_headers, status_of
 
 UPLOAD = re.compile(r"^/v1/projects/[^/]+/(?:images|localize)/?$")  # multipart uploads of images
 GCP = re.compile(r"^/v1/projects/[^/]+/gcp/?$")  # a gcp_list.txt, as the body or one multipart part

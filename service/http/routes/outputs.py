@@ -14,8 +14,8 @@ from starlette.background import BackgroundTask
 
 from geomatch.report import to_markdown
 
+from ...usecases.outputs import export_formats, model_files, remove_quietly
 from ..schemas import PairOut, PairsOut, SceneOut
-from ..usecases.outputs import export_formats, model_files, remove_quietly
 from .deps import Svc, Tenant
 
 SCENE = "scene"  # computed from the model's text files for a viewer, not a stored file
@@ -35,9 +35,9 @@ def router() -> APIRouter:
 
     def model(project_id: str, svc: Svc, tenant_id: Tenant, format: str = "zip") -> Response:
         if format == SCENE:
-            scene = SceneOut.model_validate(svc.model_scene(tenant_id, project_id))
+            scene = SceneOut.model_validate(svc.outputs.model_scene(tenant_id, project_id))
             return Response(scene.model_dump_json(), media_type="application/json")
-        path = svc.model_file(tenant_id, project_id, format)
+        path = svc.outputs.model_file(tenant_id, project_id, format)
         return FileResponse(path, media_type=media[format], filename=f"{project_id}-{path.name}")
 
     # the formats are known only now, and this module's annotations are strings resolved in its
@@ -99,7 +99,7 @@ def report(
     the check-point RMSE, pairs the view-graph checks dropped, time per stage): the reconstruct
     job's ``report`` (a model made before reports is reported from its summary). 404 before the
     first model."""
-    view = svc.survey_report(tenant_id, project_id)
+    view = svc.outputs.survey_report(tenant_id, project_id)
     if format == "md":
         page = to_markdown(view.report, title=f"Survey report: {view.project_name}")
         return Response(page, media_type=f"{MARKDOWN}; charset=utf-8")
@@ -107,7 +107,7 @@ def report(
 
 
 def database(project_id: str, svc: Svc, tenant_id: Tenant) -> FileResponse:
-    path = svc.database_snapshot(tenant_id, project_id)
+    path = svc.outputs.database_snapshot(tenant_id, project_id)
     return FileResponse(
         path,
         media_type="application/vnd.sqlite3",
@@ -118,9 +118,11 @@ def database(project_id: str, svc: Svc, tenant_id: Tenant) -> FileResponse:
 
 def list_pairs(project_id: str, svc: Svc, tenant_id: Tenant) -> PairsOut:
     """Matched pairs with their counts, most verified matches first (empty before matching)."""
-    views = svc.list_pairs(tenant_id, project_id)
+    views = svc.outputs.list_pairs(tenant_id, project_id)
     return PairsOut(pairs=[PairOut.model_validate(v, from_attributes=True) for v in views])
 
 
 def matches_png(project_id: str, name0: str, name1: str, svc: Svc, tenant_id: Tenant) -> FileResponse:
-    return FileResponse(svc.matches_picture(tenant_id, project_id, name0, name1), media_type="image/png")
+    return FileResponse(
+        svc.outputs.matches_picture(tenant_id, project_id, name0, name1), media_type="image/png"
+    )

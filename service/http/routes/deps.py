@@ -8,8 +8,8 @@ from typing import Annotated
 from fastapi import Depends, Request, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from ...usecases import Service
 from ..schemas import Error
-from ..usecases import Service
 
 _bearer = HTTPBearer(auto_error=False, description="an API key from `geomatch keys create TENANT`")
 ERRORS: dict[int | str, dict[str, object]] = {

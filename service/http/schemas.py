@@ -28,8 +28,8 @@ from pydantic import (
 
 from geomatch import options
 
-from . import validation
-from .usecases.gcp import MAX_CHECKPOINT_NAME, MAX_CHECKPOINTS
+from .. import validation
+from ..usecases.gcp import MAX_CHECKPOINT_NAME, MAX_CHECKPOINTS
 
 
 class _Strict(BaseModel):

@@ -14,10 +14,10 @@ from starlette.concurrency import run_in_threadpool
 
 from geomatch_core.errors import NotFound
 
-from ..paging import JOBS
+from ...paging import JOBS
+from ...usecases.jobs import JobWatch
+from ...usecases.views import JobView, MatchRequest
 from ..schemas import JobAccepted, JobOut, JobsOut, MatchIn, Progress, ReconstructIn
-from ..usecases.jobs import JobWatch
-from ..usecases.views import JobView, MatchRequest
 from .deps import MAX_OFFSET, Svc, Tenant, link_next
 
 router = APIRouter(tags=["jobs"])
@@ -32,7 +32,7 @@ def job_out(j: JobView) -> JobOut:
 @router.post("/projects/{project_id}/match", status_code=202, response_model=JobAccepted)
 def match(project_id: str, body: MatchIn, svc: Svc, tenant_id: Tenant) -> JobAccepted:
     req = MatchRequest(**body.model_dump())
-    job, follower = svc.start_match(tenant_id, project_id, req)
+    job, follower = svc.jobs.start_match(tenant_id, project_id, req)
     return JobAccepted(job_id=job.id, reconstruct_job_id=follower.id if follower else None)
 
 
@@ -41,7 +41,7 @@ def reconstruct(
     project_id: str, svc: Svc, tenant_id: Tenant, body: ReconstructIn | None = None
 ) -> JobAccepted:
     mapper, checkpoints = (body.mapper, body.checkpoints) if body else (None, None)
-    job = svc.start_reconstruct(tenant_id, project_id, mapper, checkpoints)
+    job = svc.jobs.start_reconstruct(tenant_id, project_id, mapper, checkpoints)
     return JobAccepted(job_id=job.id)
 
 
@@ -68,19 +68,19 @@ def list_jobs(
 ) -> JobsOut:
     """The project's jobs, newest first, one page at a time: running and past ones, whoever
     started them."""
-    page = svc.list_jobs(tenant_id, project_id, offset, limit, state)
+    page = svc.jobs.list_jobs(tenant_id, project_id, offset, limit, state)
     link_next(request, response, page.next_offset, limit)
     return JobsOut(jobs=[job_out(j) for j in page.items])
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut)
 def get_job(job_id: str, svc: Svc, tenant_id: Tenant) -> JobOut:
-    return job_out(svc.get_job(tenant_id, job_id))
+    return job_out(svc.jobs.get_job(tenant_id, job_id))
 
 
 @router.delete("/jobs/{job_id}", response_model=JobOut)
 def cancel_job(job_id: str, svc: Svc, tenant_id: Tenant) -> JobOut:
-    return job_out(svc.cancel_job(tenant_id, job_id))
+    return job_out(svc.jobs.cancel_job(tenant_id, job_id))
 
 
 @router.get(
@@ -92,8 +92,8 @@ def cancel_job(job_id: str, svc: Svc, tenant_id: Tenant) -> JobOut:
 )
 async def job_events(job_id: str, svc: Svc, tenant_id: Tenant) -> StreamingResponse:
     """Async on purpose: a watcher holds no worker thread while it waits, only for each poll."""
-    await run_in_threadpool(svc.get_job, tenant_id, job_id)  # 404 before the stream starts
-    watch = JobWatch(svc, tenant_id, job_id)
+    await run_in_threadpool(svc.jobs.get_job, tenant_id, job_id)  # 404 before the stream starts
+    watch = JobWatch(svc.jobs, tenant_id, job_id)
 
     async def stream() -> AsyncIterator[str]:
         yield "retry: 2000\n\n"

@@ -21,14 +21,14 @@ slow heads were held until the file descriptors ran out). Once the head is in, t
 slow body and the app's answer have their own limits; an idle keep-alive connection is closed by
 uvicorn's keep-alive timeout (5 s), and its next request's first byte starts a new head timer.
 
-uvicorn takes a protocol class (``Config(http=...)``; ``--http service.httpserver:H11Protocol``
+uvicorn takes a protocol class (``Config(http=...)``; ``--http service.http.server:H11Protocol``
 on its command line). The class leans on uvicorn's H11Protocol beyond its documented surface
 (``send_400_response``, ``conn``, made once in its ``__init__``, ``transport``, ``data_received``):
 there is no setting for any of these; ``tests/service/test_http_surface.py`` and
 ``tests/service/test_held_and_capped.py`` fail if a uvicorn release changes them.
 
 The same lingering close ends a request whose answer went out before its body was read
-(``service/bodylimits.py``: a 401 or 413 against an upload still streaming). uvicorn would read and
+(``service/http/bodylimits.py``: a 401 or 413 against an upload still streaming). uvicorn would read and
 discard the rest to keep the connection, a gigabyte if the client sends one; this protocol reads
 at most ``LINGER_BYTES`` more and closes.
 """

@@ -1,8 +1,8 @@
 """``geomatch submit``: the batch client. One flow (:func:`submit`: check the inputs, create a
 project, upload, match with a reconstruction queued behind it, follow both jobs, download and
 unpack the model) over a small client interface, :class:`SubmitClient`, with two implementations:
-:class:`HttpSubmitClient` here (over ``service.client``) and ``GrpcSubmitClient`` in
-``service.grpcapi.submit``. So both transports refuse the same input, print the same lines and
+:class:`HttpSubmitClient` here (over ``service.clients.rest``) and ``GrpcSubmitClient`` in
+``service.clients.grpc_submit``. So both transports refuse the same input, print the same lines and
 exit with the same codes.
 """
 
@@ -181,10 +181,10 @@ def submit(args: argparse.Namespace, connect: Callable[[], SubmitClient]) -> int
 
 # -- over HTTP -------------------------------------------------------------------------------------
 class HttpSubmitClient:
-    """:class:`SubmitClient` over the REST client (``service.client``): one request per image."""
+    """:class:`SubmitClient` over the REST client (``service.clients.rest``): one request per image."""
 
     def __init__(self, server: str, key: str, **options: Any) -> None:
-        from .client import Client
+        from .rest import Client
 
         self.where = server
         self.client = Client(server, key, **options)
@@ -224,7 +224,7 @@ class HttpSubmitClient:
     def failure(self, error: Exception) -> tuple[str, int] | None:
         import httpx
 
-        from .client import ApiError
+        from .rest import ApiError
 
         if isinstance(error, ApiError):
             return str(error), EXIT_BAD_INPUT if 400 <= error.status < 500 else EXIT_FAILED

@@ -9,8 +9,8 @@ from starlette.exceptions import HTTPException
 
 from geomatch_core.errors import DomainError, InvalidRequest, UnsupportedFormat
 
+from ...usecases.gcp import MAX_GCP_BYTES, NO_FILE
 from ..schemas import GcpOut
-from ..usecases.gcp import MAX_GCP_BYTES, NO_FILE
 from .deps import Svc, Tenant
 
 router = APIRouter(tags=["ground control points"])
@@ -62,9 +62,9 @@ async def put_gcp(project_id: str, request: Request, svc: Svc, tenant_id: Tenant
     try:
         data = await gcp_bytes(request)
     except (DomainError, HTTPException):  # a bad body (a malformed multipart one is Starlette's 400)
-        await run_in_threadpool(svc.get_project, tenant_id, project_id)  # an unknown project: 404
+        await run_in_threadpool(svc.projects.get_project, tenant_id, project_id)  # an unknown project: 404
         raise
-    view = await run_in_threadpool(svc.put_gcp, tenant_id, project_id, data)
+    view = await run_in_threadpool(svc.gcp.put_gcp, tenant_id, project_id, data)
     return GcpOut.model_validate(view, from_attributes=True)
 
 
@@ -72,12 +72,12 @@ async def put_gcp(project_id: str, request: Request, svc: Svc, tenant_id: Tenant
 def get_gcp(project_id: str, svc: Svc, tenant_id: Tenant) -> GcpOut:
     """The stored file's summary, read against the project's images as they are now; 404 when the
     project has none."""
-    return GcpOut.model_validate(svc.get_gcp(tenant_id, project_id), from_attributes=True)
+    return GcpOut.model_validate(svc.gcp.get_gcp(tenant_id, project_id), from_attributes=True)
 
 
 @router.delete("/projects/{project_id}/gcp", status_code=204)
 def delete_gcp(project_id: str, svc: Svc, tenant_id: Tenant) -> Response:
     """Remove the project's ground control points (the model stays as it is until the next
     reconstruct); 404 when it has none."""
-    svc.delete_gcp(tenant_id, project_id)
+    svc.gcp.delete_gcp(tenant_id, project_id)
     return Response(status_code=204)

@@ -28,7 +28,7 @@ from google.protobuf.json_format import MessageToDict
 
 from geomatch.export.formats import FORMATS
 
-from .pb import pb2, pb2_grpc
+from ..grpcapi.pb import pb2, pb2_grpc
 
 CHUNK = 1 << 20  # the server's limit on a chunk
 CAPTURE = {"auto": pb2.CAPTURE_AUTO, "aerial": pb2.CAPTURE_AERIAL, "ground": pb2.CAPTURE_GROUND}

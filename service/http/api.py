@@ -17,13 +17,13 @@ from starlette.routing import compile_path
 
 from geomatch_core import errors
 
+from ..usecases import Service
 from . import console
 from .bodylimits import BodyLimits
+from .errors import error_headers, status_of
 from .headers import SecurityHeaders
-from .httperrors import error_headers, status_of
 from .metrics import Metrics
 from .routes import build_router
-from .usecases import Service
 
 log = logging.getLogger("geomatch.service")
 
@@ -56,7 +56,7 @@ def create_app(service: Service) -> FastAPI:
         metrics.uploaded_images.inc(n)
         metrics.uploaded_bytes.inc(size)
 
-    service.on_upload = count_upload
+    service.ctx.on_upload = count_upload
     app.include_router(build_router())
     console.mount(app)
 

@@ -6,9 +6,9 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, File, Form, Response, UploadFile
 
+from ...usecases.localize import localizations
+from ...usecases.views import JobView, Upload
 from ..schemas import LocalizationOut, LocalizeOut, Progress
-from ..usecases.localize import localizations
-from ..usecases.views import JobView, Upload
 from .deps import Svc, Tenant
 
 # the form's default wait: longer than any server allows, so the server's setting decides. Not
@@ -73,7 +73,7 @@ def localize(
     one answer per photo, a photo that could not be placed answered `localized: false`), 202 with
     the job otherwise. 409 for a project without a model."""
     uploads = [Upload(f.filename, f.file) for f in files]
-    job = svc.localize(tenant_id, project_id, uploads, add=add, capture=capture, wait_s=wait)
+    job = svc.localize.localize(tenant_id, project_id, uploads, add=add, capture=capture, wait_s=wait)
     if not job.terminal:
         response.status_code = 202
         response.headers["Location"] = f"/v1/jobs/{job.id}"
