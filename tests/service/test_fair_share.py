@@ -82,9 +82,15 @@ def test_a_huge_match_leaves_another_tenants_small_one_its_turn(
             assert httpx.get(f"{d.url}/healthz", timeout=5).status_code == 200
             slowest = max(slowest, time.monotonic() - h0)
             time.sleep(0.3)
+        took = time.monotonic() - t0
+        ja = a.get(f"/v1/jobs/{job_a}").json()
+        print(
+            f"\n[fair share, {mode}] B's 2-image match {took:.1f}s beside A's "
+            f"{ja['progress']['total']} pairs ({ja['progress']['done']} done), "
+            f"/healthz at most {slowest * 1000:.0f} ms"
+        )
         assert jb["state"] == "succeeded", jb
         assert slowest < 1.0, slowest
-        ja = a.get(f"/v1/jobs/{job_a}").json()
         assert ja["state"] == "running" and ja["progress"]["done"] < 18_725, ja  # B did not wait for A
 
         r = a.post(f"/v1/projects/{pa}/match", json={"pairs": "sequential:50", "resize": 320})
