@@ -12,7 +12,7 @@ Methods (the paper's ablations, selectable by name; each is a row of flags in
 Features are computed once per image (keyed by pixel hash, backbone and resolution) and kept
 in a small in-memory LRU, so matching one image against many runs each network once. The LRU's
 public interface (:meth:`Matcher.has_features`, :meth:`Matcher.put_features`,
-:meth:`Matcher.clear_caches`) lets a store in front of it (``steps.StoredFeaturesMatcher``) fill it.
+:meth:`Matcher.clear_caches`) lets a store in front of it (``matching.stored.StoredFeaturesMatcher``) fill it.
 """
 
 from __future__ import annotations
@@ -276,7 +276,7 @@ class Matcher:
         - a tiled (aerial x ground) pair gets the full ``geo`` method on every crop: on the
           synthetic air-to-ground scenes it is what registers the ground views;
         - a plain pair of two aerial photos of a survey (``aerial_pair``: the plan decided their
-          turns, steps.image_turns) gets ``geo`` light-first (``MatcherConfig.light_first``) by
+          turns, planning.image_turns) gets ``geo`` light-first (``MatcherConfig.light_first``) by
           the guided matcher (``MatcherConfig.guided_keypoints``), never escalating to the full
           method (``escalate_from``): ~0.4 s a pair instead of ~6 s;
         - any other plain pair of a project with aerial images gets ``geo`` (the synthetic
