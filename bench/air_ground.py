@@ -29,6 +29,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
+import matchcache
 import numpy as np
 from common import parse_value, print_table
 
@@ -95,13 +96,12 @@ def run_seed(
             resize=args.resize,
             aerial_names=aerial,
             pairs_list=pairs_list,
-            match_cache=str(scene / "matches" / method),
             progress=False,
             **extra,
         )
         shutil.rmtree(out, ignore_errors=True)  # a fresh database; raw matches come from the cache
         t0 = time.perf_counter()
-        s = run(scene / "images", out, opts)
+        s = run(scene / "images", out, opts, match=matchcache.cached(scene / "matches" / method))
         m = evaluate_run(out, scene / "gt").metrics
         m.update(
             split=split,

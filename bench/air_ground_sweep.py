@@ -10,7 +10,7 @@ reported apart; tune on the first only.
 
 Raw pair matches are cached per scene under bench/out/air_ground_sweep, keyed by the pixels, the
 pair and the matcher's config, so a re-run after a change re-matches only the pairs it changes.
-``--tiled-floor N`` writes the tiled pairs with steps.TILED_MIN_INLIERS set to N (0: COLMAP's own
+``--tiled-floor N`` writes the tiled pairs with dbwrite.TILED_MIN_INLIERS set to N (0: COLMAP's own
 floor only), the ablation row of that floor; ``--min-pose-inliers N`` maps with that PnP minimum
 (RunOptions.min_pose_inliers; 0: the default); neither matches anything again.
 
@@ -26,11 +26,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+import matchcache
 import numpy as np
 import pycolmap
 from common import print_table
 
-from geomatch import steps
+from geomatch import dbwrite
 from geomatch.eval.evaluate import evaluate_run
 from geomatch.eval.pairtruth import judge_pairs
 from geomatch.pipeline import RunOptions, run
@@ -71,10 +72,10 @@ def run_seed(layout: str, seed: int, split: str, min_pose_inliers: int = 0) -> d
     scene = OUT / f"scene_a{n_aerial}_g{n_ground}_s{seed}"
     if not (scene / "gt" / "images.txt").is_file():
         write_scene(scene, n_aerial, n_ground, seed)
-    out = scene / f"run_floor{steps.TILED_MIN_INLIERS}_pnp{min_pose_inliers}"
+    out = scene / f"run_floor{dbwrite.TILED_MIN_INLIERS}_pnp{min_pose_inliers}"
     shutil.rmtree(out, ignore_errors=True)  # a fresh database; raw matches come from the cache
-    opts = RunOptions(match_cache=str(scene / "matches"), progress=False, min_pose_inliers=min_pose_inliers)
-    s = run(scene / "images", out, opts)
+    opts = RunOptions(progress=False, min_pose_inliers=min_pose_inliers)
+    s = run(scene / "images", out, opts, match=matchcache.cached(scene / "matches"))
     m = evaluate_run(out, scene / "gt").metrics
     gt = pycolmap.Reconstruction(str(scene / "gt"))
     aerial = set(s["aerial"])
@@ -141,12 +142,12 @@ def main() -> None:
     ap.add_argument("--layouts", default="2+4,2+6,4+8", help="aerial+ground per scene, comma-separated")
     ap.add_argument("--seeds", default="4242,1-9", help="tuning seeds")
     ap.add_argument("--test-seeds", default="", help="test seeds, reported apart (never tune on them)")
-    ap.add_argument("--tiled-floor", type=int, help="steps.TILED_MIN_INLIERS for this run")
+    ap.add_argument("--tiled-floor", type=int, help="dbwrite.TILED_MIN_INLIERS for this run")
     ap.add_argument("--min-pose-inliers", type=int, default=0, help="PnP minimum (0: the default)")
     ap.add_argument("--json", type=Path, help="append each seed's row to this JSON-lines file")
     args = ap.parse_args()
     if args.tiled_floor is not None:
-        steps.TILED_MIN_INLIERS = args.tiled_floor
+        dbwrite.TILED_MIN_INLIERS = args.tiled_floor
     rows = []
     t0 = time.perf_counter()
     for layout in args.layouts.split(","):
@@ -157,7 +158,7 @@ def main() -> None:
                 if args.json:
                     with args.json.open("a") as f:
                         f.write(json.dumps(row) + "\n")
-    label = f"defaults, tiled pairs verified from {steps.TILED_MIN_INLIERS} inliers"
+    label = f"defaults, tiled pairs verified from {dbwrite.TILED_MIN_INLIERS} inliers"
     if args.min_pose_inliers:
         label += f", PnP minimum {args.min_pose_inliers}"
     print_table(f"Air-to-ground sweep, geomatch run ({label}), per seed", SEED_COLUMNS, rows)

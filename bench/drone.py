@@ -39,8 +39,8 @@ from real_sfm import timed
 from geomatch.geo import gps
 from geomatch.geo.georef import camera_centres
 from geomatch.geo.similarity import umeyama
+from geomatch.imagefolder import list_images
 from geomatch.metadata import read_metadata
-from geomatch.steps import list_images
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "real" / "drone"

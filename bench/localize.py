@@ -67,11 +67,11 @@ def features_without(run: Path, images: Path, name: str, dest: Path) -> Path:
     """The run's feature store without the photo's own features (hard links: the store is only
     read). A photo's features are keyed by its pixels, plain or quarter-turned (the rotation
     probe's); crops are cut from aerial images, never from a ground photo."""
-    from geomatch import steps
+    from geomatch.imagefolder import Images
     from geomatch.imageio import image_key
     from geomatch.matching.rotation import quarter_turn
 
-    image = steps.Images(images)[name]
+    image = Images(images)[name]
     own = {f"{image_key(quarter_turn(image, t))}.pt" for t in range(4)}
     shutil.rmtree(dest, ignore_errors=True)
     shutil.copytree(

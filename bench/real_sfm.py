@@ -194,14 +194,16 @@ def run_one(images: Path, out: Path, spec: str, match_cache: str | None) -> None
     """The child process of one geomatch run."""
     import shutil
 
+    import matchcache
+
     from geomatch.pipeline import RunOptions, run
 
     method, run_kw, matcher_kw = parse_variant(spec)
     shutil.rmtree(out, ignore_errors=True)
-    opts = RunOptions(progress=False, match_cache=match_cache, matcher=matcher_kw, **run_kw)
+    opts = RunOptions(progress=False, matcher=matcher_kw, **run_kw)
     if method != "default":
         opts.method = method
-    run(images, out, opts)
+    run(images, out, opts, match=matchcache.cached(match_cache))
 
 
 def timed(cmd: list[str]) -> tuple[float, float, int]:

@@ -15,10 +15,10 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+import matchcache
 import numpy as np
 from common import print_table
 
-from geomatch import steps
 from geomatch.matching.matcher import Matcher, config_from_options
 from geomatch.sfm import pairs as pairing
 from geomatch.synth.aerial import Camera, Scene, covisibility, write_scene
@@ -82,7 +82,7 @@ def main() -> None:
             if kind not in args.kinds.split(","):
                 continue
             t0 = time.perf_counter()
-            m = steps.match(matcher, p, images[p.name0], images[p.name1], str(OUT / "cache"))
+            m = matchcache.match(matcher, p, images[p.name0], images[p.name1], OUT / "cache")
             k0, k1 = m.keypoints0, m.keypoints1
             dt = time.perf_counter() - t0
             a, b = byname[p.name0], byname[p.name1]

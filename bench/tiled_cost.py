@@ -24,7 +24,8 @@ import numpy as np
 from common import print_table
 from synth_precision import correct
 
-from geomatch import steps
+from geomatch import capture, pairstep, planning
+from geomatch.imagefolder import Images, list_images
 from geomatch.matching.matcher import Matcher, config_from_options
 from geomatch.metadata import read_metadata
 from geomatch.synth.aerial import Scene, write_scene
@@ -61,24 +62,24 @@ def main() -> None:
         renderer = Scene(args.seed)
         depth = {n: renderer.render(c)[1] for n, c in cams.items()}
         image_dir = scene / "images"
-        names = steps.list_images(image_dir)
+        names = list_images(image_dir)
         aerial_names = [n for n in (scene / "aerial.txt").read_text().split() if n]
         metas = {n: read_metadata(image_dir / n) for n in names}
-        aerial = steps.aerial_set(steps.captures(names, aerial_names, None), metas)
+        aerial = capture.aerial_set(capture.captures(names, aerial_names, None), metas)
         rows = []
         for label, tiling, mode in ROWS:
             m = Matcher(config_from_options(method="geo", resize=args.resize, device="cpu", tile_crops=mode))
-            images = steps.Images(image_dir)
+            images = Images(image_dir)
             warm = images[names[0]]
             m.match(warm, warm)  # networks loaded, not timed
             m.clear_caches()
-            planned = steps.plan(image_dir, names, aerial, "exhaustive", None, tiling, m, images, False)
+            planned = planning.plan(image_dir, names, aerial, "exhaustive", None, tiling, m, images, False)
             ag = [p for p in planned if (p.name0 in aerial) != (p.name1 in aerial)]
             gg = [p for p in planned if p.name0 not in aerial and p.name1 not in aerial]
             secs, crops, matches, right = [], [], [], []
             for p in ag:
                 t0 = time.perf_counter()
-                r = steps.match(m, p, images[p.name0], images[p.name1])
+                r = pairstep.match(m, p, images[p.name0], images[p.name1])
                 secs.append(time.perf_counter() - t0)
                 crops.append(r.crops)
                 matches.append(len(r))
@@ -88,7 +89,7 @@ def main() -> None:
             plain = []
             for p in gg:
                 t0 = time.perf_counter()
-                steps.match(m, p, images[p.name0], images[p.name1])
+                pairstep.match(m, p, images[p.name0], images[p.name1])
                 plain.append(time.perf_counter() - t0)
             rows.append(
                 dict(

@@ -30,7 +30,6 @@ def run_demo(
     method: str = DEFAULTS["method"],
     resize: int = DEFAULTS["resize"],
     verbose: bool = False,
-    match_cache: str | None = None,
 ) -> int:
     t0 = time.perf_counter()
     scene = out / "scene"
@@ -45,7 +44,6 @@ def run_demo(
             {"method": method, "resize": resize},
             aerial_names=aerial,
             verbose=verbose,
-            match_cache=match_cache,
         ),
     )
     print("evaluating against the ground truth poses")

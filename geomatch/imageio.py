@@ -103,3 +103,12 @@ def prepare(image: np.ndarray, resize: int | None, device: torch.device, multipl
         image = cv2.resize(image, (nw, nh), interpolation=interp)
     t = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float().div(255.0)
     return Prepared(t.to(device), (w, h), (nw / w, nh / h))
+
+
+def snap_radius(radius: float, resize: int | None, long_side: int) -> float:
+    """Consolidation radius in original pixels, from ``radius`` in network pixels (as
+    ``geomatch run --snap-radius``): it grows with the downscale, since a match is no more precise
+    than the resolution it was found at. ``long_side``: the image's longer side."""
+    if radius <= 0:
+        return 0.0
+    return radius * (long_side / resize if resize else 1.0)

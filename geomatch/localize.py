@@ -4,7 +4,7 @@ For each photo: choose the model images to match it with (:func:`candidates`: VL
 the project's own features, the nearest cameras to its GPS fix when the model is georeferenced,
 and the most similar aerial images when the photo is a ground view of a project flown from
 above, those pairs tiled as ``geomatch run`` tiles them), match each pair with the project's
-matcher (``steps.match``, so tiling, the quarter-turn probe and ``auto``'s choice of method are
+matcher (``pairstep.match``, so tiling, the quarter-turn probe and ``auto``'s choice of method are
 the pipeline's), lift the matches to 2D-3D correspondences through the model images'
 observations and estimate the pose with pycolmap's absolute pose (sfm/absolute.py). The answer
 says how sure it is (:func:`judge`): a photo of another scene must come back not localized, never
@@ -167,8 +167,9 @@ def project_matcher(project: Project, features: Path | None = None) -> Any:
     """The matcher the project ran with (method, resize and matcher options of its summary), or
     the defaults for a project that recorded none; it reads the features in ``features`` (default:
     the run folder's own ``features/``) and writes none."""
-    from . import steps
+    from .features.store import run_feature_store
     from .matching.matcher import config_from_options
+    from .matching.stored import stored
     from .options import cache_budget
 
     recorded = project.run_options
@@ -185,8 +186,8 @@ def project_matcher(project: Project, features: Path | None = None) -> Any:
     # a run's folder keeps its features: the model images are read, not extracted again (and
     # the folder is left as it is: a photo's own features are not written into it)
     folder = Path(features) if features is not None else project.database.parent / "features"
-    store = steps.run_feature_store(folder, writable=False) if folder.is_dir() else None
-    return steps.stored(config, store)
+    store = run_feature_store(folder, writable=False) if folder.is_dir() else None
+    return stored(config, store)
 
 
 # -- one photo ----------------------------------------------------------------------------------
@@ -198,7 +199,7 @@ class Evidence:
     """What one photo's matching left: the pairs (for ``add``) and the 2D-3D correspondences
     (merged, and per pair)."""
 
-    pairs: dict[str, Any]  # model image name -> steps.PairMatches
+    pairs: dict[str, Any]  # model image name -> pairstep.PairMatches
     correspondences: Correspondences
     parts: list[Correspondences]
 
@@ -216,7 +217,7 @@ class Localizer:
     ) -> None:
         import pycolmap
 
-        from . import steps
+        from .imagefolder import Images
         from .sfm.absolute import Observations
 
         self.project, self.options = project, options
@@ -227,7 +228,7 @@ class Localizer:
         self.names = sorted(n for n, o in self.observations.items() if len(o.point3D_ids) >= 10)
         from .metadata import read_metadata
 
-        self.images = steps.Images(project.images_dir)
+        self.images = Images(project.images_dir)
         self.metas = {
             n: read_metadata(project.images_dir / n) for n in self.names if (project.images_dir / n).is_file()
         }
@@ -303,7 +304,8 @@ class Localizer:
     ) -> Evidence:
         """The photo matched with ``chosen`` (pairs planned and tiled as ``geomatch run`` plans
         them), the matches lifted to 2D-3D; added to ``into``'s when given."""
-        from . import steps
+        from .imageio import snap_radius
+        from .pairstep import match
         from .sfm import pairs as pairing
         from .sfm.absolute import lift, merge
 
@@ -316,12 +318,12 @@ class Localizer:
         for pair in planned:
             name = pair.name1
             model_image = self.images[name]
-            m = steps.match(self.matcher, pair, image, model_image, aerial_project=bool(aerial))
+            m = match(self.matcher, pair, image, model_image, aerial_project=bool(aerial))
             pairs[name] = m
             order = np.argsort(-np.asarray(m.scores), kind="stable")
-            radius = steps.snap_radius(self.options.lift_radius, resize, max(model_image.shape[:2]))
+            radius = snap_radius(self.options.lift_radius, resize, max(model_image.shape[:2]))
             parts.append(lift(m.keypoints0[order], m.keypoints1[order], self.observations[name], radius))
-        query_radius = steps.snap_radius(1.0, resize, max(image.shape[:2]))
+        query_radius = snap_radius(1.0, resize, max(image.shape[:2]))
         return Evidence(pairs, merge(parts, query_radius), parts)
 
     def camera_for(self, meta: ImageMeta) -> tuple[Any, str]:
@@ -342,10 +344,9 @@ class Localizer:
         return cam, "exif" if meta.focal_px else "estimated"
 
     def localize(self, photo: Path) -> tuple[Localization, Evidence | None]:
-        from .imageio import read_image
+        from .imageio import read_image, snap_radius
         from .metadata import read_metadata
         from .sfm.absolute import Correspondences
-        from .steps import snap_radius
 
         t0 = time.perf_counter()
         photo = Path(photo)
@@ -506,7 +507,7 @@ def add_to_project(project: Project, photo: Path, evidence: Evidence, matcher: A
     matches to the model images it was matched with) and into its images folder, so a later
     reconstruct maps it (the mapper reads the photos: track refinement). Idempotent: an image and
     a pair already there are left as they are. Returns the photo's image id."""
-    from . import steps
+    from .dbwrite import write
     from .metadata import read_metadata
     from .sfm.colmapdb import ColmapDatabase
 
@@ -525,7 +526,7 @@ def add_to_project(project: Project, photo: Path, evidence: Evidence, matcher: A
             if image is None or name == photo.name:
                 continue
             other = int(image.image_id)
-            steps.write(db, photo_id, other, m, snap, matcher.config.resize)
+            write(db, photo_id, other, m, snap, matcher.config.resize)
     return photo_id
 
 

@@ -94,7 +94,7 @@ class PairKind:
     """One way of choosing the pairs to match. What names the kinds derives from
     :data:`PAIR_KINDS`: the grammar and its messages, the CLI help, the REST pattern
     (service.http.schemas), the plan-size arithmetic, whether the plan needs a matcher; the planner is
-    ``steps.PLANNERS[name]``; the proto's comments, the console's hint and the README are checked
+    ``planning.PLANNERS[name]``; the proto's comments, the console's hint and the README are checked
     against it (tests/test_pair_kinds.py)."""
 
     name: str

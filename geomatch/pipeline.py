@@ -1,6 +1,6 @@
 """``geomatch run``: a folder of images to a sparse model, in one process, no servers.
 
-A loop over the stages of ``geomatch.steps`` (the same functions the worker steps call): read
+A loop over the pipeline's stages (the same functions the worker steps call): read
 metadata -> plan pairs -> match each pair (features once per image, cached; aerial x ground pairs
 tiled) -> write each pair into the COLMAP database (consolidated keypoints, verified geometry, one
 transaction) -> map -> export. A pair already in the database is not matched again, so an
@@ -21,18 +21,21 @@ from typing import Any
 
 from tqdm import tqdm
 
-from . import steps
+from . import capture, dbwrite, pairstep, planning, rundir
+from .features.store import run_feature_store
 from .geo import gcp as gcpgeo
 from .geo import gps as gpsfix
 from .geo.gcpfile import GcpError, GcpFile, read_gcp_file
+from .imagefolder import Images
+from .imagefolder import PipelineError as PipelineError  # a run's bad input
+from .imagefolder import list_images as list_images
 from .matching.matcher import config_from_options
+from .matching.stored import stored
 from .metadata import read_metadata
 from .options import DEFAULTS, cache_budget, parse_plan, resolve
 from .report import survey_report
 from .sfm import mapping
 from .sfm.colmapdb import ColmapDatabase, PairWrite
-from .steps import PipelineError as PipelineError  # a run's bad input; defined with the stages
-from .steps import list_images as list_images
 
 
 @dataclass
@@ -67,7 +70,6 @@ class RunOptions:
     gcp: str | None = None
     checkpoints: list[str] | int = 0
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
-    match_cache: str | None = None  # folder of raw pair matches shared by runs (benchmarks, variants)
     progress: bool = True
     verbose: bool = False  # COLMAP's own log (glog) on stderr; off: a progress bar per stage only
 
@@ -97,7 +99,7 @@ class PairWriter:
         self.database, self.radius, self.resize = database, radius, resize
         self.seconds = 0.0  # the writes' own time; they overlap the matching
         self.last: PairWrite | None = None
-        self._queue: queue.Queue[tuple[int, int, steps.PairMatches] | None] = queue.Queue(self.QUEUE_PAIRS)
+        self._queue: queue.Queue[tuple[int, int, pairstep.PairMatches] | None] = queue.Queue(self.QUEUE_PAIRS)
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="pair-writer", daemon=True)
 
@@ -105,7 +107,7 @@ class PairWriter:
         self._thread.start()
         return self
 
-    def put(self, id0: int, id1: int, matches: steps.PairMatches) -> None:
+    def put(self, id0: int, id1: int, matches: pairstep.PairMatches) -> None:
         self._raise()
         self._queue.put((id0, id1, matches))
 
@@ -126,7 +128,7 @@ class PairWriter:
                     continue  # drained so that the producer never blocks on a dead writer
                 try:
                     t0 = time.perf_counter()
-                    self.last = steps.write(db, *item, self.radius, self.resize)
+                    self.last = dbwrite.write(db, *item, self.radius, self.resize)
                     self.seconds += time.perf_counter() - t0
                 except BaseException as e:  # handed to the matching thread, which raises it
                     self._error = e
@@ -145,19 +147,25 @@ def pair_timing_summary(pair_seconds: dict[str, list[float]]) -> dict[str, float
     return out
 
 
-def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) -> dict[str, Any]:
-    """The whole pipeline; returns the summary also written to ``out/summary.json``."""
+def run(
+    image_dir: str | Path,
+    out: str | Path,
+    opts: RunOptions | None = None,
+    match: pairstep.MatchPair = pairstep.match,
+) -> dict[str, Any]:
+    """The whole pipeline; returns the summary also written to ``out/summary.json``. ``match``:
+    how each pair is matched (a benchmark passes one that reads stored matches back)."""
     opts = opts or RunOptions()
     image_dir, out = Path(image_dir), Path(out)
     t_start = time.perf_counter()
     if opts.pairs_list is None:
         parse_plan(opts.pairs)  # a bad spec fails before any work
-    names = steps.list_images(image_dir)
+    names = list_images(image_dir)
     metas = {n: read_metadata(image_dir / n) for n in names}
     fixes = gpsfix.fixes(names, metas) if opts.georeference else None
     gcps = _gcp_file(opts.gcp, metas) if opts.gcp else None  # a bad file fails before any work
-    captured = steps.captures(names, opts.aerial_names, opts.aerial_glob)
-    aerial = steps.aerial_set(captured, metas, fixes.enu if fixes is not None else None)
+    captured = capture.captures(names, opts.aerial_names, opts.aerial_glob)
+    aerial = capture.aerial_set(captured, metas, fixes.enu if fixes is not None else None)
     out.mkdir(parents=True, exist_ok=True)
 
     budget = cache_budget()  # GEOMATCH_CACHE_MB, as a worker's job thread
@@ -167,10 +175,10 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         device=opts.device,
         **{"cache_features_mb": budget.features_mb, "cache_anchors_mb": budget.anchors_mb, **opts.matcher},
     )
-    matcher = steps.stored(config, steps.run_feature_store(out / "features"))
-    images = steps.Images(image_dir, budget.images_mb)
+    matcher = stored(config, run_feature_store(out / "features"))
+    images = Images(image_dir, budget.images_mb)
     t_plan = time.perf_counter()
-    planned = steps.plan(
+    planned = planning.plan(
         image_dir,
         names,
         aerial,
@@ -187,24 +195,16 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
     timings: dict[str, float] = {"plan": time.perf_counter() - t_plan, "matching": 0.0, "writing": 0.0}
     pair_seconds: dict[str, list[float]] = {"tiled": [], "plain": []}
     with ColmapDatabase(out / "database.db") as db:
-        ids = steps.register(db, names, metas, opts.share_camera)
+        ids = dbwrite.register(db, names, metas, opts.share_camera)
     priors = gpsfix.write_pose_priors(out / "database.db", ids, fixes) if fixes is not None else 0
     with ColmapDatabase(out / "database.db") as db:
-        todo = steps.unmatched(db, ids, planned)
+        todo = dbwrite.unmatched(db, ids, planned)
     bar = tqdm(todo, desc=f"matching ({opts.method})", unit="pair", disable=not opts.progress)
-    survey = aerial >= set(names)  # every image aerial: the survey pairs' matcher (steps.match)
+    survey = aerial >= set(names)  # every image aerial: the survey pairs' matcher (pairstep.match)
     with PairWriter(out / "database.db", opts.snap_radius, matcher.config.resize) as writer:
         for p in bar:
             t0 = time.perf_counter()
-            m = steps.match(
-                matcher,
-                p,
-                images[p.name0],
-                images[p.name1],
-                opts.match_cache,
-                bool(aerial),
-                survey,
-            )
+            m = match(matcher, p, images[p.name0], images[p.name1], bool(aerial), survey)
             match_s = time.perf_counter() - t0
             timings["matching"] += match_s
             pair_seconds["tiled" if p.tiled else "plain"].append(match_s)
@@ -242,7 +242,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         pairs=len(planned),
         pair_plan="explicit list"
         if opts.pairs_list is not None
-        else steps.plan_in_words(opts.pairs, names, fixes, metas),
+        else planning.plan_in_words(opts.pairs, names, fixes, metas),
         pairs_matched_now=len(todo),
         tiled_pairs=sum(p.tiled for p in planned),
         aerial=sorted(aerial),
@@ -251,7 +251,7 @@ def run(image_dir: str | Path, out: str | Path, opts: RunOptions | None = None) 
         options={k: v for k, v in asdict(opts).items() if k not in ("progress", "verbose", "pairs_list")},
     )
     summary["report"] = survey_report(summary)
-    steps.export(out, summary)
+    rundir.write_outputs(out, summary)
     return summary
 
 

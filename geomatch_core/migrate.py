@@ -19,7 +19,7 @@ from .models import Image, Job, JobPair
 
 
 def _rotate_backfill() -> Executable:
-    """A pair not done yet turns when a side is aerial, as the plan decides (steps.plan)."""
+    """A pair not done yet turns when a side is aerial, as the plan decides (planning.plan)."""
     aerial_side = (
         select(Image.id)
         .join(Job, Job.project_id == Image.project_id)

@@ -141,7 +141,7 @@ class JobPair(Base):
     # a side is aerial: matched at its best quarter turn (geomatch.matching.rotation); decided by
     # the plan, with the pair (migrate.py fills it in for rows planned before it was stored)
     rotate: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
-    # a survey's pair: both images' quarter turns into the project's frame (steps.image_turns) as
+    # a survey's pair: both images' quarter turns into the project's frame (planning.image_turns) as
     # 4 * turn0 + turn1; -1 where the pair probes its own turn. Decided by the plan, with the pair
     turn: Mapped[int] = mapped_column(Integer, default=-1, server_default=text("-1"))
     done: Mapped[bool] = mapped_column(Boolean, default=False)

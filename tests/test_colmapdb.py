@@ -4,10 +4,10 @@ import numpy as np
 import pycolmap
 import pytest
 
-from geomatch import steps
+from geomatch.dbwrite import TILED_MIN_INLIERS, write
 from geomatch.metadata import ImageMeta
+from geomatch.pairstep import PairMatches
 from geomatch.sfm.colmapdb import ColmapDatabase
-from geomatch.steps import TILED_MIN_INLIERS, PairMatches
 
 pytestmark = pytest.mark.unit
 
@@ -138,7 +138,7 @@ def test_verification_gives_the_same_inliers_for_the_same_matches(tmp_path) -> N
 def test_a_tiled_pair_needs_more_inliers_than_a_plain_one(tmp_path) -> None:
     """A few dozen coherent matches verify a plain pair, but a tiled pair (an aerial image's crops
     against a ground photo, where a few dozen coherent wrong matches are what a pair sharing nothing
-    gets) is written without a geometry below steps.TILED_MIN_INLIERS; from it on it verifies."""
+    gets) is written without a geometry below dbwrite.TILED_MIN_INLIERS; from it on it verifies."""
     k0, k1 = _pair_points(np.random.default_rng(1), 400)
     few = TILED_MIN_INLIERS - 20
     assert len(k0) > TILED_MIN_INLIERS + 20
@@ -147,7 +147,7 @@ def test_a_tiled_pair_needs_more_inliers_than_a_plain_one(tmp_path) -> None:
         m = PairMatches(k0[:n], k1[:n], np.ones(n, np.float32), ((640, 480), (640, 480)), tiled)
         with ColmapDatabase(tmp_path / f"{n}_{tiled}.db") as db:
             a, b = db.add_image("a.jpg", DRONE), db.add_image("b.jpg", DRONE)
-            return steps.write(db, a, b, m, 1.0, None).inliers
+            return write(db, a, b, m, 1.0, None).inliers
 
     assert inliers(few, tiled=False) == few
     assert inliers(few, tiled=True) == 0

@@ -35,19 +35,28 @@ RANKS = {
     "geomatch.geometry": 0,
     "geomatch.report": 0,
     "geomatch.robust_f": 0,
+    # a run's image folder: its files and their decoded pixels
+    "geomatch.imagefolder": 0,
     # backbones (whose dense head refines on the epipolar prior); geodesy, GPS, georeferencing
     "geomatch.features": 1,
     "geomatch.geo": 1,
     # one pair (puts the backbones together); many pairs into a model (georeferenced by geo)
     "geomatch.matching": 2,
     "geomatch.sfm": 2,
+    # which images are aerial: the caller's word, the metadata, a survey's GPS track (geo)
+    "geomatch.capture": 2,
     # judging a model against ground truth (with sfm's statistics); exporting a model
     "geomatch.eval": 3,
     "geomatch.export": 3,
+    # which pairs a project matches and how (sfm's pairings, matching's turn probes)
+    "geomatch.planning": 3,
     # synthetic scenes with ground truth (the indoor pairs score themselves with eval.pose)
     "geomatch.synth": 4,
-    # the stages and the commands over all of it, and the package's public names
-    "geomatch.steps": 5,
+    # the stages and the commands over all of it, and the package's public names: one pair matched
+    # and written (pairstep, dbwrite), a run's summary and archive (rundir)
+    "geomatch.pairstep": 5,
+    "geomatch.dbwrite": 5,
+    "geomatch.rundir": 5,
     "geomatch.pipeline": 5,
     "geomatch.demo": 5,
     "geomatch.viz": 5,

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from geomatch.imagefolder import Images
 from geomatch.lru import ByteLRU
 from geomatch.matching.matcher import MatcherConfig
 from geomatch.options import OptionError, cache_budget
-from geomatch.steps import Images
 
 pytestmark = pytest.mark.unit
 

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geomatch import options, steps
+from geomatch import options, planning
+from geomatch.imagefolder import Images
 from geomatch.options import PAIR_KIND, PAIR_KINDS, PAIR_SPEC_LIST, fewest_pairs, parse_plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -18,8 +19,8 @@ pytestmark = pytest.mark.unit
 
 
 def test_every_kind_that_plans_by_itself_has_a_planner() -> None:
-    assert set(steps.PLANNERS) | {"auto"} == set(PAIR_KIND)
-    assert "auto" not in steps.PLANNERS  # auto chooses between the others (pairs.auto_pairs)
+    assert set(planning.PLANNERS) | {"auto"} == set(PAIR_KIND)
+    assert "auto" not in planning.PLANNERS  # auto chooses between the others (pairs.auto_pairs)
 
 
 def test_the_grammar_reads_every_kind_as_the_table_spells_it() -> None:
@@ -35,10 +36,10 @@ def test_the_grammar_reads_every_kind_as_the_table_spells_it() -> None:
             parse_plan(f"{alone}+{with_k[0]}:2")
 
 
-def plan_inputs(names: list[str], kinds: set[str]) -> steps.PlanInputs:
+def plan_inputs(names: list[str], kinds: set[str]) -> planning.PlanInputs:
     rng = np.random.default_rng(0)
     enu = {n: rng.normal(size=3) * 50 for n in names}
-    return steps.PlanInputs(names, kinds, set(), enu, None, None, steps.Images(ROOT), False)
+    return planning.PlanInputs(names, kinds, set(), enu, None, None, Images(ROOT), False)
 
 
 @pytest.mark.parametrize("n", [2, 3, 5, 9])
@@ -48,9 +49,9 @@ def test_the_plan_size_arithmetic_is_what_the_planners_plan(n: int, k: int) -> N
     its floor is the same k-nearest arithmetic as gps, whose planner runs here)."""
     names = [f"{i:02d}.jpg" for i in range(n)]
     for kind in PAIR_KINDS:
-        if kind.name not in steps.PLANNERS or kind.needs_matcher:
+        if kind.name not in planning.PLANNERS or kind.needs_matcher:
             continue
-        planned = {tuple(sorted(p)) for p in steps.PLANNERS[kind.name](plan_inputs(names, {kind.name}), k)}
+        planned = {tuple(sorted(p)) for p in planning.PLANNERS[kind.name](plan_inputs(names, {kind.name}), k)}
         fewest, exact = fewest_pairs(f"{kind.name}:{k}" if kind.takes_k else kind.name, n)
         assert exact == kind.exact
         assert (len(planned) == fewest) if exact else (len(planned) >= fewest), (kind.name, n, k)
@@ -89,12 +90,12 @@ def test_a_new_kind_is_a_row_and_a_planner(monkeypatch: pytest.MonkeyPatch, tmp_
 
     row = options.PairKind("every", True, "each image with every K-th after it", lambda n, k: 0, False)
     monkeypatch.setitem(PAIR_KIND, "every", row)
-    monkeypatch.setitem(steps.PLANNERS, "every", lambda p, k: every(p.names, k))
+    monkeypatch.setitem(planning.PLANNERS, "every", lambda p, k: every(p.names, k))
 
     assert parse_plan("every:2+gps:3") == [("every", 2), ("gps", 3)]
     assert fewest_pairs("every:2", 6) == (0, False)
     assert not options.plan_needs_matcher("every:2")
     assert re.fullmatch(pair_spec_pattern((*PAIR_KINDS, row)), "every:2 + gps:3")
     names = [f"{i}.png" for i in range(6)]
-    planned = steps.plan(tmp_path, names, set(), "every:2")
+    planned = planning.plan(tmp_path, names, set(), "every:2")
     assert {p.key for p in planned} == set(every(names, 2))

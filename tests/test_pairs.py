@@ -3,10 +3,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from geomatch.capture import aerial_set, captures
 from geomatch.metadata import ImageMeta, read_metadata
 from geomatch.sfm import pairs
 from geomatch.sfm.retrieval import vlad
-from geomatch.steps import aerial_set, captures
 from geomatch.synth.aerial import write_scene
 
 pytestmark = pytest.mark.unit

@@ -41,7 +41,7 @@ def test_every_image_is_registered(run_dir, scene) -> None:
     assert s["mean_track_length"] >= 3.0 and s["points3D"] > 575, s
     assert s["mean_reprojection_error"] < 0.7
     # the loop check saw the graph (pairs with a rotation, loops among them) and said what it dropped;
-    # 11 pairs and 8 loops here: the three tiled pairs under steps.TILED_MIN_INLIERS (49-68 matches,
+    # 11 pairs and 8 loops here: the three tiled pairs under dbwrite.TILED_MIN_INLIERS (49-68 matches,
     # the pairs that share little) are written without a geometry and are not in it
     vg = s["view_graph"]
     assert vg["pairs"] >= 10 and vg["loops"] >= 6 and isinstance(vg["dropped"], list), vg

@@ -9,10 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from geomatch.dbwrite import write
 from geomatch.metadata import ImageMeta
+from geomatch.pairstep import PairMatches
 from geomatch.pipeline import PairWriter
 from geomatch.sfm.colmapdb import ColmapDatabase
-from geomatch.steps import PairMatches, write
 
 pytestmark = pytest.mark.unit
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from geomatch.eval.homography import reprojection_errors
+from geomatch.matching.probes import tile_crops
 from geomatch.matching.tiling import SELECT_MIN_PROBE, five_crops, match_tiled, merge_matches, select_crops
-from geomatch.steps import tile_crops
 
 
 @pytest.mark.unit

@@ -11,10 +11,11 @@ from PIL import Image
 
 from geomatch import Matcher
 from geomatch.eval.homography import reprojection_errors
+from geomatch.imagefolder import Images
 from geomatch.matching.matcher import MatcherConfig
 from geomatch.matching.rotation import quarter_turn
+from geomatch.planning import image_turns
 from geomatch.sfm.pairs import exhaustive, finalize, with_turns
-from geomatch.steps import Images, image_turns
 from geomatch.synth.photos import WarpedPair, warped_pair
 
 pytestmark = pytest.mark.nets

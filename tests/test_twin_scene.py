@@ -11,7 +11,8 @@ pairs must keep the look-alike pairs from the mapper and every camera must come 
 the view-graph checks off the same matches must still fold the model, or the scene no longer tests
 anything.
 
-Both tests share one match cache: the second costs only the verification and the mapping.
+Both tests share one match cache (bench/matchcache.py): the second costs only the verification and
+the mapping.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Any
 
 import pytest
 
+from bench import matchcache
 from geomatch.eval.evaluate import evaluate_run
 from geomatch.pipeline import RunOptions, run
 from geomatch.synth.twin import write_twin_scene
@@ -47,8 +49,8 @@ def twin_matches(tmp_path_factory: pytest.TempPathFactory) -> str:
 def _run(scene: Path, out: Path, cache: str, **checks: bool) -> tuple[dict[str, Any], dict[str, Any]]:
     """The summary and the metrics of a ``geomatch run`` with its default matching (``auto``: these
     ground views are matched by ALIKED + LightGlue, 1024 keypoints), exhaustive pairs."""
-    opts = RunOptions(resize=WIDTH, progress=False, match_cache=cache, **checks)
-    summary = run(scene / "images", out, opts)
+    opts = RunOptions(resize=WIDTH, progress=False, **checks)
+    summary = run(scene / "images", out, opts, match=matchcache.cached(cache))
     return summary, evaluate_run(out, scene / "gt").metrics
 
 

@@ -56,7 +56,7 @@ def plan_match(ctx: Context, job_id: str) -> str:
 
 
 def _plan(ctx: Context, job: Job) -> None:
-    from geomatch import steps
+    from geomatch import capture, dbwrite, planning
     from geomatch.geo import gps
     from geomatch.metadata import read_metadata
     from geomatch.sfm.colmapdb import ColmapDatabase
@@ -71,7 +71,7 @@ def _plan(ctx: Context, job: Job) -> None:
     image_dir = ctx.storage.images_dir(pid)
     metas = {n: read_metadata(image_dir / n) for n in names}
     fixes = gps.fixes(names, metas)
-    aerial = steps.aerial_set(dict(rows), metas, fixes.enu if fixes is not None else None)
+    aerial = capture.aerial_set(dict(rows), metas, fixes.enu if fixes is not None else None)
     with ctx.store.session() as s:
         for n in names:
             s.execute(
@@ -84,21 +84,21 @@ def _plan(ctx: Context, job: Job) -> None:
     if limit and least > limit:  # the API refused this at its image count: images were added since
         plan = spec if pairs_list is None else "the pair list"
         raise PermanentError(too_many_pairs(least, len(names), limit, plan, exact))
-    # retrieval's global descriptors and a survey's quarter turns (steps.image_turns)
+    # retrieval's global descriptors and a survey's quarter turns (planning.image_turns)
     features = pairs_list is None and plan_needs_matcher(spec)
     matcher = runtime.matcher(ctx, opts) if features or (aerial and aerial >= set(names)) else None
-    planned = steps.plan(
+    planned = planning.plan(
         image_dir, names, aerial, spec, pairs_list, opts["tiling"], matcher, fixes=fixes, metas=metas
     )
     if limit and len(planned) > limit:  # auto, gps:K, retrieval:K: known once planned; no row written
-        plan = steps.plan_in_words(spec, names, fixes, metas) if pairs_list is None else "the pair list"
+        plan = planning.plan_in_words(spec, names, fixes, metas) if pairs_list is None else "the pair list"
         raise PermanentError(too_many_pairs(len(planned), len(names), limit, plan))
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
             return
         with ColmapDatabase(ctx.storage.database_path(pid)) as db:
-            ids = steps.register(db, names, metas, opts["share_camera"])
-            todo = steps.unmatched(db, ids, planned)
+            ids = dbwrite.register(db, names, metas, opts["share_camera"])
+            todo = dbwrite.unmatched(db, ids, planned)
         if fixes is not None:
             gps.write_pose_priors(ctx.storage.database_path(pid), ids, fixes)
     queue_limit = ctx.settings.max_queued_pairs
@@ -172,18 +172,18 @@ def _next_pairs(ctx: Context, job_id: str) -> int:
 
 
 def extract(ctx: Context, job_id: str, name: str, full: bool, crops: bool) -> str:
-    from geomatch import steps
+    from geomatch import pairstep
 
     job = jobstate.get(ctx.store, job_id)
     if job is None or job.state != "running":
         return "skipped"
     image = runtime.image(ctx, ctx.storage.image_path(job.project_id, name))
-    n = steps.extract(runtime.matcher(ctx, runtime.job_options(job.options)), image, full, crops)
+    n = pairstep.extract(runtime.matcher(ctx, runtime.job_options(job.options)), image, full, crops)
     return f"{n} feature entries"
 
 
 def match_pair(ctx: Context, job_id: str, idx: int) -> str:
-    from geomatch import steps
+    from geomatch import pairstep
     from geomatch.sfm.colmapdb import ColmapDatabase
     from geomatch.sfm.pairs import Pair
 
@@ -197,7 +197,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         aerial_project = bool(
             s.scalar(select(exists().where(Image.project_id == job.project_id, Image.aerial.is_(True))))
         )
-        # a survey (every image aerial): its aerial pairs take the guided matcher (steps.match)
+        # a survey (every image aerial): its aerial pairs take the guided matcher (pairstep.match)
         survey = aerial_project and not s.scalar(
             select(exists().where(Image.project_id == job.project_id, Image.aerial.is_(False)))
         )
@@ -215,10 +215,10 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             b = runtime.image(ctx, ctx.storage.image_path(pid, p.name1))
             turns = None if p.turn < 0 else divmod(p.turn, 4)
             pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate, turns)
-            target = steps.PairTarget(
+            target = pairstep.PairTarget(
                 lambda: _writable(ctx, job_id, pid, db_path), id0, id1, float(opts["snap_radius"])
             )
-            r = steps.run_pair(
+            r = pairstep.run_pair(
                 runtime.matcher(ctx, opts), pair, a, b, target, aerial_project=aerial_project, survey=survey
             )
             if r.written is None:
@@ -268,7 +268,7 @@ def _image_id(db: Any, name: str) -> int:
 
 # -- reconstruct jobs ---------------------------------------------------------------------------
 def reconstruct(ctx: Context, job_id: str) -> str:
-    from geomatch import steps
+    from geomatch import rundir
     from geomatch.geo import gps
     from geomatch.report import survey_report
     from geomatch.sfm import mapping
@@ -307,7 +307,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         summary["timings"] = {"mapping": round(time.perf_counter() - t0, 3)}
         summary["job_id"] = job_id
         summary["report"] = survey_report(summary)
-        steps.export(out, summary, archive=True)
+        rundir.write_outputs(out, summary, archive=True)
         if not jobstate.is_active(ctx.store, job_id):
             return "cancelled"
         ctx.storage.replace_dir(out, ctx.storage.model_dir(pid))

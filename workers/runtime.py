@@ -33,7 +33,8 @@ def job_options(stored: Mapping[str, Any]) -> dict[str, Any]:
 
 def matcher(ctx: Context, options: Mapping[str, Any]) -> Matcher:
     """The thread's matcher for resolved ``options`` (:func:`job_options`)."""
-    from geomatch.steps import FeatureStore, build_matcher
+    from geomatch.features.store import FeatureStore
+    from geomatch.matching.stored import build_matcher
 
     method, resize = options["method"], options["resize"]
     key = (method, resize, ctx.settings.device)

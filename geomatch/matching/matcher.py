@@ -12,7 +12,7 @@ Methods (the paper's ablations, selectable by name; each is a row of flags in
 Features are computed once per image (keyed by pixel hash, backbone and resolution) and kept
 in a small in-memory LRU, so matching one image against many runs each network once. The LRU's
 public interface (:meth:`Matcher.has_features`, :meth:`Matcher.put_features`,
-:meth:`Matcher.clear_caches`) lets a store in front of it (``steps.StoredFeaturesMatcher``) fill it.
+:meth:`Matcher.clear_caches`) lets a store in front of it (``matching.stored.StoredFeaturesMatcher``) fill it.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import torch
 from ..features.base import DenseHead, Extractor, ImageFeatures, SparseFeatures, SparseMatch, SparseMatcher
 from ..features.refine import RefineOptions
 from ..features.registry import build_dense_head, build_extractor, build_sparse_matcher
-from ..features.subpixel import SubpixelOptions, refine_points
+from ..features.subpixel import refine_points
 from ..geometry import estimate_fundamental, sampson_distance, scale_fundamental
 from ..imageio import Prepared, image_key, prepare, read_image
 from ..lru import trim_lru
@@ -81,6 +81,10 @@ SEED_RATIO = 0.9
 GUIDED_RATIO = 0.95
 GUIDED_LIGHTGLUE_POINTS = 1024
 
+# px at network input: a dense match this close to an anchor (or to a match merged before it) is
+# the same match
+DEDUP_RADIUS = 2.0
+
 
 @dataclass(frozen=True)
 class MatcherConfig:
@@ -105,12 +109,10 @@ class MatcherConfig:
     # a tiled pair (geomatch.matching.tiling): "probe" matches only the aerial crops where the cheap probe's
     # F-consistent matches lie (all five when it finds too few to tell), "all" the five crops
     tile_crops: str = "probe"
-    dense_temperature: float | None = None  # None: the head's own (0.02 descriptor maps, 0.1 LoFTR)
     loftr_weights: str | None = DEFAULTS["loftr_weights"]
     geo: GeoOptions = field(default_factory=GeoOptions)
     refine: RefineOptions = field(default_factory=RefineOptions)
     final_check: bool = True  # geo methods: drop final matches farther than tau from the fitted F
-    dedup_radius: float = 2.0  # px at network input: a dense match this close to an anchor is the same
     # geo: a pair whose final F is supported by fewer anchors than this gives no matches (0: off).
     # The optimiser makes the dense matches agree with an F by construction, so on a pair that does
     # not overlap they agree with a wrong F and pass any later verification; the anchors, which the
@@ -144,7 +146,6 @@ class MatcherConfig:
     # methods that optimise (the paper's refinement stage, anchors included), "lsm" for any
     # method, "off" never
     subpixel: str = "auto"
-    subpixel_options: SubpixelOptions = field(default_factory=SubpixelOptions)
     # recent images' features (dense maps included: a 640 px DISK fine map alone is ~150 MB), LRU,
     # bounded in bytes: a worker's memory must not grow with the project
     # (the split of GEOMATCH_CACHE_MB's default, options.cache_budget)
@@ -276,7 +277,7 @@ class Matcher:
         - a tiled (aerial x ground) pair gets the full ``geo`` method on every crop: on the
           synthetic air-to-ground scenes it is what registers the ground views;
         - a plain pair of two aerial photos of a survey (``aerial_pair``: the plan decided their
-          turns, steps.image_turns) gets ``geo`` light-first (``MatcherConfig.light_first``) by
+          turns, planning.image_turns) gets ``geo`` light-first (``MatcherConfig.light_first``) by
           the guided matcher (``MatcherConfig.guided_keypoints``), never escalating to the full
           method (``escalate_from``): ~0.4 s a pair instead of ~6 s;
         - any other plain pair of a project with aerial images gets ``geo`` (the synthetic
@@ -653,10 +654,10 @@ class Matcher:
             parts_s.append(dense_s)
 
         with timer("merge"):
-            pa, pb, ps = _merge(parts_a, parts_b, parts_s, cfg.dedup_radius, self.device)
+            pa, pb, ps = _merge(parts_a, parts_b, parts_s, DEDUP_RADIUS, self.device)
         if cfg.refines_subpixel and pa.shape[0]:
             with timer("subpixel"):
-                pb, moved = refine_points(prep0.tensor, prep1.tensor, pa, pb, cfg.subpixel_options)
+                pb, moved = refine_points(prep0.tensor, prep1.tensor, pa, pb)
             stats["subpixel_refined"] = int(moved.sum())
         with timer("merge"):
             F_net, f_mask = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
@@ -719,8 +720,6 @@ class Matcher:
         F_prior = None
         with timer("dense_coarse"):
             pair = head.coarse_pair(da, db)
-            if cfg.dense_temperature is not None:
-                pair.temperature = cfg.dense_temperature
         stats["coarse_cells"] = (int(pair.feats_a.shape[0]), int(pair.feats_b.shape[0]))
         if not cfg.flags.optimise:
             with timer("dense_coarse"):

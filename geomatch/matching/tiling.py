@@ -7,7 +7,7 @@ crops are mapped back to the aerial image's full-resolution frame and merged: tw
 endpoints fall in the same ``dedup_px`` cell in both images are one match (the first, i.e. the
 higher-scoring, is kept), so the overlap of the centre crop with the quadrants adds no duplicates.
 Only the crops where a cheap probe finds the overlap are matched (:func:`select_crops`; the probe
-itself runs in geomatch.steps.tile_crops).
+itself runs in geomatch.matching.probes.tile_crops).
 """
 
 from __future__ import annotations

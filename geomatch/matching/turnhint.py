@@ -1,7 +1,7 @@
 """A survey photo's quarter turn against a partner from rotation-invariant SIFT, before any network.
 
 Why: the plan decides each aerial photo's quarter turn by scoring the guided matcher's seed F at
-the four turns (steps.image_turns), and every turn it scores is an ALIKED extraction of a turned
+the four turns (planning.image_turns), and every turn it scores is an ALIKED extraction of a turned
 copy that is thrown away unless it wins. A pair that does not overlap at all (GPS neighbours on
 adjacent lines, a compact camera's fixes tens of metres off) costs all four. SIFT is invariant to
 in-plane rotation, so one extraction per photo (a tenth of an ALIKED one) says both whether a pair

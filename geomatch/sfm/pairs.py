@@ -33,7 +33,7 @@ class Pair:
     # turn (geomatch.matching.rotation)
     rotate: bool = False
     # each image's quarter turn (np.rot90) into the project's frame when the plan decided both
-    # (steps.image_turns, a survey): the pair is matched with both turned so, unprobed
+    # (planning.image_turns, a survey): the pair is matched with both turned so, unprobed
     turns: tuple[int, int] | None = None
 
     @property

@@ -83,10 +83,6 @@ class ViewGraphReport:
             ],
         }
 
-    def dropped_pairs(self) -> list[tuple[str, str]]:
-        """Every pair either check kept from the mapper."""
-        return [(a, b) for a, b, *_ in self.dropped] + [(a, b) for a, b, *_ in self.tree_dropped]
-
 
 def candidate_rotations(
     cam0: pycolmap.Camera,

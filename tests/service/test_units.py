@@ -18,7 +18,8 @@ import pytest
 from PIL import Image as PILImage
 from sqlalchemy import select
 
-from geomatch import steps
+from geomatch.features.store import FeatureStore
+from geomatch.matching.stored import build_matcher
 from geomatch.options import too_much_queued
 from geomatch.sfm.pairs import PairSpecError, parse_plan
 from geomatch.synth.photos import WarpedPair
@@ -258,27 +259,27 @@ def test_service_modules_do_not_import_torch() -> None:
 def test_features_are_computed_once_across_processes(tmp_path: Path, astronaut_pair: WarpedPair) -> None:
     """A second matcher (as in another worker process) reads the first one's features from disk:
     no network pass, identical matches."""
-    store = steps.FeatureStore(tmp_path / "features")
+    store = FeatureStore(tmp_path / "features")
     a, b = astronaut_pair.image0, astronaut_pair.image1
-    first = steps.build_matcher(store, method="geo", resize=320, device="cpu")
+    first = build_matcher(store, method="geo", resize=320, device="cpu")
     r1 = first.match(a, b)
     assert first.extract_calls == 4  # ALIKED and DISK for each image
     files = sorted(p.relative_to(store.root) for p in store.root.rglob("*.pt"))
     assert len(files) == 4 and {p.parts[0].split("-")[0] for p in files} == {"aliked", "disk+dense"}
-    second = steps.build_matcher(store, method="geo", resize=320, device="cpu")
+    second = build_matcher(store, method="geo", resize=320, device="cpu")
     r2 = second.match(a, b)
     assert second.extract_calls == 0 and store.hits == 4  # every feature read back from disk
     np.testing.assert_array_equal(r1.keypoints0, r2.keypoints0)
     np.testing.assert_array_equal(r1.keypoints1, r2.keypoints1)
-    other_resolution = steps.build_matcher(store, method="geo", resize=256, device="cpu")
+    other_resolution = build_matcher(store, method="geo", resize=256, device="cpu")
     other_resolution.features(a)
     assert other_resolution.extract_calls == 2  # resolution is part of the address
 
 
 @pytest.mark.nets
 def test_feature_store_prunes_least_recently_used(tmp_path: Path, astronaut_pair: WarpedPair) -> None:
-    store = steps.FeatureStore(tmp_path / "features")
-    m = steps.build_matcher(store, method="sparse", resize=256, device="cpu")
+    store = FeatureStore(tmp_path / "features")
+    m = build_matcher(store, method="sparse", resize=256, device="cpu")
     m.features(astronaut_pair.image0)
     m.features(astronaut_pair.image1)
     files = sorted(store.root.rglob("*.pt"), key=lambda p: p.stat().st_mtime)
@@ -287,11 +288,11 @@ def test_feature_store_prunes_least_recently_used(tmp_path: Path, astronaut_pair
     assert [p for p in files if p.exists()] == files[-1:]
     torn = files[-1]
     torn.write_bytes(b"not a checkpoint")  # a torn file is a miss, recomputed and rewritten
-    again = steps.build_matcher(store, method="sparse", resize=256, device="cpu")
+    again = build_matcher(store, method="sparse", resize=256, device="cpu")
     again.features(astronaut_pair.image1)
     assert again.extract_calls == 1 and torn.stat().st_size > 100
-    off = steps.FeatureStore(tmp_path / "off", max_bytes=0)
-    steps.build_matcher(off, method="sparse", resize=256, device="cpu").features(astronaut_pair.image0)
+    off = FeatureStore(tmp_path / "off", max_bytes=0)
+    build_matcher(off, method="sparse", resize=256, device="cpu").features(astronaut_pair.image0)
     assert not (tmp_path / "off").exists()
 
 

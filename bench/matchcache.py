@@ -1,0 +1,82 @@
+"""Raw pair matches cached on disk for benchmark runs and their variants: a rerun after a change
+matches again only the pairs the change touches. Keyed by the pixels, the plan's decisions for the
+pair and the config of the matcher the pair gets, so a change of any of them is a miss.
+
+Only benchmarks (and the tests that run a scene twice) use it; ``geomatch run``, the workers and
+the service always match. Importable as ``matchcache`` by the scripts here and as
+``bench.matchcache`` from the tests.
+
+    run(images, out, opts, match=matchcache.cached(folder))
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from geomatch import pairstep
+from geomatch.imageio import image_key
+from geomatch.matching.matcher import Matcher
+from geomatch.pairstep import MatchPair, PairMatches
+from geomatch.sfm.pairs import Pair
+
+
+def match(
+    matcher: Matcher,
+    pair: Pair,
+    image0: np.ndarray,
+    image1: np.ndarray,
+    cache: str | Path | None,
+    aerial_project: bool = False,
+    survey: bool = False,
+) -> PairMatches:
+    """``geomatch.pairstep.match``, read back from the folder ``cache`` when the pair is there
+    (None: no cache)."""
+    if not cache:
+        return pairstep.match(matcher, pair, image0, image1, aerial_project, survey)
+    config = pairstep.pair_matcher(matcher, pair, aerial_project, survey).config
+    sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
+    h = hashlib.sha256(
+        repr(
+            (
+                image_key(image0),
+                image_key(image1),
+                pair.tiled,
+                pair.aerial_first,
+                pair.rotate,
+                pair.turns,
+                config,
+            )
+        ).encode()
+    )
+    path = Path(cache) / f"{h.hexdigest()[:32]}.npz"
+    if path.is_file():
+        with np.load(path) as z:
+            return PairMatches(z["k0"], z["k1"], z["scores"], sizes, pair.tiled)
+    out = pairstep.match(matcher, pair, image0, image1, aerial_project, survey)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, k0=out.keypoints0, k1=out.keypoints1, scores=out.scores)
+    tmp.replace(path)
+    return out
+
+
+def cached(cache: str | Path | None) -> MatchPair:
+    """A pair matcher for ``geomatch.pipeline.run(..., match=)`` reading and filling ``cache``
+    (None: ``geomatch.pairstep.match`` itself)."""
+    if not cache:
+        return pairstep.match
+
+    def match_cached(
+        matcher: Matcher,
+        pair: Pair,
+        image0: np.ndarray,
+        image1: np.ndarray,
+        aerial_project: bool,
+        survey: bool,
+    ) -> PairMatches:
+        return match(matcher, pair, image0, image1, cache, aerial_project, survey)
+
+    return match_cached

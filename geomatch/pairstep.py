@@ -1,0 +1,174 @@
+"""One planned pair, step by step: its images' features (:func:`extract`), the pair matched
+(:func:`match`: tiled and turned as the plan says) and written into the project's COLMAP database
+(:func:`run_pair`, through ``geomatch.dbwrite.write``). ``geomatch run``, a worker's extract and
+pair steps and the service's two-image match all go through these functions, so a pair is matched
+the same way wherever it runs.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+
+import numpy as np
+
+from .dbwrite import write
+from .geometry import fundamental_from_matches
+from .matching.matcher import Matcher, MatchResult
+from .matching.probes import pair_turn, tiled_turn
+from .matching.rotation import points_back, quarter_turn
+from .matching.tiling import TiledMatches, five_crops, match_tiled
+from .sfm.colmapdb import ColmapDatabase, PairWrite
+from .sfm.pairs import Pair
+
+
+def extract(matcher: Matcher, image: np.ndarray, full: bool = True, crops: bool = False) -> int:
+    """Features of an image (and of its five tiling crops when it is the aerial side of a tiled
+    pair); returns how many entries that was. With a ``StoredFeaturesMatcher``
+    (geomatch.matching.stored) the image's land on disk for every later task. With
+    ``tile_crops="probe"`` a crop gets its sparse features only, in memory (what the crop probe
+    needs, ~0.5 s each at 640 px): its dense maps, ~1.4 s and ~90 MB each, are made by the pair
+    step for the crops the probe chooses."""
+    n = 0
+    if full:
+        matcher.features(image)
+        n += 1
+    if crops:
+        # with the crop probe only the chosen crops get dense maps (in the pair step, which stores
+        # them for the image's other partners); every crop needs its sparse features for the probe
+        crop_matcher = matcher.derive(method="sparse") if matcher.config.tile_crops == "probe" else matcher
+        h, w = image.shape[:2]
+        for crop in five_crops(w, h):
+            crop_matcher.features(crop.cut(image))
+            n += 1
+    return n
+
+
+@dataclass
+class PairMatches:
+    """One pair's matches, in each image's original pixels (pixel centres at integers)."""
+
+    keypoints0: np.ndarray
+    keypoints1: np.ndarray
+    scores: np.ndarray
+    sizes: tuple[tuple[int, int], tuple[int, int]]  # (width, height) of image0 and image1
+    tiled: bool = False
+    # None: an image was matched turned (the source's F is in the turned frames), or the matches
+    # were read back from where a caller stored them
+    source: MatchResult | TiledMatches | None = None
+    crops: int = 0  # aerial crops matched (tiled pairs; 0 when the matches were read back)
+
+    def __len__(self) -> int:
+        return int(self.keypoints0.shape[0])
+
+    @property
+    def F(self) -> np.ndarray:
+        """x1^T F x0 = 0 in original pixels: the matcher's (a tiled pair's is fitted over its
+        merged matches on first use); without a source, fitted over the matches."""
+        if self.source is None:
+            return fundamental_from_matches(self.keypoints0, self.keypoints1)
+        return self.source.F
+
+
+# how ``geomatch run`` matches a pair (:func:`match`'s signature): matcher, pair, image0, image1,
+# whether the project has aerial images, whether it is a survey (every image aerial)
+MatchPair = Callable[[Matcher, Pair, np.ndarray, np.ndarray, bool, bool], PairMatches]
+
+
+def pair_matcher(matcher: Matcher, pair: Pair, aerial_project: bool = False, survey: bool = False) -> Matcher:
+    """The matcher a planned pair is matched with: under ``auto`` the pair and whether its project
+    has aerial images decide the method (:meth:`Matcher.for_pair`)."""
+    # two aerial photos of a survey (every image aerial): the guided matcher, turned or not yet
+    aerial_pair = pair.rotate and not pair.tiled and (survey or pair.turns is not None)
+    return matcher.for_pair(pair.tiled, aerial_project, aerial_pair=aerial_pair)
+
+
+def match(
+    matcher: Matcher,
+    pair: Pair,
+    image0: np.ndarray,
+    image1: np.ndarray,
+    aerial_project: bool = False,
+    survey: bool = False,
+) -> PairMatches:
+    """One planned pair, tiled when the plan says so, by its :func:`pair_matcher`."""
+    matcher = pair_matcher(matcher, pair, aerial_project, survey)
+    sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
+    k0, k1, scores, source, crops = _match_turned(matcher, pair, image0, image1)
+    return PairMatches(k0, k1, scores, sizes, pair.tiled, source, crops)
+
+
+def _match_turned(
+    matcher: Matcher, pair: Pair, image0: np.ndarray, image1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, MatchResult | TiledMatches | None, int]:
+    """(keypoints0, keypoints1, scores, source, aerial crops matched) of the pair; with
+    ``pair.turns`` (a survey) each image is matched turned into the project's frame, else with
+    ``pair.rotate`` the aerial side (image1 of an untiled pair) at its best quarter turn
+    (geomatch.matching.rotation); keypoints are mapped back, and the source is dropped when
+    anything was turned (its F is in the turned frames)."""
+    if pair.tiled:
+        aerial, other = (image0, image1) if pair.aerial_first else (image1, image0)
+        turns, crops = tiled_turn(matcher, aerial, other, pair.rotate)
+        t = match_tiled(matcher, quarter_turn(aerial, turns), other, pair.aerial_first, crops=crops)
+        if not turns:
+            return t.keypoints0, t.keypoints1, t.scores, t, len(crops)
+        h, w = aerial.shape[:2]
+        if pair.aerial_first:
+            return points_back(t.keypoints0, turns, w, h), t.keypoints1, t.scores, None, len(crops)
+        return t.keypoints0, points_back(t.keypoints1, turns, w, h), t.scores, None, len(crops)
+    if pair.turns is not None:  # each image in the project's frame: one turned copy, features once
+        t0, t1 = pair.turns
+    else:
+        t0, t1 = 0, (pair_turn(matcher, image0, image1) if pair.rotate else 0)
+    r = matcher.match(quarter_turn(image0, t0), quarter_turn(image1, t1))
+    if not (t0 or t1):
+        return r.keypoints0, r.keypoints1, r.scores, r, 0
+    (h0, w0), (h1, w1) = image0.shape[:2], image1.shape[:2]
+    k0, k1 = points_back(r.keypoints0, t0, w0, h0), points_back(r.keypoints1, t1, w1, h1)
+    return k0, k1, r.scores, None, 0
+
+
+@dataclass(frozen=True)
+class PairTarget:
+    """Where a matched pair is written: ``open`` opens the COLMAP database for the write, under
+    whatever locks its caller holds, and yields None when the pair must not be written any more
+    (a worker's job cancelled while the pair was matched); the images' ids there; the snap radius
+    in network pixels."""
+
+    open: Callable[[], AbstractContextManager[ColmapDatabase | None]]
+    id0: int
+    id1: int
+    radius: float
+
+
+@dataclass
+class PairRun:
+    matches: PairMatches
+    written: PairWrite | None  # None: no target, or its ``open`` refused the write
+    match_s: float
+    write_s: float
+
+
+def run_pair(
+    matcher: Matcher,
+    pair: Pair,
+    image0: np.ndarray,
+    image1: np.ndarray,
+    target: PairTarget | None = None,
+    aerial_project: bool = False,
+    survey: bool = False,
+) -> PairRun:
+    """One planned pair matched (:func:`match`) and written into ``target`` (``geomatch.dbwrite.write``, at
+    the matcher's working size): the sequence of ``geomatch run``, a worker's pair step and the
+    service's two-image match (no target: nothing is kept)."""
+    t0 = time.perf_counter()
+    m = match(matcher, pair, image0, image1, aerial_project, survey)
+    t1 = time.perf_counter()
+    written = None
+    if target is not None:
+        with target.open() as db:
+            if db is not None:
+                written = write(db, target.id0, target.id1, m, target.radius, matcher.config.resize)
+    return PairRun(m, written, t1 - t0, time.perf_counter() - t1)
