@@ -21,10 +21,8 @@ from .options import EXIT_BAD_INPUT, EXIT_FAILED
 if TYPE_CHECKING:
     from .pipeline import RunOptions
 
-# the demo's scene: 2 aerial + 4 ground (15 pairs, 8 tiled) runs in about 2.5 min on 2 CPU cores
-# with every camera correct (147 s measured; 230 s on the same machine before the crop probe, 185 s
-# and 368 s on two others); 3 + 6 (36 pairs, 18 tiled) in about 7 min, 9/9 correct (docs/pipeline.md,
-# "The demo")
+# the demo's scene: 2 aerial + 4 ground (15 pairs, 8 tiled), small enough to run in minutes on a
+# CPU; its times and results: docs/benchmarks.md, "The demo scene"
 DEMO_AERIAL, DEMO_GROUND = 2, 4
 
 

@@ -38,12 +38,11 @@ if TYPE_CHECKING:  # the API process reads the options and answers without torch
 
 @dataclass
 class LocalizeOptions:
-    """How a photo is localized. The defaults were chosen on the Strecha tuning scenes and the
+    """How a photo is localized. The defaults are tuned on the Strecha tuning scenes and the
     synthetic air-to-ground tuning seed (bench/localize.py; docs/benchmarks.md, "Localization")."""
 
-    # model images matched per photo by retrieval (the plain pairs): with 4, every photo of
-    # Herz-Jesus-P8 and fountain-P11 had 500-900 inliers, and each further pair costs one more
-    # match (~1 s per pair there, ~3 s per photo in all)
+    # model images matched per photo by retrieval (the plain pairs): 4 localize the tuning scenes'
+    # photos with inliers to spare, and each further pair costs one more matching
     max_candidates: int = 4
     # the plain candidates are matched best first: this many, then the others only when those
     # did not localize the photo confidently (two model images are what "high" needs, and a
@@ -53,16 +52,15 @@ class LocalizeOptions:
     gps_candidates: int = 2
     # for a ground photo of a project with aerial images: the most similar aerial images, matched
     # tiled, and only when the plain pairs did not localize the photo confidently (a tiled pair
-    # is several matchings: ~15-30 s on 2 busy cores where a plain pair took ~3 s)
+    # is several matchings, many times a plain pair's cost)
     aerial_candidates: int = 1
     # PnP inliers below which a photo is not localized: COLMAP's own bar for registering an image
-    # (the mapper's default, options.MIN_POSE_INLIERS). Measured: package photos of other things
-    # got 0-6 inliers against the Strecha models (of 3-87 correspondences), true photos 500-900
-    # against a full model and 33-38 against the synthetic seed's aerial images alone (there
-    # within 0.7 deg and 0.6 % of the scene extent)
+    # (the mapper's default, options.MIN_POSE_INLIERS): photos of other scenes stay well below it,
+    # true photos reach it even against a model's aerial images alone (docs/benchmarks.md,
+    # "Localization")
     min_inliers: int = 30
-    # inliers over the correspondences tried: another scene's matches scatter over the model
-    # (measured: 0-16 % for the package photos, 97-100 % for the true photos looked at)
+    # inliers over the correspondences tried: another scene's matches scatter over the model, a
+    # true photo's nearly all fit the pose
     min_inlier_ratio: float = 0.25
     # a confident answer ("high") needs this many inliers, with at least ``high_min_images``
     # model images agreeing with the pose through their own matches (one image's coherent but
@@ -255,7 +253,7 @@ class Localizer:
         if self._sparse is None:
             # the plain pairs' own sparse matcher when they are matched by anchors alone (``auto``
             # on a ground project: fewer keypoints), so the photo's and the model images'
-            # features serve retrieval and matching both (the photo's were extracted twice)
+            # features serve retrieval and matching both, each extracted once
             plain = self.matcher.for_pair(False, bool(self.aerial))
             self._sparse = plain if plain.config.method == "sparse" else self.matcher.derive(method="sparse")
         sparse = self._sparse

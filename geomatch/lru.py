@@ -1,9 +1,9 @@
 """Least-recently-used caches bounded in bytes, never in entries.
 
 Why bytes: an entry's size spans two orders of magnitude (a 640x480 render is 0.9 MB, a 12 MP
-photo 36 MB; a 640 px feature set without dense maps a few MB, with them ~150 MB), so a count
-bound that is safe for the large entries wastes memory on the small ones, and one that suits the
-small ones lets a worker grow by gigabytes on the large ones (a worker once reached 8.5 GB).
+photo 36 MB; a 640 px feature set without dense maps a few MB, with them over a hundred), so a
+count bound that is safe for the large entries wastes memory on the small ones, and one that suits
+the small ones lets a worker grow by gigabytes on the large ones.
 """
 
 from __future__ import annotations

@@ -8,8 +8,8 @@ becomes a position prior and puts the model in a real-world frame (geo/gps.py, g
 Every number is read field by field, and one that is malformed (a rational 0/0, text that is not
 a number) or absurd (infinite, a latitude past the pole, an altitude in space) is dropped alone,
 with a warning naming the image and the field: the rest of the file still counts, and a job never
-fails on what a camera wrote (an altitude of 0/0 read as NaN once failed a whole reconstruct in
-the georeferencing's SVD).
+fails on what a camera wrote (an altitude of 0/0 read as NaN would otherwise reach the
+georeferencing's SVD and fail a whole reconstruct).
 """
 
 from __future__ import annotations

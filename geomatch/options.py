@@ -12,7 +12,7 @@ Methods are rows of flags (:data:`METHOD_TABLE`), the paper's ablations:
 ``concat``        anchors naively concatenated to ``dense``;
 ``geo-noanchor``  optimisation initialised from the top half of the dense matches;
 ``geo``           the full method: anchors initialise F, dense matches are re-weighted;
-``auto``          what measured best for the project's kind: ``geo`` for every pair of a project
+``auto``          what benchmarks best for the project's kind: ``geo`` for every pair of a project
                   with aerial images (the synthetic air-to-ground scenes), lighter anchors for a
                   ground-only project (real ground photos, docs/benchmarks.md). Its row carries
                   the anchors' flags; ``Matcher.for_pair`` picks the method per pair.
@@ -132,21 +132,18 @@ _SPEC = re.compile(r"([a-z][a-z0-9-]*)(?::(\d+))?")  # a kind of PAIR_KIND, look
 
 # COLMAP registers an image from 30 PnP inliers, a count made for sparse SIFT matches. With dense
 # matches a genuinely overlapping image has hundreds of 2D-3D correspondences, while a repeated
-# texture gives a few dozen that agree with each other: the demo's aerial_01 was placed 66 units
-# off from 36 of them (grass patches on two surfaces). From 60 on, it waits until its true
-# correspondences are triangulated and registers right (docs/pipeline.md, "Mapping"). But 60 also
-# left one of 4 ground views unregistered in the gRPC submit test (a small scene at 480 px), so the
-# default stays COLMAP's 30 until the matcher stops producing those coherent wrong pairs; 60 is
-# one option away (--min-pose-inliers 60).
+# texture gives a few dozen that agree with each other and can register an image at a wrong pose.
+# A higher bar (60) makes such an image wait until its true correspondences are triangulated, but
+# also leaves true views of a small scene unregistered (docs/pipeline.md, "Coherent wrong pairs on
+# the air-to-ground scenes"), so the default stays COLMAP's 30 until the matcher stops producing
+# those coherent wrong pairs; 60 is one option away (--min-pose-inliers 60).
 MIN_POSE_INLIERS = 30
 # ...except in a project with tiled aerial x ground pairs, where an image often cannot reach 30:
 # an aerial image's tracks with ground photos are its crops' keypoints, its pairs with other aerial
-# images are matched on the whole image, and the two share few keypoints (15 of 551 on a synthetic
-# scene). Its model then falls apart into an aerial-led half and a ground-led half, each right.
-# 20 joins the halves of the synthetic sweep's split tuning scenes (2+4 seed 3: 3 of 6 correct ->
-# 6 of 6), and on 2+6's eight tuning seeds gives 62 correct cameras against 61 at 15 with fewer
-# placed wrongly (2 against 3); 15, the inliers that verify a pair, let a held-out scene register
-# every camera from right pairs and place five of them wrongly (3 of 8 correct; 7 of 8 at 20)
+# images are matched on the whole image, and the two share few keypoints. Its model then falls
+# apart into an aerial-led half and a ground-led half, each right. 20 joins the halves of the
+# synthetic sweep's split tuning scenes; 15, the inliers that verify a pair, places more cameras
+# wrongly (docs/pipeline.md, "Mapping"; docs/benchmarks.md, "`geomatch run` over many seeds")
 TILED_MIN_POSE_INLIERS = 20
 
 # GEOMATCH_CACHE_MB: the in-memory caches of one job (a worker's job thread, or `geomatch run`), in

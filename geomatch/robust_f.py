@@ -1,8 +1,8 @@
 """A fundamental matrix robust to outliers, computed on the tensors' device.
 
 Why: the optimizer fits F once per round. OpenCV's MAGSAC++ runs on the host, so on a GPU every
-round copies the matches to the host and waits for the device (measured on an H100: the optimizer
-was 54-65 % of a ``geo`` pair, each call 3 ms). Here every step is a batched tensor operation with
+round would copy the matches to the host and wait for the device, and those waits would dominate
+a ``geo`` pair's optimizer. Here every step is a batched tensor operation with
 no host synchronisation (no ``.item()``, no data-dependent shapes):
 
 1. ``hypotheses`` minimal samples of 8 matches, drawn by a seeded generator on the device;

@@ -8,9 +8,9 @@ correct cameras until that set stops changing (the local optimisation of LO-RANS
 
 Why not pycolmap's ``align_reconstructions_via_proj_centers`` / ``estimate_sim3d_robust``: their
 inliers are judged on position alone and the final least-squares fit takes all of them, so one
-camera moved by twice the threshold among seven is absorbed: the fit tilts by ~5 deg, every
-camera is then within the position threshold but none within the rotation threshold
-(measured: tests/test_metrics.py). Scoring by the full rule keeps the fit on the cameras that
+camera moved by twice the threshold among seven is absorbed: the fit tilts, every camera is
+then within the position threshold but none within the rotation threshold (tests/test_metrics.py
+builds that case). Scoring by the full rule keeps the fit on the cameras that
 agree with the ground truth, which is what "correct after alignment" has to mean.
 """
 

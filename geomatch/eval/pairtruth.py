@@ -9,8 +9,8 @@ right model was a robust one and whether a filter does its job.
 A verified pair is *wrong* when most of its inliers lie off the ground truth's epipolar geometry:
 the ground-truth fundamental matrix (from both surveyed cameras, so it carries their relative
 rotation and translation direction) leaves fewer than half of the inliers within
-``max(4 px, 0.4 % of the image diagonal)`` of their epipolar lines (symmetric distance). Right
-pairs of the surveyed scenes have 85-100 % of their inliers within that band, wrong ones almost none.
+``max(4 px, 0.4 % of the image diagonal)`` of their epipolar lines (symmetric distance). On the
+surveyed scenes a right pair keeps nearly all its inliers within that band, a wrong one almost none.
 """
 
 from __future__ import annotations

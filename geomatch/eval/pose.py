@@ -92,9 +92,9 @@ def shuffled_errors(
     """``error`` of the same matches under ``runs`` orderings (the first is the given order).
 
     OpenCV's RANSAC is deterministic for one input order, but which minimal samples it draws
-    depends on that order, so adding or removing a single match re-draws every sample: on 30
-    indoor pairs one ordering against another moves AUC@10 by a standard deviation of about 3.5
-    points, as much as the differences between methods. Averaging the AUC over orderings measures
+    depends on that order, so adding or removing a single match re-draws every sample, and one
+    ordering against another moves AUC@10 as much as the differences between methods
+    (docs/benchmarks.md, "Relative pose"). Averaging the AUC over orderings measures
     the matches, not the draw.
     """
     k0, k1 = np.asarray(kpts0), np.asarray(kpts1)

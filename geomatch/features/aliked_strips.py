@@ -1,11 +1,11 @@
 """ALIKED's dense map and score map without its full-resolution transients.
 
 Why: kornia's ``ALIKED.extract_dense_map`` keeps the four upsampled 32-channel maps, their
-concatenation and the normalised copy alive at once: ~1.3 GB above the networks for one image at
-1024 x 768, the largest transient of a worker once DISK runs in strips. Here the upsampled parts
-are written into one preallocated map, the score head runs in row strips
-(:func:`~geomatch.features.strips.rows_through`) and the map is normalised in place, strip by
-strip: same numbers, about half the peak.
+concatenation and the normalised copy alive at once, the largest transient of a worker whose
+DISK runs in strips. Here the upsampled parts are written into one preallocated map, the score head
+runs in row strips (:func:`~geomatch.features.strips.rows_through`) and the map is normalised in
+place, strip by strip: same numbers, a lower peak (docs/benchmarks.md, "A worker's memory on a
+project").
 """
 
 from __future__ import annotations
@@ -55,10 +55,10 @@ def sddh_descriptors(
     """``head(feature_map, [keypoints])[0][0]``: ALIKED's deformable descriptors of one image.
 
     Why not the head itself: on the CPU PyTorch's ``grid_sample`` spreads its work over the batch
-    only, so sampling 4096 points x 16 positions from one 128-channel map runs on one core (a
-    third of an extraction). Here the sample positions are cut into ``parts`` batch
-    entries over the same map (expanded, not copied): every sample is computed as before, so the
-    descriptors are equal, on ``parts`` cores."""
+    only, so sampling 4096 points x 16 positions from one 128-channel map runs on one core. Here
+    the sample positions are cut into ``parts`` batch entries over the same map (expanded, not
+    copied): every sample is computed as the head computes it, so the descriptors are equal, on
+    ``parts`` cores."""
     x = feature_map[0]
     c, h, w = x.shape
     wh = torch.tensor([[w - 1, h - 1]], device=x.device, dtype=torch.promote_types(x.dtype, torch.float32))

@@ -2,8 +2,8 @@
 
 Why: the last up-block works at the input's full resolution on 80 channels in and 129 out, and
 PyTorch materialises its upsampled input, the concatenation, the instance norm, the PReLU and the
-convolution's output whole: at 1024 x 768 that is ~1.6 GB above the networks for one image, the
-largest single term of a worker's peak memory (docs/benchmarks.md, worker memory). Row strips give
+convolution's output whole: for one image, the largest single term of a worker's peak memory
+(docs/benchmarks.md, "A worker's memory on a project"). Row strips give
 the same numbers (the block is a per-channel affine map, a PReLU and a 5 x 5 convolution, so only
 the instance norm's statistics are global, and those are accumulated over the strips first) while
 holding one strip at a time, and the strip's output goes straight into what the matcher keeps: the
@@ -22,7 +22,7 @@ from kornia.feature import DISK
 
 from .strips import row_strips, rows_through
 
-STRIP_ROWS = 32  # a multiple of the coarse stride; small strips stay in cache (measured faster than whole)
+STRIP_ROWS = 32  # a multiple of the coarse stride; small strips stay in cache, faster than whole maps
 
 
 @dataclass

@@ -5,8 +5,8 @@ materialises every intermediate of them whole (at 1024 x 768 each 32-channel flo
 those transients, not the features kept afterwards, set a worker's peak memory. Convolutions are
 local, so rows [r0, r1) of a stack of them need only the input rows within the stack's halo:
 computing the output strip by strip gives the same numbers while holding one strip's
-intermediates at a time (small strips also stay in cache: measured faster than whole maps on the
-CPU, docs/benchmarks.md).
+intermediates at a time (small strips also stay in cache, faster than whole maps on the CPU:
+docs/benchmarks.md, "A worker's memory on a project").
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """Least-squares matching: each match's point in image B moved to where image A's patch lands.
 
 Why: on the indoor benchmark the pose error is limited by where the matched points lie, not by
-how many there are. Moving every correct match onto its exact ground-truth position lifts
-AUC@10 from 48 to 69, moving each halfway lifts it to 56, while adding 40 % more correct matches
-from a second detector moves nothing (docs/benchmarks.md). Keypoint detectors place a point
+how many there are: moving the correct matches toward their exact ground-truth positions lifts
+AUC@10, adding correct matches from a second detector does not (docs/benchmarks.md, "Least-squares
+matching: where the points lie"). Keypoint detectors place a point
 to about a pixel; photogrammetry's classic answer is least-squares matching (Gruen 1985): fit
 an affine warp with a radiometric gain and offset so that B's patch reproduces A's patch, by
 Gauss-Newton. Image A's point is kept (it is the track's observation); only B's point moves.
@@ -29,7 +29,7 @@ class SubpixelOptions:
     sigma: float = 0.7  # Gaussian pre-smoothing, px
     iterations: int = 15
     # px: a point stops iterating once it moves less (or has left max_shift); 0: every point runs
-    # all iterations, as the matcher's refinement was tuned
+    # all iterations, the setting the matcher's refinement is tuned with
     tolerance: float = 0.0
     max_shift: float = 3.0  # px a point may move; farther means it converged elsewhere
     min_ncc: float = 0.8

@@ -91,8 +91,8 @@ def robust_similarity(
 ) -> Alignment | None:
     """RANSAC similarity src -> dst; None with fewer than 3 correspondences or when no sample
     spans a plane. ``threshold``: metres in ``dst``; 10 m is about three times the 3D error of
-    consumer GNSS (2 m horizontal, 3 m vertical sigma), where 6 m rejected honest fixes and
-    made the fit worse (bench/georef_accuracy.py on a perfect model: 1.55 -> 1.31 m).
+    consumer GNSS (2 m horizontal, 3 m vertical sigma); a tighter one rejects honest fixes and
+    makes the fit worse (docs/benchmarks.md, "GPS: georeferencing accuracy").
     ``up``: the world's up in ``src``'s frame, when the cameras' gravity gives it: the fit is then
     upright (similarity.umeyama_upright, vertical residuals weighted by 1 / 1.5^2)."""
 
@@ -103,7 +103,7 @@ def robust_similarity(
 
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
     # a correspondence that is not finite is never sampled nor an inlier (its residual is NaN,
-    # which no threshold passes): one NaN fix once made the SVD raise and failed the job
+    # which no threshold passes): one NaN fix in a sample would make the SVD raise and fail the job
     usable = np.flatnonzero(np.isfinite(src).all(1) & np.isfinite(dst).all(1))
     n = len(usable)
     if n < 3:
@@ -229,16 +229,16 @@ def align(
     ``rec`` in place (every image and point, those without GPS too); None leaves ``rec`` as it
     was (fewer than 3 registered images with a fix). With ``up_cam`` (image name -> up in the
     camera, gps.GpsFixes.up) and two or more registered images agreeing on it, the model's
-    vertical comes from gravity and GPS fits the other 5 parameters: on a perfect 8 + 12 model
-    with 2 m / 3 m GNSS noise the mean centre error drops from 1.31 to 1.05 m (docs/pipeline.md).
+    vertical comes from gravity and GPS fits the other 5 parameters, which lowers the centres'
+    error (docs/benchmarks.md, "GPS: georeferencing accuracy").
     With gravity and ``heights`` (image name -> barometric height above take-off,
     gps.GpsFixes.heights) of MIN_HEIGHTS or more registered images, those refine the fit
     (fit_with_heights), the GNSS inliers staying as RANSAC chose them.
 
     Fixes, ups and heights that are not finite are left out, and a fit that fails anyway (an
     error of the linear algebra, a similarity that is not finite) leaves ``rec`` as it was, with
-    a warning: a model that cannot be georeferenced is still a model, where an SVD error on one
-    NaN altitude once failed the whole reconstruct job."""
+    a warning: a model that cannot be georeferenced is still a model, and an SVD error on one
+    NaN altitude must not fail the whole reconstruct job."""
     centres = camera_centres(rec)
     names = sorted(n for n in centres if n in enu and np.isfinite(enu[n]).all())
     if len(names) < 3:

@@ -3,7 +3,7 @@
 Not pycolmap's ``estimate_sim3d``: in pycolmap 4.2 it answers None for three points whenever the
 raw target matrix is rank-deficient, e.g. when one target is exactly the origin. The ENU frame
 is centred on the project's first fix, so that first fix is always (0, 0, 0), and every
-three-fix project then stayed un-georeferenced (tests/test_gps.py).
+three-fix project would stay un-georeferenced (tests/test_gps.py).
 Umeyama works on centred coordinates and has no such condition.
 """
 

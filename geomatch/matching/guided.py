@@ -7,12 +7,12 @@ keypoints per photo, the descriptor similarity of every pair of points is the co
 Sampson gate keeps only the candidates that lie on each other's epipolar lines. Two passes:
 
 1. seed: mutual nearest neighbours with a ratio test over all points (what COLMAP does with SIFT),
-   and a robust F on them; LightGlue is not needed on such pairs (measured on brighton_beach:
-   the seed F has more inliers than light LightGlue on the same photos, in a quarter of the time);
+   and a robust F on them; LightGlue is not needed on such pairs (the seed F has more inliers than
+   light LightGlue on the same photos, in less time: docs/pipeline.md, "Drone surveys");
 2. guided: the mutual nearest neighbours again, each point choosing only among the points within
    ``tau`` (Sampson, px^2) of its epipolar line, with the ratio test among those candidates; the
-   ambiguity a repeated texture makes along the whole image is gone, so 3-5x the seed's matches
-   survive.
+   ambiguity a repeated texture makes along the whole image is gone, so several times the seed's
+   matches survive.
 
 The (N, M) similarity and Sampson matrices are computed in row blocks bounded in bytes.
 """
@@ -51,9 +51,9 @@ def mutual_ratio(
     best_b = torch.empty(n, dtype=torch.long, device=da.device)
     s1 = torch.empty(n, device=da.device)
     s2 = torch.empty(n, device=da.device)
-    # each column's best similarity only, not where it is: on the CPU an argmax down the columns of
-    # a (4096, 4096) block cost 0.2 s, ten times the max (amax) of the same values; a row's best is
-    # mutual when it equals its column's best
+    # each column's best similarity only, not where it is: on the CPU an argmax down the columns
+    # costs many times the max (amax) of the same values; a row's best is mutual when it equals its
+    # column's best
     col_best = torch.full((m,), -2.0, device=da.device)
     if gate is not None:
         F, ka, kb, tau = gate

@@ -83,7 +83,8 @@ def select_crops(
 
     Why: a ground camera sees a part of the site, so most of an aerial image's crops hold little
     of it; each crop costs a full-strength LightGlue call, the optimizer and the refinement, so
-    matching all five made a tiled pair ~9x a plain one on the 2-core CPU. Greedy set cover keeps
+    matching all five makes a tiled pair many times a plain one (docs/benchmarks.md, "What tiling
+    costs"). Greedy set cover keeps
     the matched crops few and still covers where the overlap is. Order is the crops' own.
     """
     pts = np.asarray(points, np.float64).reshape(-1, 2)

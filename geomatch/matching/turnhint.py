@@ -4,7 +4,7 @@ Why: the plan decides each aerial photo's quarter turn by scoring the guided mat
 the four turns (planning.image_turns), and every turn it scores is an ALIKED extraction of a turned
 copy that is thrown away unless it wins. A pair that does not overlap at all (GPS neighbours on
 adjacent lines, a compact camera's fixes tens of metres off) costs all four. SIFT is invariant to
-in-plane rotation, so one extraction per photo (a tenth of an ALIKED one) says both whether a pair
+in-plane rotation, so one extraction per photo (far cheaper than an ALIKED one) says both whether a pair
 overlaps (inliers of a similarity fitted to its matches) and, from that similarity's angle, which
 quarter turn the ALIKED score should try first. The networks still decide the turn: the hint only
 orders the turns tried and skips the pairs that share nothing.

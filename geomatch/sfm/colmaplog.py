@@ -1,8 +1,8 @@
 """COLMAP's own log: quiet unless asked for.
 
 pycolmap's C++ writes glog lines (``I20261123 09:05:49.900130 ... incremental_pipeline.cc:353]
-Loading database``) straight to file descriptor 2, ~40 of them for a 9-image model, between our
-progress bars and our table. Measured on pycolmap 4.2: setting ``pycolmap.logging.minloglevel``
+Loading database``) straight to file descriptor 2, dozens of them per model, between our
+progress bars and our table. In pycolmap 4.2, setting ``pycolmap.logging.minloglevel``
 at run time silences them (the flag is read at every LOG statement, from every thread);
 ``GLOG_minloglevel`` in the environment works too but only when set before pycolmap is first
 imported, which a library cannot promise. So the level is set around each call and put back.

@@ -33,9 +33,10 @@ from .viewgraph import filter_database
 # ba_global_ignore_redundant_points3D), run when the model has grown by LARGE_BA_GROWTH in images
 # or points since the last one instead of COLMAP's 10 %, and refine LARGE_BA_REFINEMENTS time(s)
 # (COLMAP: up to 5). Why: global adjustments are most of a survey's mapping time and grow with the
-# model, while the local adjustment after each image keeps the new cameras right in between; the
-# drone surveys kept the same cameras, points and GPS fit (docs/benchmarks.md). Projects of a few
-# dozen photos (the ground scenes) keep COLMAP's defaults.
+# model, while the local adjustment after each image keeps the new cameras right in between; on the
+# drone surveys the lighter ones give the same cameras, points and GPS fit (docs/benchmarks.md,
+# "Drone surveys beside COLMAP SIFT"). Projects of a few dozen photos (the ground scenes) keep
+# COLMAP's defaults.
 LARGE_PROJECT_IMAGES = 40
 LARGE_BA_GROWTH = 1.3
 LARGE_BA_REFINEMENTS = 1

@@ -134,8 +134,8 @@ def gps_neighbours(
 # AUTO_NEAREST nearest all the same); beyond it, with a GPS fix on at least AUTO_GPS_SHARE of the
 # images, each image with its AUTO_GPS_K nearest by position or shared ground, as COLMAP's spatial
 # matcher and OpenDroneMap pair a flight (the images without a fix are paired with every image).
-# On brighton_beach a 0.1 share keeps every pair the exhaustive plan verified with 100 or more
-# inliers (71) in 91 of its 153 pairs; 0.2 lost 9 of them
+# AUTO_MIN_OVERLAP keeps every strongly verified pair of a real survey where a larger share loses
+# some (docs/pipeline.md, "The default plan")
 AUTO_EXHAUSTIVE_MAX = 30
 AUTO_MIN_OVERLAP = 0.1
 AUTO_NEAREST = 3

@@ -137,8 +137,7 @@ def refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | No
 
     One torch thread per pair, and pairs side by side on the cores (Python threads: torch releases
     the GIL in its kernels): the alignment is many small batches of element-wise work, for which a
-    second OpenMP thread gains little and, beside other busy processes, made it 30 times slower
-    (fountain-P11's 5800 observations, on a loaded 2-core machine: 4 s on one thread, 129 s on two).
+    second OpenMP thread gains little and, beside other busy processes, makes it many times slower.
     Each observation is moved by one pair only, so the result does not depend on which pair
     finishes first."""
     threads = torch.get_num_threads()

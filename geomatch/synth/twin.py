@@ -2,8 +2,8 @@
 
 Why: on a real courtyard (castle-P19) the opposite facades share their architecture (the same
 rows of windows) but not their details (doors, the ground floor, weathering, things in front).
-LightGlue matches views of such look-alike facades that share nothing with 20-240 geometrically
-consistent inliers, a fraction of a right neighbour pair's 750-1500. The pairs pass two-view
+LightGlue matches views of such look-alike facades that share nothing with up to a few hundred
+geometrically consistent inliers, a fraction of a right neighbour pair's. The pairs pass two-view
 verification, and because the look-alike is a symmetry of the building they also agree with each
 other, so a triangle check over the view graph finds the loops among them consistent, and
 COLMAP's incremental mapper builds one confident model with a block of cameras turned about 180
@@ -28,25 +28,17 @@ cameras (26 degrees apart) the two on the east-west axis see an end face only, t
 end face and a long face, so every view has right pairs with the views on either side and the
 chain of right pairs goes round both ends of the building.
 
-Measured (14 cameras, seed 0, 480x360, ``geomatch run`` defaults: method ``auto``, which matches
-these ground views with ALIKED + LightGlue at 1024 keypoints; exhaustive pairs): 86 verified
-pairs, 42 of them wrong: the 30 between north and south views, through the band, with 70-172
-inliers (right pairs of ring neighbours: 284-615), and 12 weak ones (15-43) of the two end-on
-views. With nothing filtering, 10 of 14 cameras come out right (a block of north views turned
-onto the south side); with the triangle loop check alone 9 of 14 (it keeps 27 wrong pairs and
-drops right ones). With the spanning-tree check beside it (the default: the loop check may not
-drop a tree pair) no wrong pair reaches the mapper and all 14 cameras come out right (41 wrong
-pairs: 49 pairs dropped by the tree check, 1 by the loops, with COLMAP's verification seeded); the
-tree check alone also got 14 of 14, and let one wrong pair through in one run of four while
-verification drew a new RANSAC seed per call. With both checks it also drops 9
-right pairs: the tree is the chain of ring neighbours, but for one of them (an end-on view and its
-neighbour, 500 inliers) it takes the essential matrix's rotation, 38 degrees off, where COLMAP's
-pose was right (its triangles close for every candidate, and a tie goes to the first), so the right
-pairs across that link disagree with the tree; the mapper does without them. Seeds 1 and 2 behave
-the same (7 and 10 of 14 with nothing filtering, 14 of 14 with the default checks). With method
-``sparse`` (2048 keypoints, 4x the matching time) the counts scale up (look-alike pairs 91-341,
-ring neighbours 548-921) and the outcome is the same: 7 of 14 with nothing filtering, 14 of 14
-with the default checks.
+With ``geomatch run``'s defaults (method ``auto``: ALIKED + LightGlue for these ground views;
+exhaustive pairs) about half the verified pairs are wrong: those between north and south views,
+through the band, with a fraction of a ring neighbour pair's inliers, and weak ones of the two
+end-on views. With nothing filtering, a block of north views is turned onto the south side; the
+triangle loop check alone keeps many wrong pairs and drops right ones. With the spanning-tree
+check beside it (the default: the loop check may not drop a tree pair) no wrong pair reaches the
+mapper and every camera comes out right. Both checks also drop a few right pairs: for one link of
+the tree (an end-on view and its neighbour) the tree takes the essential matrix's rotation where
+COLMAP's pose is right (its triangles close for every candidate, and a tie goes to the first), so
+the right pairs across that link disagree with the tree; the mapper does without them. Other seeds
+and method ``sparse`` end the same way. Figures: docs/pipeline.md, "The view-graph checks".
 
 Output of :func:`write_twin_scene`: ``images/`` (PNG with the EXIF of :func:`geomatch.synth.aerial.save_png`)
 and ``gt/`` (COLMAP text model), as :func:`geomatch.synth.aerial.write_scene` writes them.

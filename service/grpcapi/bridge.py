@@ -1,9 +1,9 @@
 """The Matching servicer's synchronous methods, served by grpc.aio.
 
 grpcio's synchronous server gives every call a pool thread the moment it arrives, and a unary
-call's thread then waits for the request message: 80 calls that sent their headers and never their
-message (no key needed) held all 64 threads, and health checks and every tenant's GetProject went
-unanswered for as long as they were held. Under grpc.aio a call waiting for its message is a
+call's thread then waits for the request message: calls that send their headers and never their
+message (no key needed) can hold every thread, and health checks and every tenant's GetProject go
+unanswered for as long as they are held. Under grpc.aio a call waiting for its message is a
 coroutine on the event loop; a thread is taken only to run the method, once there is a request.
 
 The servicer's methods stay synchronous (the use cases are: SQLAlchemy, files, the queue). Each

@@ -2,15 +2,15 @@
 
 The servicer's methods run on one pool of threads (``server.py``: calls waiting for their request,
 and health checks, are held on the event loop, ``bridge.py``), and a request stream holds its thread
-for as long as it is open: unchecked, 70 idle UploadImages streams of one tenant took all 64, and
-GetProject waited for a thread that never came. Three rules keep the server answering:
+for as long as it is open: unchecked, one tenant's idle UploadImages streams can take them all and
+leave GetProject waiting for a thread that never comes. Three rules keep the server answering:
 
 - streaming calls (UploadImages, MatchPair, WatchJob, GetModel) hold at most ``STREAMS`` threads in
   all, so ``RESERVED`` threads are always left for unary calls and health checks;
 - one tenant holds at most ``Settings.grpc_tenant_streams`` of those, and the last quarter of them
   only go to tenants holding fewer than a quarter of that cap, so tenants holding many cannot take
-  the others' share either (three tenants of 16 took all 48 before); a call past a limit is
-  refused at once with RESOURCE_EXHAUSTED;
+  the others' share either (a few tenants at the cap would otherwise hold every stream thread); a
+  call past a limit is refused at once with RESOURCE_EXHAUSTED;
 - a request stream that sends nothing for ``Settings.grpc_stream_idle_s`` is cancelled, which
   gives its thread (and its tenant's slot) back.
 """

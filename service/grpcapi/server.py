@@ -4,8 +4,8 @@
 embedded job runner exists once) and ``geomatch grpc-serve`` (alone).
 
 The server is grpc.aio's, on an event loop of its own thread: a call waiting for its request message
-holds no thread (``bridge.py``: grpcio's synchronous server held one per such call, and 80 calls
-without a key or a message stopped health checks and every tenant's calls). Health checks and
+holds no thread (``bridge.py``: grpcio's synchronous server holds one per such call, so calls
+without a key or a message can stop health checks and every tenant's calls). Health checks and
 reflection are answered on the loop itself, so no number of busy or held threads stops them; the
 servicer's methods, synchronous, run on ``THREADS`` pool threads once their request is there.
 ``gate.Gate`` refuses a Matching call without a key before it is read and gives every unary call
@@ -62,7 +62,7 @@ OPTIONS = [
     ("grpc.keepalive_permit_without_calls", 1),
     # accept the clients' 30 s pings while a stream carries no data: by default the server wants
     # 5 min between them and, after two earlier ones, ends the connection with "too_many_pings",
-    # which killed WatchJob streams whenever one pair took over a minute (a loaded CPU, full size)
+    # which would end WatchJob streams whenever one pair takes over a minute (a loaded CPU, full size)
     ("grpc.http2.min_recv_ping_interval_without_data_ms", 20_000),
 ]
 

@@ -2,8 +2,8 @@
 
 FastAPI reads and parses a request's body (a multipart upload spooled to temporary files, a JSON
 document into memory) before it runs the route's dependencies, the API key check among them: a
-wrong key against a 1 GiB upload cost 1.2 GiB of temporary files before its 401, and a valid one
-got its 413 for a file over the per-file limit only once every byte was spooled. This ASGI
+wrong key against a large upload would cost its size in temporary files before its 401, and a valid
+one would get its 413 for a file over the per-file limit only once every byte is spooled. This ASGI
 middleware runs first, on the request head:
 
 - a ``/v1`` request that carries a body is authenticated here (``Service.authenticate``, in a

@@ -5,11 +5,11 @@
   client chose.
 - ``Cache-Control: no-store`` on ``/v1``: what it answers is a tenant's data, read with the
   tenant's key; no browser or proxy cache may keep a copy for whoever asks next. (The SSE stream
-  of a job is under it too: no-store keeps proxies from buffering it as well as no-cache did.)
+  of a job is under it too: no-store keeps proxies from buffering it, as no-cache does.)
 
 A plain ASGI middleware rather than ``@app.middleware("http")``: it only edits the headers of
 ``http.response.start`` and passes every body message through, so streamed responses (job events,
-model downloads) stream as before. The ``server`` banner is uvicorn's to drop
+model downloads) stream unchanged. The ``server`` banner is uvicorn's to drop
 (``server_header=False`` where the server is started, geomatch_app/cli.py).
 """
 

@@ -5,19 +5,19 @@ uvicorn's h11 protocol answers every request h11 refuses with 400 and closes the
 For a head over h11's limit (``h11_max_incomplete_event_size``, 16 KiB by default) that is two
 faults: h11 says 431 (``error_status_hint``) and uvicorn drops it, and the close comes while the
 client is still sending the rest of its head, so the kernel answers those bytes with a reset and
-the client sees the connection reset, not the answer (a 200 KB header did). This protocol sends
+the client sees the connection reset, not the answer. This protocol sends
 431, half-closes (no more from us) and reads and discards what the client still sends until it
 closes its side, ``LINGER_S`` passes, or ``LINGER_BYTES`` arrived, and only then closes: the
 "lingering close" of RFC 9112 section 9.6.
 
 h11's verdict decides between 431 and 400: it raises 431 only while a head is still incomplete past
 its limit. A complete head that does not parse (a bad header value) is 400 whatever follows it:
-the body bytes buffered behind it (> 16 KiB) once made it look like a head over the limit.
+the body bytes buffered behind it (over 16 KiB) must not make it look like a head over the limit.
 
 A request head must arrive within ``GEOMATCH_HEAD_TIMEOUT_S`` (10 s) of its first byte, or of the
 connection's opening: a connection that dribbles its head is answered 408 and closed (one that sent
-nothing at all is just closed), where uvicorn held it for as long as the client liked (a thousand
-slow heads were held until the file descriptors ran out). Once the head is in, the timer stops: a
+nothing at all is just closed), where uvicorn alone holds it for as long as the client likes, and
+enough slow heads use up the file descriptors. Once the head is in, the timer stops: a
 slow body and the app's answer have their own limits; an idle keep-alive connection is closed by
 uvicorn's keep-alive timeout (5 s), and its next request's first byte starts a new head timer.
 

@@ -175,7 +175,7 @@ class OutputUseCases(UseCases):
         if path.is_file():
             return path
         # waiting for a worker holds a thread of the API for up to render_timeout_s: a heavy slot.
-        # Without one, 45 waiting pictures of one tenant took every thread, /healthz included
+        # without one, a tenant's waiting pictures could take every thread, /healthz included
         try:
             with self.ctx.heavy.open(tenant_id):
                 out = self.ctx.queue.call(
