@@ -13,7 +13,7 @@ CUDA peak allocation (or the process's peak RSS on the CPU), and the device's na
 Each (size, method) runs in a fresh subprocess so its peaks are its own; the networks are loaded
 and run once on the first pair before timing (a worker loads them once), then the caches are
 emptied so feature extraction is timed as it happens in a job. On CUDA every stage ends with a
-synchronisation (``matcher._Timer``), so the shares are the device's work, not launch times.
+synchronisation (``matching.config.StageTimer``), so the shares are the device's work, not launch times.
 Default images: ../shared/data/real/sacre_coeur (10 photos, 45 pairs), else five package-shipped
 photos warped twice each (not a real project: no image is shared between pairs).
 """
@@ -67,14 +67,15 @@ def worker(args: argparse.Namespace) -> None:
 
     from geomatch import Matcher
     from geomatch.matching.matcher import config_from_options, resolve_device
+    from geomatch.matching.variants import light_matcher
 
     device = resolve_device(args.device)
     pairs = _load_pairs(args.images, args.pairs)
     method, options = parse_method(args.method)
     m = Matcher(config_from_options(method=method, resize=args.size, device=str(device), **options))
     m.match(*pairs[0])  # networks loaded and run once, not timed
-    # light_first's matcher is derived (Matcher.light) and extracts and caches on its own
-    light = m.light() if m.config.light_first else None
+    # light_first's matcher is derived (matching.variants.light_matcher) and extracts and caches on its own
+    light = light_matcher(m) if m.config.light_first else None
     m.clear_caches()
     m.extract_calls = 0
     if light is not None:

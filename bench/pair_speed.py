@@ -33,6 +33,7 @@ def worker(args: argparse.Namespace) -> None:
     import torch
 
     from geomatch import Matcher, MatcherConfig, read_image
+    from geomatch.matching.variants import for_pair
     from geomatch.synth.photos import warped_pair
 
     if args.images:
@@ -45,9 +46,9 @@ def worker(args: argparse.Namespace) -> None:
         return
     method, overrides = parse_method(args.method)
     # the pair as `geomatch run` matches a plain pair of a ground-only project: under auto, the
-    # light anchors (Matcher.for_pair); every other method is itself
-    m = Matcher(MatcherConfig(method=method, resize=args.size, device=args.device, **overrides)).for_pair(
-        tiled=False
+    # light anchors (matching.variants.for_pair); every other method is itself
+    m = for_pair(
+        Matcher(MatcherConfig(method=method, resize=args.size, device=args.device, **overrides)), tiled=False
     )
     m.match(a, b)  # load the networks (not timed: a worker loads them once)
     m.clear_caches()

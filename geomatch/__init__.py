@@ -12,10 +12,10 @@ from typing import Any
 _EXPORTS = {
     "ImageReadError": "imageio",
     "read_image": "imageio",
-    "METHODS": "matching.matcher",
+    "METHODS": "options",
     "Matcher": "matching.matcher",
-    "MatcherConfig": "matching.matcher",
-    "MatchResult": "matching.matcher",
+    "MatcherConfig": "matching.config",
+    "MatchResult": "matching.config",
     "match_pair": "matching.matcher",
     "GeoOptions": "matching.optimizer",
     "RefineOptions": "features.refine",

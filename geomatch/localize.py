@@ -251,10 +251,12 @@ class Localizer:
 
     def local_descriptors(self, image: np.ndarray) -> np.ndarray:
         if self._sparse is None:
+            from .matching.variants import for_pair
+
             # the plain pairs' own sparse matcher when they are matched by anchors alone (``auto``
             # on a ground project: fewer keypoints), so the photo's and the model images'
             # features serve retrieval and matching both, each extracted once
-            plain = self.matcher.for_pair(False, bool(self.aerial))
+            plain = for_pair(self.matcher, False, bool(self.aerial))
             self._sparse = plain if plain.config.method == "sparse" else self.matcher.derive(method="sparse")
         sparse = self._sparse
         feats = sparse.features(image)[sparse.config.sparse].sparse

@@ -20,6 +20,7 @@ from .matching.matcher import Matcher, MatchResult
 from .matching.probes import pair_turn, tiled_turn
 from .matching.rotation import points_back, quarter_turn
 from .matching.tiling import TiledMatches, five_crops, match_tiled
+from .matching.variants import for_pair
 from .sfm.colmapdb import ColmapDatabase, PairWrite
 from .sfm.pairs import Pair
 
@@ -79,10 +80,10 @@ MatchPair = Callable[[Matcher, Pair, np.ndarray, np.ndarray, bool, bool], PairMa
 
 def pair_matcher(matcher: Matcher, pair: Pair, aerial_project: bool = False, survey: bool = False) -> Matcher:
     """The matcher a planned pair is matched with: under ``auto`` the pair and whether its project
-    has aerial images decide the method (:meth:`Matcher.for_pair`)."""
+    has aerial images decide the method (:func:`geomatch.matching.variants.for_pair`)."""
     # two aerial photos of a survey (every image aerial): the guided matcher, turned or not yet
     aerial_pair = pair.rotate and not pair.tiled and (survey or pair.turns is not None)
-    return matcher.for_pair(pair.tiled, aerial_project, aerial_pair=aerial_pair)
+    return for_pair(matcher, pair.tiled, aerial_project, aerial_pair=aerial_pair)
 
 
 def match(

@@ -22,6 +22,7 @@ from .matching.matcher import Matcher
 from .matching.probes import TURN_SURE, TURN_SURE_SEED, turn_scores
 from .matching.rotation import PROBE_MARGIN, quarter_turn
 from .matching.turnhint import HINT_MIN_INLIERS, SiftHints, TurnHint
+from .matching.variants import for_pair
 from .metadata import ImageMeta
 from .options import DEFAULTS
 from .sfm import pairs as pairing
@@ -115,10 +116,10 @@ def plan(
             raw += PLANNERS[kind](inputs, k)
     planned = pairing.finalize(raw, aerial, tiling)
     # a survey (every image aerial) gets its turns once per image and its pairs the guided matcher;
-    # a project with ground images keeps the per-pair probe and geo (Matcher.for_pair)
+    # a project with ground images keeps the per-pair probe and geo (matching.variants.for_pair)
     if matcher is not None and aerial >= set(names) and any(p.rotate and not p.tiled for p in planned):
         # ranked as a plain pair of two aerial photos is first matched (auto: the guided seed)
-        probe = matcher.for_pair(tiled=False, aerial_project=True, aerial_pair=True)
+        probe = for_pair(matcher, tiled=False, aerial_project=True, aerial_pair=True)
         guided = probe.config.light_first and probe.config.guided_keypoints > 0
         turns = image_turns(
             planned,

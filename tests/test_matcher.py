@@ -7,6 +7,7 @@ import pytest
 
 from geomatch import METHODS, Matcher, match_pair
 from geomatch.eval.homography import reprojection_errors
+from geomatch.matching.variants import for_pair
 from geomatch.synth.photos import WarpedPair, warped_pair
 
 
@@ -64,8 +65,8 @@ def test_geo_answers_a_pair_with_strong_anchors_as_sparse_does(
     np.testing.assert_array_equal(strong.keypoints1, sparse.keypoints1)
     weak = geo.derive(anchors_suffice=len(sparse) + 1).match(a, b)
     assert "anchors_suffice" not in weak.stats and weak.stats["init"] == "anchors"
-    tiled = geo.for_pair(tiled=True)
-    assert tiled.config.anchors_suffice == 0 and geo.for_pair(tiled=False) is geo
+    tiled = for_pair(geo, tiled=True)
+    assert tiled.config.anchors_suffice == 0 and for_pair(geo, tiled=False) is geo
     assert "init" in tiled.match(a, b).stats
 
 
@@ -152,11 +153,11 @@ def test_lightglue_assignment_branch_and_pruning_settings(
     assert len(r) + r.stats.get("final_check_removed", 0) >= r.stats["anchors"]
     assert (err < 3).mean() > 0.97
     pruned = m.derive(lightglue_depth_confidence=0.95, lightglue_width_confidence=0.99)
-    assert pruned._anchors is not m._anchors
+    assert pruned.anchor_cache is not m.anchor_cache
     with pytest.raises(ValueError, match="lightglue_width_confidence=-1"):
         pruned.match(astronaut_pair.image0, astronaut_pair.image1)
     same = m.derive(method="sparse")
-    assert same._anchors is m._anchors
+    assert same.anchor_cache is m.anchor_cache
 
 
 @pytest.mark.unit

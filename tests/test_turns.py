@@ -14,6 +14,7 @@ from geomatch.eval.homography import reprojection_errors
 from geomatch.imagefolder import Images
 from geomatch.matching.matcher import MatcherConfig
 from geomatch.matching.rotation import quarter_turn
+from geomatch.matching.variants import for_pair
 from geomatch.planning import image_turns
 from geomatch.sfm.pairs import exhaustive, finalize, with_turns
 from geomatch.synth.photos import WarpedPair, warped_pair
@@ -62,7 +63,7 @@ def test_two_aerial_photos_of_a_survey_are_matched_guided_and_other_pairs_keep_g
     astronaut_pair: WarpedPair,
 ) -> None:
     auto = Matcher(MatcherConfig(method="auto", resize=480, device="cpu"))
-    aerial = auto.for_pair(tiled=False, aerial_project=True, aerial_pair=True)
+    aerial = for_pair(auto, tiled=False, aerial_project=True, aerial_pair=True)
     assert aerial.config.method == "geo" and aerial.config.light_first and aerial.config.guided_keypoints
     r = aerial.match(astronaut_pair.image0, astronaut_pair.image1)
     assert r.stats["anchors_suffice"] == "light" and r.stats["f_inliers"] >= aerial.config.anchors_suffice
@@ -78,5 +79,5 @@ def test_two_aerial_photos_of_a_survey_are_matched_guided_and_other_pairs_keep_g
     assert r.stats["f_inliers"] < aerial.config.anchors_suffice and "guided" not in r.stats
     assert "light" not in r.timings
     # any other pair of a project with aerial images keeps geo
-    ground = auto.for_pair(tiled=False, aerial_project=True, aerial_pair=False)
+    ground = for_pair(auto, tiled=False, aerial_project=True, aerial_pair=False)
     assert ground.config.method == "geo" and not ground.config.light_first

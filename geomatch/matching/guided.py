@@ -19,9 +19,18 @@ The (N, M) similarity and Sampson matrices are computed in row blocks bounded in
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 import torch
 
-from ..geometry import homogeneous
+from ..features.base import SparseFeatures
+from ..geometry import estimate_fundamental, homogeneous
+from ..imageio import image_key
+from .config import GUIDED_LIGHTGLUE_POINTS, GUIDED_RATIO, SEED_RATIO, MatchResult, StageTimer, pair_result
+
+if TYPE_CHECKING:
+    from .matcher import Matcher
 
 # rows of the (N, M) matrices computed at once, in bytes of float32 per matrix. On the CPU a block
 # small enough to stay in cache: the passes over it (similarity, Sampson gate, top two, column
@@ -87,3 +96,82 @@ def mutual_ratio(
         dup[order[1:]] = ib[order[1:]] == ib[order[:-1]]
         first = ~dup
     return ia[first], ib[first], s1[keep][first]
+
+
+def strongest(f: SparseFeatures | None, n: int) -> SparseFeatures:
+    """``f``'s ``n`` highest-scoring keypoints (all of them when there are no more)."""
+    assert f is not None
+    if f.keypoints.shape[0] <= n:
+        return f
+    idx = torch.topk(f.scores, n).indices
+    return SparseFeatures(f.keypoints[idx], f.descriptors[idx], f.scores[idx], f.image_size)
+
+
+def seed(
+    matcher: Matcher, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures, lightglue: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, int, str]:
+    """The guided matcher's seed: (inliers in A, inliers in B, F, how many, which seed): mutual
+    nearest neighbours with the ratio test, and where they fit fewer than ``anchors_suffice``
+    inliers (and ``lightglue``) LightGlue on each photo's 1024 strongest points, the better.
+    Only the F's inliers come back: on a weak pair they are its answer, and the rest (most of
+    the matches of photos that share little) cost COLMAP's verification its longest RANSAC."""
+    cfg = matcher.config
+
+    def fit(
+        pa: torch.Tensor, pb: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, int]:
+        F, mask = estimate_fundamental(pa, pb, cfg.geo.f_estimator, cfg.geo.f_threshold)
+        if mask is None:
+            return pa[:0], pb[:0], F, 0
+        return pa[mask], pb[mask], F, int(mask.sum())
+
+    ia, ib, _ = mutual_ratio(sa.descriptors, sb.descriptors, SEED_RATIO)
+    pa, pb, F, n = fit(sa.keypoints[ia].float(), sb.keypoints[ib].float())
+    if n >= cfg.anchors_suffice or not lightglue:
+        return pa, pb, F, n, "nn"
+    a, b = strongest(sa, GUIDED_LIGHTGLUE_POINTS), strongest(sb, GUIDED_LIGHTGLUE_POINTS)
+    lg = matcher.match_anchors(key0, key1, a, b)
+    qa, qb, F2, n2 = fit(a.keypoints[lg.idx_a].float(), b.keypoints[lg.idx_b].float())
+    return (qa, qb, F2, n2, "lightglue") if n2 > n else (pa, pb, F, n, "nn")
+
+
+@torch.inference_mode()
+def seed_inliers(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:
+    """The inliers of the mutual-nearest-neighbour seed's F alone (no LightGlue): a cheap,
+    sharp rank of a pair's quarter turns (a wrong turn fits a handful)."""
+    key0, key1 = image_key(image0), image_key(image1)
+    sa = matcher.features(image0, key0)[matcher.config.sparse].sparse
+    sb = matcher.features(image1, key1)[matcher.config.sparse].sparse
+    assert sa is not None and sb is not None
+    return seed(matcher, key0, key1, sa, sb, lightglue=False)[3]
+
+
+@torch.inference_mode()
+def match_guided(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> MatchResult:
+    """The pair by the two passes above: a seed F, then the matches its epipolar lines guide.
+    ``stats["f_inliers"]`` is the seed's: below ``anchors_suffice`` the seed's matches are the
+    answer (no guided pass), and the caller decides whether the full method runs."""
+    cfg = matcher.config
+    timer = StageTimer(matcher.device)
+    key0, key1 = image_key(image0), image_key(image1)
+    with timer("features0"):
+        sa = matcher.features(image0, key0)[cfg.sparse].sparse
+    with timer("features1"):
+        sb = matcher.features(image1, key1)[cfg.sparse].sparse
+    assert sa is not None and sb is not None
+    prep0, prep1 = matcher.prepared(image0, key0), matcher.prepared(image1, key1)
+    with timer("seed"):
+        pa, pb, F, n, how = seed(matcher, key0, key1, sa, sb, lightglue=True)
+    stats: dict[str, Any] = {"f_inliers": n, "seed": how}
+    if F is None or n < cfg.anchors_suffice:
+        return pair_result(cfg.method, pa, pb, torch.ones(pa.shape[0]), F, prep0, prep1, stats, timer)
+    with timer("guided"):
+        ia, ib, sim = mutual_ratio(
+            sa.descriptors, sb.descriptors, GUIDED_RATIO, (F, sa.keypoints, sb.keypoints, cfg.geo.tau)
+        )
+        ga, gb = sa.keypoints[ia].float(), sb.keypoints[ib].float()
+    with timer("merge"):
+        F_guided, _ = estimate_fundamental(ga, gb, cfg.geo.f_estimator, cfg.geo.f_threshold)
+    stats["guided"] = int(ia.numel())
+    F_out = F if F_guided is None else F_guided
+    return pair_result(cfg.method, ga, gb, sim, F_out, prep0, prep1, stats, timer)
