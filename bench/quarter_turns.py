@@ -6,9 +6,10 @@ Renders the scene of ``geomatch demo``, matches every aerial x aerial pair and e
 nadir image(s) with the ground views with ``sparse``, the second image turned by 0/90/180/270
 degrees counter-clockwise, maps its keypoints back and counts the matches within 3 px of the
 rendered truth (bench/synth_precision.correct). Shows why pairs with an aerial side are matched at
-their best quarter turn (geomatch/matching/rotation.py), and whether the cheap probe that picks the turn
-(``Matcher.probe_count``) picks the turn with the most right matches as often as the full-strength
-anchors do, at what cost per call. Each cell: full-strength matches (right ones) / probe matches.
+their best quarter turn (geomatch/matching/rotation.py), and whether the cheap probe that picks the
+turn (``matching.rotation.probe_count``) picks the turn with the most right matches as often as the
+full-strength anchors do, at what cost per call. Each cell: full-strength matches (right ones) /
+probe matches.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from common import print_table
 from synth_precision import correct
 
 from geomatch import Matcher, MatcherConfig
-from geomatch.matching.rotation import TURNS, points_back, quarter_turn
+from geomatch.matching.rotation import TURNS, points_back, probe_count, quarter_turn
 from geomatch.synth.aerial import Scene
 
 
@@ -57,7 +58,7 @@ def main() -> None:
             r = m.match(renders[a][0], turned)
             seconds["full"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            probe.append(m.probe_count(renders[a][0], turned))
+            probe.append(probe_count(m, renders[a][0], turned))
             seconds["probe"] += time.perf_counter() - t0
             k1 = points_back(r.keypoints1, t, img_b.shape[1], img_b.shape[0])
             ok = correct(cams[a], renders[a][1], cams[b], renders[b][1], r.keypoints0, k1, 3.0)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ from .geo.gps import GpsFixes
 from .imagefolder import Images
 from .matching.matcher import Matcher
 from .matching.probes import TURN_SURE, TURN_SURE_SEED, turn_scores
-from .matching.rotation import PROBE_MARGIN, quarter_turn
+from .matching.rotation import PROBE_MARGIN, quarter_turn, turn_score
 from .matching.turnhint import HINT_MIN_INLIERS, SiftHints, TurnHint
 from .matching.variants import for_pair
 from .metadata import ImageMeta
@@ -123,7 +124,7 @@ def plan(
         guided = probe.config.light_first and probe.config.guided_keypoints > 0
         turns = image_turns(
             planned,
-            probe.turn_score,
+            partial(turn_score, probe),
             images or Images(image_dir),
             gps_enu,
             progress,
@@ -154,8 +155,8 @@ def image_turns(
 ) -> dict[str, int]:
     """Each aerial photo's quarter turn (np.rot90) into one frame for the project, decided once
     per image instead of once per pair: the image with the most planned partners is the frame;
-    every other one is scored (``score``: Matcher.turn_score) at the four turns against its nearest
-    partners already decided (the photo taken before or after it, else by GPS distance). A pair
+    every other one is scored (``score``: matching.rotation.turn_score) at the four turns against
+    its nearest partners already decided (the photo taken before or after it, else by GPS distance). A pair
     then matches with each image at its own turn (one turned copy per image, so features once),
     unprobed. An image whose probes do not settle keeps the per-pair probe on its pairs. With
     ``hint`` (SiftHints.hint: rotation-invariant, one cheap extraction per photo) a pair the hint

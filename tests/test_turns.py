@@ -3,6 +3,7 @@ anchors first: the two things that make a drone survey cost what a ground projec
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from geomatch import Matcher
 from geomatch.eval.homography import reprojection_errors
 from geomatch.imagefolder import Images
 from geomatch.matching.matcher import MatcherConfig
-from geomatch.matching.rotation import quarter_turn
+from geomatch.matching.rotation import anchor_count, quarter_turn
 from geomatch.matching.variants import for_pair
 from geomatch.planning import image_turns
 from geomatch.sfm.pairs import exhaustive, finalize, with_turns
@@ -34,7 +35,7 @@ def test_each_image_gets_its_turn_once_and_pairs_their_relative_turn(
         Image.fromarray(img).save(tmp_path / name)
     plan = finalize(exhaustive(sorted(shots)), set(shots))
     light = matcher.derive(method="sparse", max_keypoints=1024)
-    turns = image_turns(plan, light.anchor_count, Images(tmp_path), {})
+    turns = image_turns(plan, partial(anchor_count, light), Images(tmp_path), {})
     # into a's frame: b was turned once, three more make four; c twice, two more
     assert turns == {"a.png": 0, "b.png": 3, "c.png": 2}
     turned = {p.key: p.turns for p in with_turns(plan, turns)}
@@ -53,7 +54,7 @@ def test_an_image_whose_probes_find_nothing_keeps_the_per_pair_probe(
         Image.fromarray(img).save(tmp_path / name)
     plan = finalize(exhaustive(["a.png", "n.png"]), {"a.png", "n.png"})
     turns = image_turns(
-        plan, matcher.derive(method="sparse", max_keypoints=1024).anchor_count, Images(tmp_path), {}
+        plan, partial(anchor_count, matcher.derive(method="sparse", max_keypoints=1024)), Images(tmp_path), {}
     )
     assert turns == {"a.png": 0}
     assert with_turns(plan, turns)[0].turns is None

@@ -1,6 +1,7 @@
 """The dense branch of one pair, on the network inputs' pixels: candidate cells, matched by mutual
 nearest neighbours or by the geometry-aware rounds (geomatch.matching.optimizer), then refined
-where the cells are coarser than the keypoints."""
+where the cells are coarser than the keypoints; and the merge of the anchors and the dense matches
+into one set without duplicates (:func:`merge_parts`)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import torch
 
 from ..features.base import DenseHead, ImageFeatures, SparseFeatures, SparseMatch
 from .config import MatcherConfig, StageTimer
-from .optimizer import Assignment, dense_mutual_nn, geometry_aware_matching, mutual_nn, optimise
+from .optimizer import Assignment, dense_mutual_nn, first_unique, geometry_aware_matching, mutual_nn, optimise
 
 
 def from_maps(
@@ -90,3 +91,26 @@ def from_assignment(
             )
     stats["coarse_matches"] = int(ci.numel())
     return ga[ci], gb[cj], conf.float()
+
+
+def merge_parts(
+    parts_a: list[torch.Tensor],
+    parts_b: list[torch.Tensor],
+    parts_s: list[torch.Tensor],
+    radius: float,
+    device: torch.device,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Concatenate in priority order; a later match whose point in A or in B falls in an
+    already-used ``radius`` cell is a duplicate of an earlier one and is dropped."""
+    if not parts_a:
+        z = torch.zeros(0, 2, device=device)
+        return z, z.clone(), torch.zeros(0, device=device)
+    pa, pb, ps = torch.cat(parts_a), torch.cat(parts_b), torch.cat(parts_s)
+    if len(parts_a) == 1 or radius <= 0 or pa.shape[0] == 0:
+        return pa, pb, ps
+    keep = torch.arange(pa.shape[0], device=pa.device)
+    for pts in (pa, pb):
+        q = torch.floor(pts[keep] / radius).long()
+        _, first = first_unique(q[:, 0] * 1_000_003 + q[:, 1])
+        keep = keep[torch.sort(first).values]
+    return pa[keep], pb[keep], ps[keep]

@@ -32,9 +32,7 @@ from ..features.subpixel import refine_points
 from ..geometry import estimate_fundamental, sampson_distance
 from ..imageio import Prepared, image_key, prepare, read_image
 from .config import (
-    AUTO_PLAIN_PAIRS,
     DEDUP_RADIUS,
-    GUIDED_KEYPOINTS,
     MatcherConfig,
     MatchResult,
     StageTimer,
@@ -42,15 +40,12 @@ from .config import (
     pair_result,
     resolve_device,
 )
-from .dense import from_assignment, from_maps
+from .dense import from_assignment, from_maps, merge_parts
 from .featurecache import AnchorCache, FeatureCache, feature_key
-from .guided import match_guided, seed_inliers, strongest
-from .optimizer import first_unique
+from .guided import match_guided
 from .variants import for_pair, full_matcher, light_matcher
 
 __all__ = [
-    "AUTO_PLAIN_PAIRS",
-    "GUIDED_KEYPOINTS",
     "MatchResult",
     "Matcher",
     "MatcherConfig",
@@ -104,29 +99,20 @@ class Matcher:
         own options are unchanged.
         """
         other = Matcher(self.config, **overrides)
-        a, b = self.config, other.config
-        if other.device != self.device or (a.max_keypoints, a.loftr_weights) != (
-            b.max_keypoints,
-            b.loftr_weights,
-        ):
+
+        def same(*names: str) -> bool:
+            return all(getattr(self.config, n) == getattr(other.config, n) for n in names)
+
+        if other.device != self.device or not same("max_keypoints", "loftr_weights"):
             return other  # networks built differently: nothing to share
         other._extractors = self._extractors
         other.feature_cache = self.feature_cache
-        if (a.sparse, a.lightglue_threshold) == (b.sparse, b.lightglue_threshold):
+        if same("sparse", "lightglue_threshold"):
             other._probe = self._probe
-
-        def lightglue(c: MatcherConfig) -> tuple[object, ...]:
-            return (
-                c.sparse,
-                c.lightglue_threshold,
-                c.lightglue_depth_confidence,
-                c.lightglue_width_confidence,
-            )
-
-        if lightglue(a) == lightglue(b):
+        if same("sparse", "lightglue_threshold", "lightglue_depth_confidence", "lightglue_width_confidence"):
             other._sparse = self._sparse
             other.anchor_cache = self.anchor_cache
-            if a.dense_keypoints == b.dense_keypoints:
+            if same("dense_keypoints"):
                 other._dense_lightglue = self._dense_lightglue
         return other
 
@@ -243,46 +229,6 @@ class Matcher:
             ak,
             lambda: (self.dense_lightglue if dense else self.sparse_matcher).match(sa, sb),
             self.config.cache_anchors_mb,
-        )
-
-    # -- quarter-turn probes (geomatch.matching.probes, rotation) ------------------------------
-    def turn_score(self, image0: np.ndarray, image1: np.ndarray) -> int:
-        """How well ``image1`` matches ``image0`` as given, to rank quarter turns: the guided
-        matcher's seed F inliers (geomatch.matching.guided.seed_inliers) where this matcher
-        guides, else the LightGlue matches (:meth:`anchor_count`)."""
-        if self.config.light_first and self.config.guided_keypoints:
-            return seed_inliers(light_matcher(self), image0, image1)
-        return self.anchor_count(image0, image1)
-
-    @torch.inference_mode()
-    def anchor_count(self, image0: np.ndarray, image1: np.ndarray) -> int:
-        """How many matches LightGlue alone finds (features and result cached like the anchors, so
-        a later :meth:`match` of the same pair reuses them): how a quarter-turn probe ranks turns."""
-        probe = self if self.config.method == "sparse" else self.derive(method="sparse")
-        key0, key1 = image_key(image0), image_key(image1)
-        sa = probe.features(image0, key0)[self.config.sparse].sparse
-        sb = probe.features(image1, key1)[self.config.sparse].sparse
-        assert sa is not None and sb is not None
-        return int(probe.match_anchors(key0, key1, sa, sb).idx_a.numel())
-
-    def probe_count(self, image0: np.ndarray, image1: np.ndarray) -> int:
-        """LightGlue matches among each image's ``probe_keypoints`` strongest keypoints, pruned: a
-        cheap rank of the quarter turns. Only the sparse features are extracted (a turned image the
-        probe rejects never gets dense maps); nothing is cached beyond those features."""
-        return int(self.probe_points(image0, image1)[0].shape[0])
-
-    @torch.inference_mode()
-    def probe_points(self, image0: np.ndarray, image1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The cheap probe's matches (see :meth:`probe_count`) in each image's original pixels:
-        where two images overlap, at a fraction of a full-strength LightGlue call's cost."""
-        probe = self if self.config.method == "sparse" else self.derive(method="sparse")
-        key0, key1 = image_key(image0), image_key(image1)
-        sa = strongest(probe.features(image0, key0)[self.config.sparse].sparse, self.config.probe_keypoints)
-        sb = strongest(probe.features(image1, key1)[self.config.sparse].sparse, self.config.probe_keypoints)
-        m = self.probe_matcher.match(sa, sb)
-        return (
-            probe.prepared(image0, key0).to_original(sa.keypoints[m.idx_a].float()),
-            probe.prepared(image1, key1).to_original(sb.keypoints[m.idx_b].float()),
         )
 
     # -- one pair, by the paper's steps ------------------------------------------------------
@@ -466,29 +412,6 @@ def _anchor_fit(anchors: Anchors, cfg: MatcherConfig) -> tuple[torch.Tensor | No
         return None, 0
     F, mask = estimate_fundamental(anchors[0], anchors[1], cfg.geo.f_estimator, cfg.geo.f_threshold)
     return F, 0 if mask is None else int(mask.sum())
-
-
-def merge_parts(
-    parts_a: list[torch.Tensor],
-    parts_b: list[torch.Tensor],
-    parts_s: list[torch.Tensor],
-    radius: float,
-    device: torch.device,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Concatenate in priority order; a later match whose point in A or in B falls in an
-    already-used ``radius`` cell is a duplicate of an earlier one and is dropped."""
-    if not parts_a:
-        z = torch.zeros(0, 2, device=device)
-        return z, z.clone(), torch.zeros(0, device=device)
-    pa, pb, ps = torch.cat(parts_a), torch.cat(parts_b), torch.cat(parts_s)
-    if len(parts_a) == 1 or radius <= 0 or pa.shape[0] == 0:
-        return pa, pb, ps
-    keep = torch.arange(pa.shape[0], device=pa.device)
-    for pts in (pa, pb):
-        q = torch.floor(pts[keep] / radius).long()
-        _, first = first_unique(q[:, 0] * 1_000_003 + q[:, 1])
-        keep = keep[torch.sort(first).values]
-    return pa[keep], pb[keep], ps[keep]
 
 
 _DEFAULT_MATCHERS: dict[MatcherConfig, Matcher] = {}

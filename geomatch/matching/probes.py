@@ -6,6 +6,7 @@ tiled pair matches (:func:`tile_crops`)."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 import torch
@@ -13,7 +14,7 @@ import torch
 from ..geometry import estimate_fundamental
 from ..imageio import snap_radius
 from .matcher import Matcher
-from .rotation import best_turn, quarter_turn
+from .rotation import best_turn, probe_points, quarter_turn, turn_score
 from .tiling import SELECT_MIN_PROBE, Crop, five_crops, select_crops
 
 # a turn is sure when it scores at least TURN_SURE LightGlue matches (a wrong turn gets 10-75 on
@@ -44,12 +45,12 @@ def turn_scores(
 
 def pair_turn(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:
     """The quarter turn of ``image1`` for a pair the plan left undecided: scored as the plan
-    scores an image's turn (Matcher.turn_score; upright first, then the half turn, stopping at a
+    scores an image's turn (rotation.turn_score; upright first, then the half turn, stopping at a
     sure score) where the matcher guides, else rotation.best_turn. The guided seed costs ~0.2 s a
     turn; best_turn's full-strength LightGlue calls cost ~12 s a pair on caliterra's photos."""
     if not (matcher.config.light_first and matcher.config.guided_keypoints):
         return best_turn(matcher, image0, image1)
-    return int(np.argmax(turn_scores(matcher.turn_score, image0, image1, 0, TURN_SURE_SEED)))
+    return int(np.argmax(turn_scores(partial(turn_score, matcher), image0, image1, 0, TURN_SURE_SEED)))
 
 
 # the probe's matches that select a tiled pair's crops must agree with one F within this many
@@ -83,7 +84,7 @@ def crop_probe_points(matcher: Matcher, aerial: np.ndarray, other: np.ndarray) -
     """
     h, w = aerial.shape[:2]
     crops = five_crops(w, h)
-    found = [matcher.probe_points(c.cut(aerial), other) for c in crops]
+    found = [probe_points(matcher, c.cut(aerial), other) for c in crops]
     pa = np.concatenate([c.to_full(f[0]) for c, f in zip(crops, found, strict=True)])
     po = np.concatenate([f[1] for f in found])
     if len(pa) < SELECT_MIN_PROBE:

@@ -7,19 +7,28 @@ matches, nearly all right. Without those pairs the aerial images have no correct
 model (docs/pipeline.md, "Quarter turns"; figures in docs/benchmarks.md, "Quarter turns").
 
 So for a pair with an aerial side, one image is tried at the four quarter turns with a cheap
-LightGlue pass (``Matcher.probe_count``: each image's 512 strongest keypoints, LightGlue's adaptive
-depth and width on); when its best turn is not clear-cut (``PROBE_MARGIN``) the four turns are
-ranked again by the full-strength anchors; the pair is matched at the turn that gives the most.
-Keypoints come back in the image's own frame. Why a cheap probe first: the full-strength anchors
-alone would be four full LightGlue calls per pair, on the CPU half of a tiled pair's time.
+LightGlue pass (:func:`probe_count`: each image's ``probe_keypoints`` strongest keypoints,
+LightGlue's adaptive depth and width on); when its best turn is not clear-cut (``PROBE_MARGIN``)
+the four turns are ranked again by the full-strength anchors; the pair is matched at the turn that
+gives the most. Keypoints come back in the image's own frame. Why a cheap probe first: the
+full-strength anchors alone would be four full LightGlue calls per pair, on the CPU half of a tiled
+pair's time.
 """
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+import torch
+
+from ..imageio import image_key
+from .guided import seed_inliers, strongest
+from .variants import light_matcher
+
+if TYPE_CHECKING:
+    from .matcher import Matcher
 
 TURNS = (0, 1, 2, 3)  # counter-clockwise quarter turns, as np.rot90
 
@@ -29,12 +38,6 @@ TURNS = (0, 1, 2, 3)  # counter-clockwise quarter turns, as np.rot90
 # the probe and the anchors disagree, the probe's margin is small; at this margin they agree
 # (docs/pipeline.md, "Quarter turns")
 PROBE_MARGIN = 2.0
-
-
-class _Matcher(Protocol):
-    def probe_count(self, image0: np.ndarray, image1: np.ndarray) -> int: ...
-
-    def anchor_count(self, image0: np.ndarray, image1: np.ndarray) -> int: ...
 
 
 # np.rot90's k -> OpenCV's code for the same turn
@@ -68,13 +71,57 @@ def points_back(points: np.ndarray, turns: int, width: int, height: int) -> np.n
     return out.astype(np.asarray(points).dtype, copy=False)
 
 
-def best_turn(matcher: _Matcher, fixed: np.ndarray, moving: np.ndarray) -> int:
+def turn_score(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:
+    """How well ``image1`` matches ``image0`` as given, to rank quarter turns: the guided
+    matcher's seed F inliers (geomatch.matching.guided.seed_inliers) where ``matcher`` guides,
+    else the LightGlue matches (:func:`anchor_count`)."""
+    if matcher.config.light_first and matcher.config.guided_keypoints:
+        return seed_inliers(light_matcher(matcher), image0, image1)
+    return anchor_count(matcher, image0, image1)
+
+
+@torch.inference_mode()
+def anchor_count(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:
+    """How many matches LightGlue alone finds (features and result cached like the anchors, so
+    a later match of the same pair reuses them): how a quarter-turn probe ranks turns."""
+    probe = matcher if matcher.config.method == "sparse" else matcher.derive(method="sparse")
+    key0, key1 = image_key(image0), image_key(image1)
+    sa = probe.features(image0, key0)[matcher.config.sparse].sparse
+    sb = probe.features(image1, key1)[matcher.config.sparse].sparse
+    assert sa is not None and sb is not None
+    return int(probe.match_anchors(key0, key1, sa, sb).idx_a.numel())
+
+
+def probe_count(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:
+    """LightGlue matches among each image's ``probe_keypoints`` strongest keypoints, pruned: a
+    cheap rank of the quarter turns. Only the sparse features are extracted (a turned image the
+    probe rejects never gets dense maps); nothing is cached beyond those features."""
+    return int(probe_points(matcher, image0, image1)[0].shape[0])
+
+
+@torch.inference_mode()
+def probe_points(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cheap probe's matches (see :func:`probe_count`) in each image's original pixels:
+    where two images overlap, at a fraction of a full-strength LightGlue call's cost."""
+    cfg = matcher.config
+    probe = matcher if cfg.method == "sparse" else matcher.derive(method="sparse")
+    key0, key1 = image_key(image0), image_key(image1)
+    sa = strongest(probe.features(image0, key0)[cfg.sparse].sparse, cfg.probe_keypoints)
+    sb = strongest(probe.features(image1, key1)[cfg.sparse].sparse, cfg.probe_keypoints)
+    m = matcher.probe_matcher.match(sa, sb)
+    return (
+        probe.prepared(image0, key0).to_original(sa.keypoints[m.idx_a].float()),
+        probe.prepared(image1, key1).to_original(sb.keypoints[m.idx_b].float()),
+    )
+
+
+def best_turn(matcher: Matcher, fixed: np.ndarray, moving: np.ndarray) -> int:
     """The quarter turn of ``moving`` that gives the most matches against ``fixed`` (ties: fewer
     turns, so an upright pair stays upright): by the cheap probe when it is clear-cut, else by the
     full-strength anchors (cached, so the chosen turn's are reused by the match)."""
-    counts = [matcher.probe_count(fixed, quarter_turn(moving, t)) for t in TURNS]
+    counts = [probe_count(matcher, fixed, quarter_turn(moving, t)) for t in TURNS]
     best, runner_up = sorted(counts, reverse=True)[:2]
     if best >= PROBE_MARGIN * max(runner_up, 1):
         return int(np.argmax(counts))
-    counts = [matcher.anchor_count(fixed, quarter_turn(moving, t)) for t in TURNS]
+    counts = [anchor_count(matcher, fixed, quarter_turn(moving, t)) for t in TURNS]
     return int(np.argmax(counts))
