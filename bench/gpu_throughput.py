@@ -36,7 +36,7 @@ DEFAULT_SET = HERE.parent.parent / "shared" / "data" / "real" / "sacre_coeur"
 STAGES: dict[str, tuple[str, ...]] = {
     "features": ("features0", "features1"),
     "LightGlue": ("anchors", "dense_lightglue"),
-    "guided NN": ("seed", "guided"),  # a survey pair's seed F and guided pass (Matcher.match_guided)
+    "guided NN": ("seed", "guided"),  # a survey pair's seed F and guided pass (matching.guided.match_guided)
     "dense coarse": ("dense_coarse",),
     "optimizer": ("optimizer",),
     "refine": ("refine", "subpixel"),

@@ -30,9 +30,8 @@ def unmatched(db: ColmapDatabase, ids: Mapping[str, int], planned: Sequence[Pair
 
 # a tiled pair verified with fewer inliers is written without a geometry (matches kept, nothing
 # for the mapper): an aerial image's crops against a street photo find a few dozen coherent wrong
-# matches where the two share nothing (real drone x street pairs: 19-31 F-inliers, wrong by eye;
-# synthetic scenes: 23-68), while tiled pairs that are right have had 77 and more (one right pair
-# with 48 had 44 % of them wrong). COLMAP's own floor, 15, is for detector matches of plain pairs
+# matches where the two share nothing, while right tiled pairs verify with more (the counts behind
+# the bound: docs/benchmarks.md). COLMAP's own floor, 15, is for detector matches of plain pairs
 TILED_MIN_INLIERS = 60
 
 

@@ -15,7 +15,7 @@ Methods are rows of flags (:data:`METHOD_TABLE`), the paper's ablations:
 ``auto``          what benchmarks best for the project's kind: ``geo`` for every pair of a project
                   with aerial images (the synthetic air-to-ground scenes), lighter anchors for a
                   ground-only project (real ground photos, docs/benchmarks.md). Its row carries
-                  the anchors' flags; ``Matcher.for_pair`` picks the method per pair.
+                  the anchors' flags; ``matching.variants.for_pair`` picks the method per pair.
 """
 
 from __future__ import annotations

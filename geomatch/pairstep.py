@@ -30,8 +30,8 @@ def extract(matcher: Matcher, image: np.ndarray, full: bool = True, crops: bool 
     pair); returns how many entries that was. With a ``StoredFeaturesMatcher``
     (geomatch.matching.stored) the image's land on disk for every later task. With
     ``tile_crops="probe"`` a crop gets its sparse features only, in memory (what the crop probe
-    needs, ~0.5 s each at 640 px): its dense maps, ~1.4 s and ~90 MB each, are made by the pair
-    step for the crops the probe chooses."""
+    needs, and cheap): its dense maps, several times dearer in time and memory, are made by the
+    pair step for the crops the probe chooses."""
     n = 0
     if full:
         matcher.features(image)

@@ -164,10 +164,9 @@ def image_turns(
     reads from the pair is scored first: the score still decides.
 
     Why not the photos' own headings (DJI XMP gimbal yaw, or the direction of travel between
-    GPS fixes): on the real surveys they do not say how the pixels are turned. brighton_beach's
-    XMP says its return lines were flown 180 deg round, but their photos are not turned at all
-    (112 F-inliers at no turn, 9 at a half turn); caliterra's return lines are turned by a half
-    turn on some pairs and a quarter turn on others (the camera yaws against the track)."""
+    GPS fixes): on real surveys they do not say how the pixels are turned. A return line flown
+    180 deg round can hold photos that are not turned at all, and a camera that yaws against the
+    track turns some pairs by a half turn and others by a quarter (docs/benchmarks.md)."""
     partners: dict[str, list[Pair]] = {}
     for p in planned:
         if p.rotate and not p.tiled:

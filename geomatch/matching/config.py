@@ -32,10 +32,9 @@ def resolve_device(name: str = "auto") -> torch.device:
     return device
 
 
-# ``auto``'s pairs in a project without aerial images: 1024 keypoints and LightGlue's adaptive depth and
-# width. On the real tuning scenes this kept every camera correct, with camera errors close to those
-# of 2048 keypoints with the same pruning, while LightGlue ran 2.7x faster (5.7x faster than 2048
-# at full strength) on the CPU, where it is most of a project's time (docs/benchmarks.md)
+# ``auto``'s pairs in a project without aerial images: 1024 keypoints and LightGlue's adaptive depth
+# and width. On the real tuning scenes the cameras come out as with 2048 keypoints, while LightGlue,
+# most of a project's time on the CPU, runs several times faster (docs/benchmarks.md)
 AUTO_PLAIN_PAIRS: dict[str, Any] = {
     "max_keypoints": 1024,
     "lightglue_depth_confidence": 0.95,
@@ -71,10 +70,10 @@ class MatcherConfig:
     # the ``lightglue`` dense branch needs. Chosen by measurement: docs/benchmarks.md.
     lightglue_depth_confidence: float = -1.0
     lightglue_width_confidence: float = -1.0
-    # the quarter-turn probe (geomatch.matching.rotation) only ranks four turns, so it matches each image's
-    # strongest ``probe_keypoints`` with LightGlue's adaptive depth and width on: on the 2-core CPU
-    # a full-strength call on 2048 + 2048 points takes ~8 s, four of them per pair dominated an
-    # aerial pair (bench/quarter_turns.py compares the two probes' choices)
+    # the quarter-turn probe (geomatch.matching.rotation) only ranks four turns, so it matches each
+    # image's strongest ``probe_keypoints`` with LightGlue's adaptive depth and width on: four
+    # full-strength calls per pair would dominate an aerial pair on the CPU (bench/quarter_turns.py
+    # compares the two probes' choices; costs in docs/benchmarks.md)
     probe_keypoints: int = 512
     # a tiled pair (geomatch.matching.tiling): "probe" matches only the aerial crops where the cheap probe's
     # F-consistent matches lie (all five when it finds too few to tell), "all" the five crops
@@ -90,30 +89,28 @@ class MatcherConfig:
     min_anchor_support: int = 15
     # geo: a pair whose anchors alone fit an F with at least this many inliers is answered by the
     # anchors, as ``sparse`` would answer it (no dense rounds, no least-squares matching); 0: the
-    # full method on every pair. The rounds are for pairs whose anchors are too few to trust.
-    # Measured on real photos with the view-graph drops held fixed (castle-P19): rounds on the
-    # pairs with 50-299 anchor inliers cost 0.07 AUC@10, and most of those pairs are look-alike
-    # facades to which the rounds add ~20 % more matches under their wrong F; from 50 down they cost
-    # 0.01. Tiled aerial x ground pairs always get the full method (Matcher.for_pair): that is where
-    # it was measured to register views the anchors lose.
+    # full method on every pair. The rounds are for pairs whose anchors are too few to trust: on
+    # pairs with many anchor inliers, often look-alike facades, they add matches under a wrong F and
+    # cost pose accuracy (docs/benchmarks.md). Tiled aerial x ground pairs always get the full
+    # method (matching.variants.for_pair): there it registers views the anchors lose.
     anchors_suffice: int = 50
     # geo: try the light anchors (``sparse`` with AUTO_PLAIN_PAIRS, what a ground-only project's
     # pairs get) first, and answer with them when they fit an F with at least ``anchors_suffice``
     # inliers; only a pair they leave weak pays for full-strength anchors and the dense rounds.
-    # ``auto`` sets it on the plain pairs of a project with aerial images (Matcher.for_pair)
+    # ``auto`` sets it on the plain pairs of a project with aerial images (matching.variants.for_pair)
     light_first: bool = False
     # light_first: a pair whose light anchors fit fewer inliers than this keeps the light answer
     # (0: every weak pair gets the full method). ``auto`` sets it to ``anchors_suffice`` on pairs of
-    # two aerial photos, which then never escalate: on brighton_beach half the exhaustive plan's
-    # pairs (77 of 153) seed 15-49 inliers, photos that barely share ground, and the full method
-    # cost 3.3 s on each (8x a guided pair) for 0-100 matches the model did not need
+    # two aerial photos, which then never escalate: a survey's weak pairs are photos that barely
+    # share ground, where the full method costs several guided pairs' time for matches the model
+    # does not need (docs/benchmarks.md)
     escalate_from: int = 0
     # light_first on pairs of two aerial photos: instead of LightGlue on 1024 points, this many
     # ALIKED points per photo matched by mutual nearest neighbours, a robust F, and the matches
     # that F's epipolar lines guide (geomatch.matching.guided); 0: LightGlue's light anchors
     guided_keypoints: int = 0
-    # least-squares matching of the final points in B (geomatch.features.subpixel): "auto" does it for the
-    # methods that optimise (the paper's refinement stage, anchors included), "lsm" for any
+    # least-squares matching of the final points in B (geomatch.features.subpixel): "auto" does it for
+    # the methods that optimise (the paper's refinement stage, anchors included), "lsm" for any
     # method, "off" never
     subpixel: str = "auto"
     # recent images' features (dense maps included: a 640 px DISK fine map alone is ~150 MB), LRU,

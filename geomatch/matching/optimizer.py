@@ -51,7 +51,7 @@ class GeoOptions:
     f_threshold_coarse: float = 3.0  # px, MAGSAC threshold on coarse cell centres (~sqrt(tau))
     memory_budget_mb: float = DEFAULTS["memory_budget_mb"]  # working memory of one streamed block
     candidates_per_line: int = 32  # entries kept per row and per column of the confidence matrix
-    # Anchored rounds (this project's reading; False restores the paper's rule: F refitted on the
+    # Anchored rounds (this project's reading; False is the paper's rule: F refitted on the
     # round's mutual-NN cells alone and always accepted). With anchors, a round's F is refitted on
     # the anchors' inliers and the round's matches jointly, and accepted only while the anchors'
     # truncated Sampson cost stays within (1 + anchor_slack) of the anchors' own fit: bad coarse

@@ -46,8 +46,8 @@ def turn_scores(
 def pair_turn(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:
     """The quarter turn of ``image1`` for a pair the plan left undecided: scored as the plan
     scores an image's turn (rotation.turn_score; upright first, then the half turn, stopping at a
-    sure score) where the matcher guides, else rotation.best_turn. The guided seed costs ~0.2 s a
-    turn; best_turn's full-strength LightGlue calls cost ~12 s a pair on caliterra's photos."""
+    sure score) where the matcher guides, else rotation.best_turn: the guided seed costs a small
+    fraction of best_turn's full-strength LightGlue calls (docs/benchmarks.md)."""
     if not (matcher.config.light_first and matcher.config.guided_keypoints):
         return best_turn(matcher, image0, image1)
     return int(np.argmax(turn_scores(partial(turn_score, matcher), image0, image1, 0, TURN_SURE_SEED)))
@@ -64,9 +64,9 @@ def tiled_turn(
     """A tiled pair's quarter turn of the aerial image (rotation.best_turn, on the whole images)
     and the crops of the turned image to match (:func:`tile_crops`).
 
-    Ranking the turns by the crop probe instead was measured and dropped: on the demo scene it
-    was not clear-cut where the whole-image probe was not either (so it only added ~15 s of crop
-    features to those pairs) and once chose another turn than the anchors.
+    The turns are ranked on the whole images, not by the crop probe: where the whole-image probe
+    is not clear-cut the crop probe is not either, so it would only add crop features to those
+    pairs (docs/benchmarks.md).
     """
     turn = best_turn(matcher, other, aerial) if rotate else 0
     return turn, tile_crops(matcher, quarter_turn(aerial, turn), other)

@@ -2,33 +2,22 @@
 the loops of pairs around them.
 
 Why: a pair can pass two-view verification with a geometrically consistent but wrong set of
-matches (repeated facades and tiles, a wrong quarter turn of an aerial image). In the demo scene
-7 of 18 tiled aerial x ground pairs were verified with 36-102 inliers of which almost none were
-right, and the incremental mapper placed an aerial camera 132 deg off from them. One pair carries
-no evidence against itself; the graph does: for three images i, j, k with all three pairs verified,
-the relative rotations must compose, R_ik = R_jk R_ij. A wrong pair breaks every loop it is in,
-a right one only the loops that contain a wrong pair. The check (as 1DSfM and GLOMAP filter view
-graphs by loop consistency) removes, one at a time, the pair with the largest share of broken
-loops while more of its loops are broken than hold, then recounts. A pair in no loop is kept, and so
-are an image's last two pairs (``MIN_PAIRS``). A pair with a single broken loop is dropped only when
-it has the fewest inliers of that loop: two broken loops through one pair share no other pair, so
-they point at it, but one broken loop does not say which of its three pairs is wrong (on the e2e
-scene, seed 1, a right aerial x ground pair with 411 inliers went for a 68-inlier pair's error and
-its aerial camera was left out).
+matches (repeated facades and tiles, a wrong quarter turn of an aerial image), and one pair
+carries no evidence against itself; the graph does. For three images i, j, k with all three pairs
+verified the relative rotations compose, R_ik = R_jk R_ij: a wrong pair breaks every loop it is
+in, a right one only the loops that contain a wrong pair. The loop check (as 1DSfM and GLOMAP
+filter view graphs) removes, one at a time, the pair with the largest share of broken loops while
+more of its loops are broken than hold. A pair in no loop is kept, and so are an image's last
+``MIN_PAIRS`` pairs; a pair with a single broken loop is dropped only when it has the fewest
+inliers of that loop, since one broken loop does not say which of its three pairs is wrong.
 
-Triangles are not enough where the scene repeats: non-overlapping views of look-alike facades
-match each other *consistently* (on a 19-photo courtyard, 76 of 171 verified pairs were such
-pairs, with up to 240 LightGlue inliers, and three of them close every triangle they are in), so
-the loops they form hold. What they cannot do is agree with the chain of the strongest pairs,
-the overlapping neighbours with a thousand inliers each. Hence the tree check
-(:func:`tree_inconsistent_pairs`): the maximum spanning tree of the verified pairs by inlier
-count gives every image an absolute rotation, and a pair outside the tree whose relative rotation is
-more than ``TREE_DEG + TREE_DEG_PER_HOP * hops`` from the tree's (hops: the length of the tree
-path between its images, over which the tree's errors add up) is dropped. On that courtyard 93 of
-the 95 right pairs outside the tree were within 5 deg of it (the other two, 21 and 32 deg, had 33
-and 35 inliers, many of them wrong) and 70 of the 76 wrong ones beyond 35 deg.
-What it does not see: a wrong pair whose rotation is right (the same facade seen twice, shifted
-by a window) passes, since rotations alone cannot tell.
+Where the scene repeats, non-overlapping views of look-alike facades can match each other
+consistently, so their loops hold. They cannot agree with the chain of the strongest pairs, hence
+the tree check (:func:`tree_inconsistent_pairs`): the maximum spanning tree by inlier count gives
+every image an absolute rotation, and a pair outside the tree more than ``TREE_DEG +
+TREE_DEG_PER_HOP * hops`` from the tree's rotation is dropped. A wrong pair whose rotation is
+right (the same facade shifted by a window) passes: rotations alone cannot tell. The scenes behind
+the thresholds are in docs/benchmarks.md.
 
 Relative rotations come from the verified inliers: an essential matrix on normalised coordinates
 (each image's COLMAP camera, distortion included), RANSAC, then the cheirality check.
@@ -52,14 +41,12 @@ from . import pair_threads
 LOOP_DEG = 5.0
 MIN_INLIERS = 15  # COLMAP's min_num_inliers: pairs below it are not used by the mapper either
 # an image keeps at least this many pairs: the mapper registers an image only from points that
-# other views triangulated, and with one pair left it rarely has them. On the service tests' four
-# ground views (seed 1, sparse, 480 px) ground_00's only right pair is with ground_01, and the
-# points they share no third view sees: dropping both of its wrong pairs left it unregistered,
-# keeping one registered it right (the mapper's PnP RANSAC rejected the wrong correspondences)
+# other views triangulated, and with one pair left it rarely has them; a wrong pair kept beside a
+# right one costs less, since the mapper's PnP RANSAC rejects its wrong correspondences
 MIN_PAIRS = 2
 # the tree check's bound: an image's rotation chained over a tree path gathers each pair's error
-# (a few tenths of a degree on the surveyed scenes); wrong pairs of repeated structure were 35-170
-# deg off, the few right pairs beyond 10 deg had under 40 inliers, most of them wrong
+# (a fraction of a degree per pair), far below how far off the wrong pairs of repeated structure
+# are (docs/benchmarks.md)
 TREE_DEG = 10.0
 TREE_DEG_PER_HOP = 0.5
 
@@ -94,9 +81,8 @@ def candidate_rotations(
     """The rotations R (x1 ~ R x0 + t) a pair's inliers admit: the essential matrix's (OpenCV),
     COLMAP's own two-view pose, and the homography's decompositions. One estimate is not enough:
     aerial x ground pairs see a mostly flat site with little parallax, where each estimator alone
-    picks a wrong solution on some right pairs (in the demo scene the essential matrix was 56 deg
-    off on a pair with 439 right inliers, COLMAP's pose 102 deg on another); among the
-    candidates every right pair there had one within 3.4 deg, every wrong pair none within 21."""
+    picks a wrong solution on some right pairs; among all the candidates a right pair has one
+    close to the truth, and the loop and tree checks pick it."""
     m = geometry.inlier_matches
     p0, p1 = kp0[m[:, 0]].astype(np.float64), kp1[m[:, 1]].astype(np.float64)
     n0 = np.asarray(cam0.cam_from_img(p0), np.float64)
@@ -150,11 +136,9 @@ def inconsistent_pairs(
 
     ``keep`` pairs are never dropped. ``judged`` pairs (wrong by an earlier check) are never
     dropped either, and a loop through one counts for a pair only when that pair has fewer inliers
-    than it: a weak wrong pair breaks the loops it closes with stronger wrong ones (on the look-alike
-    ring of tests/test_twin_scene.py a 22-inlier wrong pair broke two of three, all through pairs
-    the tree check dropped), while a strong right pair's loops through weak wrong pairs say nothing
-    about it (on the service tests' aerial scene a right 376-inlier aerial x ground pair had two
-    loops, both through dropped pairs of 36-86 inliers, and going left its aerial image out)."""
+    than it: a weak wrong pair breaks the loops it closes with stronger wrong ones
+    (tests/test_twin_scene.py), while a strong right pair's loops through weak wrong pairs say
+    nothing about it, and dropping it for them can leave an image out."""
     support = support or {}
 
     def counts(a: int, b: int, t: tuple[int, int, int]) -> bool:
@@ -309,12 +293,11 @@ def _voted_candidate(
     """The candidate rotation of tree pair (a, b) whose closed triangles carry the most support,
     the least closing error among ties. A flat or distant scene's pair admits several rotations
     (essential matrix, COLMAP's pose, homography decompositions), and so do its neighbours, so
-    wrong candidates can close as many triangles as the right one (on a ring of look-alike facades
-    the essential matrix and a homography, both 38 deg off, tied with COLMAP's right pose); they
-    close them less tightly. A triangle counts with the inliers of its weaker other pair: on the
-    service tests' aerial scene (480 px) a ground pair's 46 deg homography closed a triangle with
-    two wrong 54- and 57-inlier pairs, and its right pose one with two right 323- and 446-inlier
-    pairs; counted alike, the error tie-break chose the wrong one and turned every image behind it."""
+    wrong candidates can close as many triangles as the right one; they close them less tightly. A
+    triangle counts with the inliers of its weaker other pair, so a wrong candidate closing
+    triangles through weak wrong pairs does not outvote the right one closing them through strong
+    right pairs (counted alike, the error tie-break can pick the wrong one and turn every image
+    behind it)."""
     cands = rot(a, b)
     if len(cands) == 1:
         return cands[0]
