@@ -1,6 +1,8 @@
 """The steps of a job, whatever runs them (Celery worker processes or the embedded threads).
 
-A match job is ``plan_match`` -> ``extract`` per image -> ``match_pair`` per pair; a reconstruct
+A match job is ``plan_match`` -> ``match_pair`` per pair, a window of them at a time (each pair
+step makes the features it needs and queues the next pair); ``extract`` runs the extraction steps
+that an older version's deployment left in the queue, so an upgrade finishes them; a reconstruct
 job is one ``reconstruct``, a localize job one ``localize``. Every step may run twice (redelivery
 after a worker died, a duplicate dispatch) and must then do nothing twice:
 
@@ -172,6 +174,8 @@ def _next_pairs(ctx: Context, job_id: str) -> int:
 
 
 def extract(ctx: Context, job_id: str, name: str, full: bool, crops: bool) -> str:
+    """An image's features ahead of its pairs. ``_dispatch`` does not queue it: it serves the
+    steps an older version's deployment left in the queue."""
     from geomatch import pairstep
 
     job = jobstate.get(ctx.store, job_id)
