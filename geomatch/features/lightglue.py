@@ -5,12 +5,14 @@ kornia's ``flash=False`` switches the flash backend off process-wide (``enable_f
 which on the CPU is the only fused kernel) and computes cross-attention with explicit einsums and
 two softmaxes over the full N x M matrix. With the fused kernel allowed while LightGlue runs and
 cross-attention as two fused calls, the same matches come out faster on the CPU
-(bench/lightglue_pruning.py times it).
+(bench/lightglue_pruning.py times it). ``match_batch`` runs several pairs a forward pass
+(lightglue_batch.py).
 """
 
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Sequence
 from typing import cast
 
 import torch
@@ -22,6 +24,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from ..weights import load_state_dict
 from .base import SparseFeatures, SparseMatch, SparseMatcher
+from .lightglue_batch import DEFAULT_BUDGET_BYTES, forward_batch, plan_batches
 
 CHECKPOINTS = {"aliked": "aliked_lightglue.pth", "disk": "disk_lightglue.pth"}
 
@@ -114,8 +117,7 @@ class LightGlueMatcher(SparseMatcher):
     def match(self, a: SparseFeatures, b: SparseFeatures) -> SparseMatch:
         dev = a.keypoints.device
         if a.keypoints.shape[0] == 0 or b.keypoints.shape[0] == 0:
-            empty = torch.empty(0, dtype=torch.long, device=dev)
-            return SparseMatch(empty, empty, torch.empty(0, device=dev))
+            return _no_matches(dev)
         data = {
             "image0": {
                 "keypoints": a.keypoints[None],
@@ -139,3 +141,42 @@ class LightGlueMatcher(SparseMatcher):
             if la.shape == (na + 1, nb + 1):
                 assignment = la[:na, :nb].float().exp()
         return SparseMatch(matches[:, 0], matches[:, 1], scores.float(), assignment)
+
+    @property
+    def batches(self) -> bool:
+        """Whether pairs run batched: only the fixed-depth, fixed-width network does (early exit
+        ends a batch at one layer for all its pairs; pruning keeps different points per pair)."""
+        return self.net.conf.depth_confidence <= 0 and self.net.conf.width_confidence <= 0
+
+    @torch.inference_mode()
+    def match_batch(
+        self, pairs: Sequence[tuple[SparseFeatures, SparseFeatures]], budget_bytes: int = DEFAULT_BUDGET_BYTES
+    ) -> list[SparseMatch]:
+        """``match`` of each pair, in order, several pairs a forward pass.
+
+        The pairs are grouped by size into batches whose padded attention fits ``budget_bytes``
+        (``lightglue_batch.plan_batches``) and each batch runs padded and masked
+        (``lightglue_batch.forward_batch``): a pair's matches, scores and soft assignment are
+        those ``match`` gives it, up to float rounding. With adaptive depth or width
+        (``depth_confidence`` or ``width_confidence`` > 0) the pairs run one at a time through
+        ``match``; a pair with no keypoints on a side has no matches, as there."""
+        if not self.batches:
+            return [self.match(a, b) for a, b in pairs]
+        out: dict[int, SparseMatch] = {}
+        live: list[int] = []
+        for i, (a, b) in enumerate(pairs):
+            if a.keypoints.shape[0] == 0 or b.keypoints.shape[0] == 0:
+                out[i] = _no_matches(a.keypoints.device)
+            else:
+                live.append(i)
+        sizes = [(pairs[i][0].keypoints.shape[0], pairs[i][1].keypoints.shape[0]) for i in live]
+        with sdpa_kernel(_BACKENDS) if self.fused else contextlib.nullcontext():
+            for batch in plan_batches(sizes, self.net.conf.num_heads, budget_bytes):
+                idx = [live[j] for j in batch]
+                out.update(zip(idx, forward_batch(self.net, [pairs[i] for i in idx]), strict=True))
+        return [out[i] for i in range(len(pairs))]
+
+
+def _no_matches(device: torch.device) -> SparseMatch:
+    empty = torch.empty(0, dtype=torch.long, device=device)
+    return SparseMatch(empty, empty, torch.empty(0, device=device))
