@@ -2,6 +2,7 @@
 
     python bench/gpu_throughput.py [--images DIR] [--sizes 640,1024] [--pairs N] [--device auto]
                                    [--methods "sparse,dense,geo,geo anchors_suffice=0"] [--plot PNG]
+                                   [--lightglue-batches 1,4,16]
 
 What a worker does on a project: every pair of a folder matched by one ``Matcher`` in one
 process, each image's features computed once and then taken from the byte-bounded cache (the
@@ -14,6 +15,13 @@ Each (size, method) runs in a fresh subprocess so its peaks are its own; the net
 and run once on the first pair before timing (a worker loads them once), then the caches are
 emptied so feature extraction is timed as it happens in a job. On CUDA every stage ends with a
 synchronisation (``matching.config.StageTimer``), so the shares are the device's work, not launch times.
+A second table times LightGlue alone (the ``sparse`` anchors' network, fixed depth and width) over
+the same pairs with every image's features computed beforehand: one pair at a time through
+``LightGlueMatcher.match`` (kornia's forward), then ``match_batch`` over chunks of 1, 4, 16 pairs
+(``--lightglue-batches``), each chunk one padded and masked forward pass, with the CUDA peak of
+each. The matches per pair are printed beside the rates: they are the same in every column.
+``--methods ""`` runs that table alone; ``--sizes 320 --pairs 16 --device cpu`` is a CPU smoke check.
+
 Default images: ../shared/data/real/sacre_coeur (10 photos, 45 pairs), else five package-shipped
 photos warped twice each (not a real project: no image is shared between pairs).
 """
@@ -25,6 +33,7 @@ import json
 import platform
 import resource
 import time
+from collections.abc import Callable
 from itertools import combinations
 from pathlib import Path
 
@@ -43,6 +52,8 @@ STAGES: dict[str, tuple[str, ...]] = {
     "merge": ("merge",),
 }
 SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"}
+# the worker row that times LightGlue alone, batched (lightglue_worker)
+LG_BATCH = "lightglue-batch"
 
 
 def _load_pairs(images: str | None, n_pairs: int) -> list[tuple[object, object]]:
@@ -63,6 +74,9 @@ def _load_pairs(images: str | None, n_pairs: int) -> list[tuple[object, object]]
 
 
 def worker(args: argparse.Namespace) -> None:
+    if args.method == LG_BATCH:
+        lightglue_worker(args)
+        return
     import torch
 
     from geomatch import Matcher
@@ -118,6 +132,95 @@ def worker(args: argparse.Namespace) -> None:
     print("RESULT " + json.dumps(out), flush=True)
 
 
+def lightglue_worker(args: argparse.Namespace) -> None:
+    """LightGlue's pairs/s on precomputed features: ``match`` per pair, then ``match_batch`` per
+    chunk of each batch size, the chunk as one forward pass (budget set to hold it)."""
+    import torch
+
+    from geomatch import Matcher
+    from geomatch.features.base import SparseMatch
+    from geomatch.features.lightglue import LightGlueMatcher
+    from geomatch.features.lightglue_batch import pair_bytes
+    from geomatch.matching.matcher import config_from_options, resolve_device
+
+    device = resolve_device(args.device)
+    pairs = _load_pairs(args.images, args.pairs)
+    m = Matcher(config_from_options(method="sparse", resize=args.size, device=str(device)))
+    lg = m.sparse_matcher
+    assert isinstance(lg, LightGlueMatcher) and lg.batches, (
+        "the sparse anchors' LightGlue runs at fixed depth and width"
+    )
+    feats = []
+    for a, b in pairs:
+        fa, fb = m.features(a)[m.config.sparse].sparse, m.features(b)[m.config.sparse].sparse
+        assert fa is not None and fb is not None
+        feats.append((fa, fb))
+    counts = [f.keypoints.shape[0] for pair in feats for f in pair]
+    heads = lg.net.conf.num_heads
+
+    def sync() -> None:
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    def timed(run: Callable[..., list[SparseMatch]], *run_args: object) -> tuple[float, float, float]:
+        """(pairs/s, matches per pair, CUDA peak MB) of ``run(*run_args)``, which returns the matches."""
+        sync()
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+        t0 = time.perf_counter()
+        matches = run(*run_args)
+        sync()
+        wall = time.perf_counter() - t0
+        peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else 0.0
+        return len(feats) / wall, sum(len(r.idx_a) for r in matches) / len(feats), peak
+
+    def one_at_a_time() -> list[SparseMatch]:
+        return [lg.match(a, b) for a, b in feats]
+
+    def in_chunks(size: int) -> list[SparseMatch]:
+        budget = size * pair_bytes(max(counts), max(counts), heads)  # each chunk one forward pass
+        return [r for i in range(0, len(feats), size) for r in lg.match_batch(feats[i : i + size], budget)]
+
+    lg.match_batch(feats[:2])  # kernels loaded once, the masked ones included, not timed
+    lg.match(*feats[0])
+    columns = {"match": timed(one_at_a_time)}
+    for size in (int(s) for s in args.lightglue_batches.split(",")):
+        columns[str(size)] = timed(in_chunks, size)
+    if device.type == "cuda":
+        name = torch.cuda.get_device_name(device)
+    else:
+        name = f"CPU {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
+    out = {
+        "device": name,
+        "size": args.size,
+        "method": LG_BATCH,
+        "pairs": len(feats),
+        "keypoints": [min(counts), sum(counts) / len(counts), max(counts)],
+        "pairs_per_s": {k: v[0] for k, v in columns.items()},
+        "matches_per_pair": {k: v[1] for k, v in columns.items()},
+        "cuda_peak_mb": {k: v[2] for k, v in columns.items()},
+    }
+    print("RESULT " + json.dumps(out), flush=True)
+
+
+def print_lightglue_table(rows: list[dict]) -> None:
+    cols = list(rows[0]["pairs_per_s"])
+    names = ["match" if c == "match" else f"batch {c}" for c in cols]
+    print(f"\nLightGlue alone, features precomputed; pairs/s (matches per pair), {rows[0]['device']}\n")
+    head = ["px", "pairs", "keypoints min/mean/max", *names, "CUDA peak MB " + "/".join(cols)]
+    print("| " + " | ".join(head) + " |")
+    print("|---|---:|---|" + "---:|" * len(cols) + "---|")
+    for r in rows:
+        kmin, kmean, kmax = r["keypoints"]
+        cells = [f"{r['pairs_per_s'][c]:.2f} ({r['matches_per_pair'][c]:.0f})" for c in cols]
+        peaks = "/".join(f"{r['cuda_peak_mb'][c]:.0f}" for c in cols)
+        print(
+            f"| {r['size']} | {r['pairs']} | {kmin}/{kmean:.0f}/{kmax} | "
+            + " | ".join(cells)
+            + f" | {peaks} |"
+        )
+
+
 def plot(rows: list[dict], path: Path) -> None:
     """Seconds per pair, stacked by stage: where the time of a pair goes, per size and method."""
     import matplotlib
@@ -153,11 +256,33 @@ def main() -> None:
     ap.add_argument("--device", default="auto")
     ap.add_argument("--plot", type=Path, default=HERE / "out" / "gpu_throughput.png")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--lightglue-batches",
+        default="1,4,16",
+        help="pairs per LightGlue forward pass in its own table ('': none)",
+    )
     args = parse_args_or_run_row(ap, worker)
-    extra = ["--pairs", str(args.pairs), "--device", args.device]
+    extra = [
+        "--pairs",
+        str(args.pairs),
+        "--device",
+        args.device,
+        "--lightglue-batches",
+        args.lightglue_batches,
+    ]
     if args.images:
         extra += ["--images", args.images]
-    rows = run_rows(__file__, args.sizes, args.methods, extra)
+    rows = run_rows(__file__, args.sizes, args.methods, extra) if args.methods else []
+    lg_rows = run_rows(__file__, args.sizes, LG_BATCH, extra) if args.lightglue_batches else []
+    if rows:
+        print_pipeline_table(rows, args)
+    if lg_rows:
+        print_lightglue_table(lg_rows)
+    if args.json:
+        args.json.write_text(json.dumps(rows + lg_rows, indent=1))
+
+
+def print_pipeline_table(rows: list[dict], args: argparse.Namespace) -> None:
     print(f"\n{rows[0]['device']}; images: {args.images or 'warped package photos'}\n")
     cols = [*STAGES, "other"]
     head = ["px", "method", "pairs", "pairs/s", *cols, "extractions", "peak RSS MB", "CUDA peak MB"]
@@ -172,8 +297,6 @@ def main() -> None:
         )
     plot(rows, args.plot)
     print(f"\nplot: {args.plot}")
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":
