@@ -102,6 +102,8 @@ def forward_batch(
     """One forward pass over ``pairs`` (none empty) of a LightGlue that neither exits early nor
     prunes points; each result as ``LightGlueMatcher.match`` gives it, soft assignment included."""
     conf = net.conf
+    if conf.depth_confidence > 0 or conf.width_confidence > 0:
+        raise ValueError("a LightGlue with adaptive depth or width runs one pair at a time (match)")
     kpts0, desc0, mask0 = _padded([a for a, _ in pairs], conf.input_dim)
     kpts1, desc1, mask1 = _padded([b for _, b in pairs], conf.input_dim)
     desc0, desc1 = net.input_proj(desc0), net.input_proj(desc1)
