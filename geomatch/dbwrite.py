@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 from .imageio import snap_radius
 from .metadata import ImageMeta
-from .sfm.colmapdb import ColmapDatabase, PairWrite, seeded_verification
+from .sfm.colmapdb import ColmapDatabase, PairWrite, PreparedPair, seeded_verification
 from .sfm.pairs import Pair
 
 if TYPE_CHECKING:
@@ -35,15 +35,15 @@ def unmatched(db: ColmapDatabase, ids: Mapping[str, int], planned: Sequence[Pair
 TILED_MIN_INLIERS = 60
 
 
-def write(
+def prepare(
     db: ColmapDatabase, id0: int, id1: int, m: PairMatches, radius: float, resize: int | None
-) -> PairWrite:
-    """The pair into the COLMAP database (snapped within ``radius`` network pixels, verified,
-    one transaction); a no-op when it is there."""
+) -> PreparedPair:
+    """The pair snapped and verified against the database as it is now (no writer lock needed):
+    what :func:`commit` writes."""
     options = seeded_verification()
     if m.tiled:
         options.min_num_inliers = TILED_MIN_INLIERS
-    return db.write_pair(
+    return db.prepare_pair(
         id0,
         id1,
         m.keypoints0,
@@ -53,3 +53,17 @@ def write(
         snap_radius(radius, resize, max(m.sizes[1])),
         options,
     )
+
+
+def commit(db: ColmapDatabase, prepared: PreparedPair) -> PairWrite:
+    """A prepared pair into the database (under the writer lock), one transaction; a no-op when
+    the pair is there."""
+    return db.commit_pair(prepared)
+
+
+def write(
+    db: ColmapDatabase, id0: int, id1: int, m: PairMatches, radius: float, resize: int | None
+) -> PairWrite:
+    """The pair into the COLMAP database (snapped within ``radius`` network pixels, verified,
+    one transaction); a no-op when it is there."""
+    return commit(db, prepare(db, id0, id1, m, radius, resize))

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dbwrite import write
+from .dbwrite import commit, prepare, write
 from .geometry import fundamental_from_matches
 from .matching.matcher import Matcher, MatchResult
 from .matching.probes import pair_turn, tiled_turn
@@ -136,12 +136,15 @@ class PairTarget:
     """Where a matched pair is written: ``open`` opens the COLMAP database for the write, under
     whatever locks its caller holds, and yields None when the pair must not be written any more
     (a worker's job cancelled while the pair was matched); the images' ids there; the snap radius
-    in network pixels."""
+    in network pixels. ``read``, when given, opens the database without the writer's locks: the
+    pair is snapped and verified there first and only committed under ``open``, so that several
+    workers' verifications run at once and the lock is held for the transaction alone."""
 
     open: Callable[[], AbstractContextManager[ColmapDatabase | None]]
     id0: int
     id1: int
     radius: float
+    read: Callable[[], AbstractContextManager[ColmapDatabase]] | None = None
 
 
 @dataclass
@@ -169,7 +172,15 @@ def run_pair(
     t1 = time.perf_counter()
     written = None
     if target is not None:
+        resize = matcher.config.resize
+        prepared = None
+        if target.read is not None:
+            with target.read() as rdb:
+                prepared = prepare(rdb, target.id0, target.id1, m, target.radius, resize)
         with target.open() as db:
             if db is not None:
-                written = write(db, target.id0, target.id1, m, target.radius, matcher.config.resize)
+                if prepared is None:
+                    written = write(db, target.id0, target.id1, m, target.radius, resize)
+                else:
+                    written = commit(db, prepared)
     return PairRun(m, written, t1 - t0, time.perf_counter() - t1)

@@ -152,3 +152,69 @@ def test_a_tiled_pair_needs_more_inliers_than_a_plain_one(tmp_path) -> None:
     assert inliers(few, tiled=False) == few
     assert inliers(few, tiled=True) == 0
     assert inliers(TILED_MIN_INLIERS + 20, tiled=True) == TILED_MIN_INLIERS + 20
+
+
+def _three_views(rng: np.random.Generator, n: int = 300) -> list[np.ndarray]:
+    """One set of 3D points in three cameras, well separated in every view (no consolidation
+    between different points at radius 1.5)."""
+    X = np.c_[rng.uniform(-2, 2, (n, 2)), rng.uniform(4, 8, n)]
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    views = []
+    for angle, t in ((0.0, (0, 0, 0)), (0.1, (-0.6, 0.05, 0.1)), (-0.12, (0.7, -0.05, 0.05))):
+        R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+        x = (X @ R.T + np.asarray(t)) @ K.T
+        views.append(x[:, :2] / x[:, 2:] - 0.5)
+    keep = [i for i in range(n) if all(min(np.linalg.norm(v[i] - v[j]) for v in views) > 4 for j in range(i))]
+    return [v[keep].astype(np.float32) for v in views]
+
+
+def _shared_view_writes(path, views, prepare_first: bool, jitter: float = 0.0) -> list[np.ndarray]:
+    """Pairs (a, b) and (a, c) written one after the other, or both prepared against the empty
+    database before either commits (two workers verifying at once); per pair, the keypoint of
+    ``a`` each 3D point's match landed on."""
+    va, vb, vc = views
+    va_c = va + np.random.default_rng(1).normal(0, jitter, va.shape).astype(np.float32) if jitter else va
+    scores = np.linspace(1, 0, len(va))
+    with ColmapDatabase(path) as db:
+        a, b, c = (db.add_image(n, DRONE) for n in ("a.jpg", "b.jpg", "c.jpg"))
+        if prepare_first:
+            pb = db.prepare_pair(a, b, va, vb, scores, 1.5, 1.5)
+            pc = db.prepare_pair(a, c, va_c, vc, scores, 1.5, 1.5)
+            wb, wc = db.commit_pair(pb), db.commit_pair(pc)
+        else:
+            wb = db.write_pair(a, b, va, vb, scores, 1.5, 1.5)
+            wc = db.write_pair(a, c, va_c, vc, scores, 1.5, 1.5)
+        assert wb.matches == wc.matches == len(va)
+        kp_a = db.keypoints(a)
+        landed = []
+        for other, v in ((b, vb), (c, vc)):
+            m = db.db.read_matches(a, other)
+            kp_o = db.keypoints(other)
+            # the matches in the 3D points' order: by the other image's keypoint position
+            order = np.argsort(np.linalg.norm(kp_o[m[:, 1]][:, None] - v[None], axis=2).argmin(1))
+            landed.append(m[order, 0])
+            tvg = db.db.read_two_view_geometry(a, other)
+            inl = {tuple(r) for r in np.asarray(tvg.inlier_matches).tolist()}
+            assert len(inl) >= 0.95 * len(va) and inl <= {tuple(r) for r in m.tolist()}
+        assert len(kp_a) == len(va)  # one keypoint per point of a, shared by both pairs
+    return landed
+
+
+def test_pairs_verified_at_once_join_their_tracks_as_if_written_in_turn(tmp_path) -> None:
+    """Two workers prepare pairs that share an image against the same database; the second to
+    commit lands its new keypoints on the ones the first appended, so each 3D point's matches
+    in both pairs meet at one keypoint of the shared image (a track), exactly as writes one
+    after the other give."""
+    views = _three_views(np.random.default_rng(3))
+    seq = _shared_view_writes(tmp_path / "seq.db", views, prepare_first=False)
+    both = _shared_view_writes(tmp_path / "both.db", views, prepare_first=True)
+    assert np.array_equal(both[0], both[1])  # every point's track goes through one keypoint of a
+    assert np.array_equal(seq[0], both[0]) and np.array_equal(seq[1], both[1])
+
+
+def test_rebased_pairs_join_tracks_within_the_snap_radius(tmp_path) -> None:
+    """The shared image's points seen by the second pair a fraction of a pixel off (two
+    matchers' sub-pixel answers) still join the first pair's keypoints."""
+    views = _three_views(np.random.default_rng(4))
+    landed = _shared_view_writes(tmp_path / "jit.db", views, prepare_first=True, jitter=0.3)
+    assert np.array_equal(landed[0], landed[1])

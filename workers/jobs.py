@@ -220,7 +220,11 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             turns = None if p.turn < 0 else divmod(p.turn, 4)
             pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate, turns)
             target = pairstep.PairTarget(
-                lambda: _writable(ctx, job_id, pid, db_path), id0, id1, float(opts["snap_radius"])
+                lambda: _writable(ctx, job_id, pid, db_path),
+                id0,
+                id1,
+                float(opts["snap_radius"]),
+                read=lambda: _readable(ctx, pid, db_path),
             )
             r = pairstep.run_pair(
                 runtime.matcher(ctx, opts), pair, a, b, target, aerial_project=aerial_project, survey=survey
@@ -247,6 +251,19 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
     else:  # a redelivered step whose pair was done hands out one too: the window only grows by it
         _next_pairs(ctx, job_id)
     return "done"
+
+
+@contextmanager
+def _readable(ctx: Context, pid: str, db_path: Path) -> Iterator[Any]:
+    """The project's COLMAP database for reading beside its writers: opened under the writer lock
+    (opening creates COLMAP's tables where missing, which a writer's transaction would refuse),
+    read without it (SQLite's WAL mode lets readers see the last commit while a writer works)."""
+    from geomatch.sfm.colmapdb import ColmapDatabase
+
+    with ctx.locks.project(pid):
+        db = ColmapDatabase(db_path)
+    with db:
+        yield db
 
 
 @contextmanager

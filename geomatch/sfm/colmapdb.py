@@ -42,6 +42,27 @@ class PairWrite:
     skipped: bool = False  # already in the database: nothing written
 
 
+@dataclass
+class PreparedPair:
+    """A pair as :meth:`ColmapDatabase.prepare_pair` leaves it for :meth:`ColmapDatabase.commit_pair`:
+    keypoints in COLMAP's convention, ids in COLMAP's order (smaller first), the matches indexing
+    each image's list as it was read (``base`` keypoints) followed by the pair's ``new`` ones."""
+
+    image_id0: int
+    image_id1: int
+    name0: str
+    name1: str
+    base0: int
+    base1: int
+    new0: np.ndarray
+    new1: np.ndarray
+    matches: np.ndarray  # (M, 2) uint32
+    tvg: pycolmap.TwoViewGeometry
+    radius0: float
+    radius1: float
+    present: bool = False  # the pair was in the database when it was prepared
+
+
 def default_focal(width: int, height: int) -> float:
     return 1.2 * max(width, height)  # COLMAP's guess without EXIF
 
@@ -160,6 +181,26 @@ class ColmapDatabase:
         Points are in our convention (pixel centres at integers), best first is not required:
         they are ordered by score here so the best match of a snapped cluster is the one kept.
         """
+        prepared = self.prepare_pair(
+            image_id0, image_id1, keypoints0, keypoints1, scores, radius0, radius1, options
+        )
+        return self.commit_pair(prepared)
+
+    def prepare_pair(
+        self,
+        image_id0: int,
+        image_id1: int,
+        keypoints0: np.ndarray,
+        keypoints1: np.ndarray,
+        scores: np.ndarray,
+        radius0: float,
+        radius1: float,
+        options: pycolmap.TwoViewGeometryOptions | None = None,
+    ) -> PreparedPair:
+        """The pair snapped onto its images' keypoints as they are now and verified, written by
+        nothing: a database opened without the writer lock can prepare, so that COLMAP's
+        verification (most of a write) runs beside other workers' writes, and only
+        :meth:`commit_pair` needs the lock."""
         if not (len(keypoints0) == len(keypoints1) == len(scores)):
             raise ValueError(
                 f"pair ({image_id0}, {image_id1}): {len(keypoints0)}, {len(keypoints1)} keypoints and "
@@ -167,13 +208,17 @@ class ColmapDatabase:
             )
         name0 = self.db.read_image(image_id0).name
         name1 = self.db.read_image(image_id1).name
-        if self.has_pair(image_id0, image_id1):
-            return PairWrite(name0, name1, 0, 0, "", skipped=True)
         if image_id0 > image_id1:  # COLMAP stores pairs with the smaller id first
             image_id0, image_id1 = image_id1, image_id0
             keypoints0, keypoints1 = keypoints1, keypoints0
             radius0, radius1 = radius1, radius0
             name0, name1 = name1, name0
+        if self.has_pair(image_id0, image_id1):
+            empty = np.zeros((0, 2), np.float32)
+            return PreparedPair(
+                image_id0, image_id1, name0, name1, 0, 0, empty, empty, np.zeros((0, 2), np.uint32),
+                pycolmap.TwoViewGeometry(), radius0, radius1, present=True,
+            )  # fmt: skip
         order = np.argsort(-np.asarray(scores), kind="stable")
         p0 = np.asarray(keypoints0, np.float32)[order] + COLMAP_OFFSET
         p1 = np.asarray(keypoints1, np.float32)[order] + COLMAP_OFFSET
@@ -187,15 +232,35 @@ class ColmapDatabase:
         kp0_new, matches[:, 0] = _drop_unused(kp0_new, len(kp0), matches[:, 0])
         kp1_new, matches[:, 1] = _drop_unused(kp1_new, len(kp1), matches[:, 1])
         tvg = self._verify(image_id0, image_id1, kp0_new, kp1_new, matches, options)
+        return PreparedPair(
+            image_id0, image_id1, name0, name1, len(kp0), len(kp1),
+            kp0_new[len(kp0):], kp1_new[len(kp1):], matches, tvg, radius0, radius1,
+        )  # fmt: skip
+
+    def commit_pair(self, p: PreparedPair) -> PairWrite:
+        """A prepared pair written in one transaction; a no-op when the pair is there. Where other
+        writers appended keypoints to its images since it was prepared, its new keypoints are
+        snapped onto theirs first (:func:`rebase`), so that tracks through those images join as
+        if the pairs had been written one after the other."""
+        if p.present or self.has_pair(p.image_id0, p.image_id1):
+            return PairWrite(p.name0, p.name1, 0, 0, "", skipped=True)
+        kp0 = self.keypoints(p.image_id0) + COLMAP_OFFSET
+        kp1 = self.keypoints(p.image_id1) + COLMAP_OFFSET
+        new0, new1, matches, inliers = p.new0, p.new1, p.matches, p.tvg.inlier_matches
+        if len(kp0) != p.base0 or len(kp1) != p.base1:
+            new0, new1, matches, inliers = rebase(p, kp0, kp1)
+        tvg = p.tvg
+        tvg.inlier_matches = inliers
         with pycolmap.DatabaseTransaction(self.db):
-            for image_id, old, new in ((image_id0, kp0, kp0_new), (image_id1, kp1, kp1_new)):
+            for image_id, old, new in ((p.image_id0, kp0, new0), (p.image_id1, kp1, new1)):
+                full = np.concatenate([old, new]).astype(np.float32)
                 if not self.db.exists_keypoints(image_id):
-                    self.db.write_keypoints(image_id, new.astype(np.float32))
-                elif len(new) > len(old):  # append-only: a longer list is the only possible change
-                    self.db.update_keypoints(image_id, new.astype(np.float32))
-            self.db.write_matches(image_id0, image_id1, matches)
-            self.db.write_two_view_geometry(image_id0, image_id1, tvg)
-        return PairWrite(name0, name1, len(matches), len(tvg.inlier_matches), _config_name(tvg.config))
+                    self.db.write_keypoints(image_id, full)
+                elif len(new):  # append-only: a longer list is the only possible change
+                    self.db.update_keypoints(image_id, full)
+            self.db.write_matches(p.image_id0, p.image_id1, matches)
+            self.db.write_two_view_geometry(p.image_id0, p.image_id1, tvg)
+        return PairWrite(p.name0, p.name1, len(matches), len(inliers), _config_name(tvg.config))
 
     def _verify(
         self,
@@ -244,3 +309,49 @@ def _config_name(config: SupportsInt) -> str:
         return pycolmap.TwoViewGeometryConfiguration(int(config)).name
     except (TypeError, ValueError):
         return str(config)
+
+
+def _rebase_side(
+    current: np.ndarray, base: int, new: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where a prepared pair's new keypoints of one image land in its list as it is now: an
+    index per new keypoint, and the keypoints still new (appended after the current list)."""
+    others = current[base:]
+    idx, out = snap(others, new, radius)
+    fresh = idx >= len(others)
+    where = np.where(fresh, len(current) + idx - len(others), base + idx)
+    return where, out[len(others) :]
+
+
+def rebase(p: PreparedPair, kp0: np.ndarray, kp1: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(new0, new1, matches, inliers) of a prepared pair against the current keypoint lists
+    ``kp0``/``kp1`` (COLMAP convention), which other writers lengthened since it was prepared:
+    its new keypoints within the snap radius of theirs become theirs, the rest are appended
+    after them; matches that now fall on one keypoint keep the first (the best), and the
+    verified inliers follow their matches. The lists are append-only, so the first ``base``
+    keypoints are the ones the pair was prepared against."""
+    where0, fresh0 = _rebase_side(kp0, p.base0, p.new0, p.radius0)
+    where1, fresh1 = _rebase_side(kp1, p.base1, p.new1, p.radius1)
+
+    def remap(idx: np.ndarray, base: int, where: np.ndarray) -> np.ndarray:
+        idx = idx.astype(np.int64)
+        out = idx.copy()
+        new = idx >= base
+        out[new] = where[idx[new] - base]
+        return out
+
+    m0 = remap(p.matches[:, 0], p.base0, where0)
+    m1 = remap(p.matches[:, 1], p.base1, where1)
+    keep = unique_matches(m0, m1)
+    matches = np.stack([m0[keep], m1[keep]], 1).astype(np.uint32)
+    fresh0, matches[:, 0] = _drop_unused(np.concatenate([kp0, fresh0]), len(kp0), matches[:, 0])
+    fresh1, matches[:, 1] = _drop_unused(np.concatenate([kp1, fresh1]), len(kp1), matches[:, 1])
+    inl = np.asarray(p.tvg.inlier_matches, np.int64).reshape(-1, 2)
+    i0 = remap(inl[:, 0], p.base0, where0)
+    i1 = remap(inl[:, 1], p.base1, where1)
+    # an inlier is the row of its match (renumbered with the matches by _drop_unused); one whose
+    # match fell onto an earlier match's keypoints went with it
+    row = {k: i for i, k in enumerate(zip(m0[keep].tolist(), m1[keep].tolist(), strict=True))}
+    rows = [row[k] for k in zip(i0.tolist(), i1.tolist(), strict=True) if k in row]
+    inliers = matches[np.unique(np.asarray(rows, np.int64))] if rows else np.zeros((0, 2), np.uint32)
+    return fresh0[len(kp0) :], fresh1[len(kp1) :], matches, inliers
