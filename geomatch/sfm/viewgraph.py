@@ -297,9 +297,9 @@ def judge(
     (pair, broken loops, loops), and the number of loops it saw. The loop check judges the pairs
     the tree check kept, and counts a loop through a pair the tree check dropped only against
     pairs weaker than that one (:func:`inconsistent_pairs`). It never drops a pair of the spanning
-    tree: where repeated structure makes many pairs wrong (76 of 171 on a 19-photo courtyard), the
-    loops through right neighbour pairs break too, and the loop check alone dropped such a pair
-    with 722 inliers, which left seven cameras attached by a wrong pair only. An image keeps
+    tree: where repeated structure makes many pairs wrong, the loops through right neighbour
+    pairs break too, and the loop check alone can drop a strong right pair and leave cameras
+    attached by wrong pairs only (docs/pipeline.md, "The view-graph checks"). An image keeps
     ``MIN_PAIRS`` pairs over both checks."""
     pairs_of = Counter(i for pair in rotations for i in pair)
     tree_drop = tree_inconsistent_pairs(rotations, inliers) if tree else []
