@@ -49,8 +49,8 @@ SETS = {
     "caliterra": ("test", "spatial"),
     "copr": ("tuning", "exhaustive"),
 }
-# copr's ground control points held out as check points (the split: the other usable
-# points are the control); both rows are judged by the same triangulation and fit (geo/gcp.py)
+# copr's ground control points held out as check points (a fixed split: the other usable points
+# are the control); both rows are judged by the same triangulation and fit (geo/gcp.py)
 CHECKPOINTS = ["gcp03", "gcp06", "gcp09"]
 
 

@@ -8,7 +8,7 @@ What a worker does on a project: every pair of a folder matched by one ``Matcher
 process, each image's features computed once and then taken from the byte-bounded cache (the
 default ``cache_features_mb``; an image evicted from it is extracted again, and the extraction
 count says so). Unlike ``pair_speed.py``, which isolates one warm pair, this is the steady state
-the issue's GPU targets are stated in: pairs/s, the share of each stage in the wall time, the
+the GPU targets are stated in: pairs/s, the share of each stage in the wall time, the
 CUDA peak allocation (or the process's peak RSS on the CPU), and the device's name.
 
 Each (size, method) runs in a fresh subprocess so its peaks are its own; the networks are loaded

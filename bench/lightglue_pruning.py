@@ -24,7 +24,7 @@ from geomatch import Matcher, MatcherConfig, read_image
 from geomatch.features.lightglue import LightGlueMatcher
 
 # (depth confidence, width confidence, fused attention); the last row is kornia's own attention
-# (einsum cross-attention, flash backend off), i.e. the matcher before the fused blocks
+# (einsum cross-attention, flash backend off), without the fused blocks
 SETTINGS = {
     "full (depth -1, width -1)": (-1.0, -1.0, True),
     "LightGlue defaults (0.95, 0.99)": (0.95, 0.99, True),

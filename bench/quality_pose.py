@@ -42,7 +42,7 @@ from peer_colmap import with_peer
 
 from geomatch import METHODS, Matcher, MatcherConfig, read_image
 from geomatch.eval.pose import auc_over_runs, relative_pose_error, shuffled_errors
-from geomatch.synth import indoor
+from geomatch.synth import indoor, room, roomtex
 from geomatch.synth.indoor import IndoorPair, gt_matches, indoor_pairs, no_overlap_pairs
 
 OUT = Path(__file__).resolve().parent / "out"
@@ -109,7 +109,10 @@ FIELDS = ("image0", "image1", "K0", "K1", "R", "t", "depth0", "depth1", "covisib
 def cached_pairs(kind: str, seed: int, n: int) -> list[IndoorPair]:
     """Rendered pairs from bench/out/indoor/ (rendered and saved on first use); the file name carries
     a hash of the generator's source, so editing the generator never serves stale renders."""
-    source = hashlib.sha256(Path(indoor.__file__).read_bytes()).hexdigest()[:10]
+    digest = hashlib.sha256()
+    for module in (indoor, room, roomtex):  # the pairs, the room and its render, its textures
+        digest.update(Path(module.__file__).read_bytes())
+    source = digest.hexdigest()[:10]
     path = OUT / "indoor" / f"{kind}_seed{seed}_n{n}_{source}.npz"
     if path.exists():
         z = np.load(path)

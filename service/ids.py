@@ -6,7 +6,7 @@ names nothing, so it is NotFound, as an unknown id is (404 / NOT_FOUND, the answ
 for any id it does not know, another tenant's included): a 400 or 422 would tell the client only
 that no resource could have it, which it cannot act on differently. Checking the shape first keeps
 what a store cannot hold away from it: PostgreSQL refuses a NUL byte in text with an error of its
-own, which was a 500 on every route that looked one up.
+own, which would answer 500 on every route that looks one up.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Pages of the list calls: an offset and a page size, the same for REST (``?offset=&limit=``,
 ``Link: <...>; rel="next"``) and gRPC (``page_size``, ``page_token``: the offset as text).
 
-Listing a tenant's 1002 projects answered all of them in one response; now a page holds at most
-``max`` (``default`` when the client names no size). An offset is enough here: lists are ordered
+A page holds at most ``max`` items (``default`` when the client names no size), so a tenant's
+list costs one page's work however long it grows. An offset is enough here: lists are ordered
 by what does not change (creation time, then id; an image's name), so a page boundary moves only
 when items before it are deleted, and then a client sees an item twice or misses one it could not
 have relied on anyway. A project's jobs come newest first, what a person looks for: a job started

@@ -3,7 +3,7 @@
 Image checks use Pillow only (the library's ``read_image`` would pull torch into the API): the
 header gives the size, which is checked against the pixel limit BEFORE any decoding, so a
 decompression bomb costs nothing. The data is then checked for truncation and corruption without
-ever holding the whole bitmap (a full decode of one 9400x9400 PNG costs this process 320 MiB):
+ever holding the whole bitmap (a full decode of a 9400 x 9400 PNG holds hundreds of MiB):
 a PNG is inflated in a stream and counted, a JPEG is decoded at a reduced scale, and another format
 is decoded only while its bitmap fits ``DECODE_BUDGET``; past that its header is all the API reads,
 and a worker that cannot decode it fails the job with the reason. Option values are checked by
@@ -179,8 +179,8 @@ def _check_data(im: ImageFile.ImageFile, path: Path, fmt: str) -> None:
 def _check_bmp(im: ImageFile.ImageFile, path: Path) -> None:
     """The data a BMP's header promises is in the file. An uncompressed BMP's rows are fixed
     in size (Pillow's tile has the offset and the row stride), so a cut file shows without
-    decoding; one over DECODE_BUDGET was otherwise accepted on its header alone, and its match
-    job failed. An RLE BMP states the size of its encoded data in the header (biSizeImage, which
+    decoding; without this check one over DECODE_BUDGET would pass on its header alone and fail
+    its match job. An RLE BMP states the size of its encoded data in the header (biSizeImage, which
     the format requires for compressed data)."""
     size = path.stat().st_size
     h = im.size[1]
@@ -206,7 +206,7 @@ _STRIP_OFFSETS, _STRIP_BYTES, _TILE_OFFSETS, _TILE_BYTES = 273, 279, 324, 325
 
 def _check_tiff(im: Image.Image, path: Path) -> None:
     """Every strip or tile of the image the pipeline reads (the first) lies within the file: an
-    uncompressed TIFF over DECODE_BUDGET was otherwise accepted on its header alone, however
+    uncompressed TIFF over DECODE_BUDGET would otherwise pass on its header alone, however
     little of its data it carried."""
     size = path.stat().st_size
     tags = getattr(im, "tag_v2", {})

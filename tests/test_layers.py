@@ -52,17 +52,19 @@ RANKS = {
     "geomatch.planning": 3,
     # synthetic scenes with ground truth (the indoor pairs score themselves with eval.pose)
     "geomatch.synth": 4,
-    # the stages and the commands over all of it, and the package's public names: one pair matched
-    # and written (pairstep, dbwrite), a run's summary and archive (rundir)
+    # the stages over all of it: one pair matched and written (pairstep, dbwrite), a run's summary
+    # and archive (rundir), the run itself (pipeline), the demo, drawings of matches
     "geomatch.pairstep": 5,
     "geomatch.dbwrite": 5,
     "geomatch.rundir": 5,
     "geomatch.pipeline": 5,
     "geomatch.demo": 5,
     "geomatch.viz": 5,
-    "geomatch.cli": 5,
-    "geomatch.localize": 5,
-    "geomatch": 5,
+    # new photos placed in a project's model: a folder over pairstep's matching and dbwrite's writes
+    "geomatch.localize": 6,
+    # the commands over all of it, and the package's public names
+    "geomatch.cli": 7,
+    "geomatch": 7,
 }
 """Ranks of the parts of the library: its folders (sub-packages) and its top-level modules.
 

@@ -1,4 +1,4 @@
-"""Localizing new photos against a project's model (geomatch/localize.py), on the session's run of
+"""Localizing new photos against a project's model (geomatch/localize/), on the session's run of
 the small scene (tests/small_scene.py: 2 aerial + 4 ground, georeferenced from three fixes).
 
 The photo left out is ``ground_02.png`` (it has a GPS fix, so the GPS candidates and the WGS84

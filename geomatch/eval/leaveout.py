@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..sfm.viewgraph import rotation_angle
+from ..sfm.pairrotations import rotation_angle
 from .metrics import align_cameras, scene_extent
 
 

@@ -34,7 +34,7 @@ import numpy as np
 import pycolmap
 
 from ..sfm.mapping import sfm_stats
-from ..sfm.viewgraph import rotation_angle
+from ..sfm.pairrotations import rotation_angle
 from .alignment import Alignment, align
 
 AUC_THRESHOLDS = (3.0, 5.0, 10.0)

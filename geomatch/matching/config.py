@@ -113,7 +113,7 @@ class MatcherConfig:
     # the methods that optimise (the paper's refinement stage, anchors included), "lsm" for any
     # method, "off" never
     subpixel: str = "auto"
-    # recent images' features (dense maps included: a 640 px DISK fine map alone is ~150 MB), LRU,
+    # recent images' features (dense maps included, the largest entries: 128 values a pixel), LRU,
     # bounded in bytes: a worker's memory must not grow with the project
     # (the split of GEOMATCH_CACHE_MB's default, options.cache_budget)
     cache_features_mb: float = 1024.0

@@ -30,8 +30,8 @@ def for_pair(
       air-to-ground scenes' wide ground x ground baselines at low resolution need it; the light
       anchors alone lose cameras there);
     - a pair of a ground-only project gets the light anchors alone (``sparse`` with
-      :data:`AUTO_PLAIN_PAIRS`): on the real tuning photos the dense rounds tie the anchors at
-      about twice their cost (docs/benchmarks.md).
+      :data:`AUTO_PLAIN_PAIRS`): on the real tuning photos the dense rounds do not beat the
+      anchors and cost more (docs/benchmarks.md, "`geo` against its anchors on ground photos").
 
     Outside ``auto``, a tiled pair of a method that answers with the anchors when they suffice
     gets that method with ``anchors_suffice=0`` (the full method on every crop)."""

@@ -19,22 +19,19 @@ TREE_DEG_PER_HOP * hops`` from the tree's rotation is dropped. A wrong pair whos
 right (the same facade shifted by a window) passes: rotations alone cannot tell. The scenes behind
 the thresholds are in docs/benchmarks.md.
 
-Relative rotations come from the verified inliers: an essential matrix on normalised coordinates
-(each image's COLMAP camera, distortion included), RANSAC, then the cheirality check.
+The relative rotations judged are each verified pair's candidates (pairrotations.py).
 """
 
 from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Set
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 import pycolmap
 
-from . import pair_threads
+from .pairrotations import rotation_angle, verified_rotations
 
 # a loop holds when the composed rotation is within this angle of the identity; three noisy
 # estimates compose their errors, and pairs with little parallax give rotations to about a degree
@@ -69,51 +66,6 @@ class ViewGraphReport:
                 for a, b, deg, hops in self.tree_dropped
             ],
         }
-
-
-def candidate_rotations(
-    cam0: pycolmap.Camera,
-    cam1: pycolmap.Camera,
-    kp0: np.ndarray,
-    kp1: np.ndarray,
-    geometry: pycolmap.TwoViewGeometry,
-) -> list[np.ndarray]:
-    """The rotations R (x1 ~ R x0 + t) a pair's inliers admit: the essential matrix's (OpenCV),
-    COLMAP's own two-view pose, and the homography's decompositions. One estimate is not enough:
-    aerial x ground pairs see a mostly flat site with little parallax, where each estimator alone
-    picks a wrong solution on some right pairs; among all the candidates a right pair has one
-    close to the truth, and the loop and tree checks pick it."""
-    m = geometry.inlier_matches
-    p0, p1 = kp0[m[:, 0]].astype(np.float64), kp1[m[:, 1]].astype(np.float64)
-    n0 = np.asarray(cam0.cam_from_img(p0), np.float64)
-    n1 = np.asarray(cam1.cam_from_img(p1), np.float64)
-    focal = float(np.mean([cam0.mean_focal_length(), cam1.mean_focal_length()]))
-    out: list[np.ndarray] = []
-    E, mask = cv2.findEssentialMat(n0, n1, np.eye(3), cv2.RANSAC, 0.999, 1.0 / focal)
-    if E is not None and E.shape == (3, 3):
-        n, R, _, _ = cv2.recoverPose(E, n0, n1, np.eye(3), mask=mask)
-        if n >= 8:
-            out.append(R)
-    # sets geometry.cam2_from_cam1 on the caller's copy read from the database; nothing is written
-    if (
-        pycolmap.estimate_two_view_geometry_pose(
-            cam0, kp0.astype(np.float64), cam1, kp1.astype(np.float64), geometry
-        )
-        and geometry.cam2_from_cam1 is not None  # what a successful estimate sets
-    ):
-        out.append(geometry.cam2_from_cam1.rotation.matrix())
-    H, _ = cv2.findHomography(n0, n1, cv2.RANSAC, 2.0 / focal)
-    if H is not None:
-        out.extend(cv2.decomposeHomographyMat(H, np.eye(3))[1])
-    unique: list[np.ndarray] = []
-    for R in out:
-        if all(rotation_angle(R.T @ U) > 0.5 for U in unique):
-            unique.append(np.asarray(R, np.float64))
-    return unique
-
-
-def rotation_angle(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
 def loop_error(ij: list[np.ndarray], jk: list[np.ndarray], ik: list[np.ndarray]) -> float:
@@ -334,42 +286,6 @@ def _weakest_in_broken(
     return False
 
 
-def _rotations(
-    db: pycolmap.Database, min_inliers: int
-) -> tuple[dict[tuple[int, int], list[np.ndarray]], dict[tuple[int, int], int]]:
-    """Candidate rotations and inlier counts of the verified pairs, keyed (i, j) with i < j."""
-    images = {im.image_id: im for im in db.read_all_images()}
-    cameras = {c.camera_id: c for c in db.read_all_cameras()}
-    keypoints: dict[int, np.ndarray] = {}
-
-    def kp(i: int) -> np.ndarray:
-        if i not in keypoints:
-            keypoints[i] = db.read_keypoints(i)[:, :2]
-        return keypoints[i]
-
-    jobs: list[
-        tuple[int, int, pycolmap.TwoViewGeometry, pycolmap.Camera, pycolmap.Camera, np.ndarray, np.ndarray]
-    ] = []
-    pair_ids, geometries = db.read_two_view_geometries()
-    for pid, g in zip(pair_ids, geometries, strict=True):
-        if len(g.inlier_matches) < min_inliers:
-            continue
-        a, b = pycolmap.pair_id_to_image_pair(pid)
-        jobs.append((a, b, g, cameras[images[a].camera_id], cameras[images[b].camera_id], kp(a), kp(b)))
-    # one pair's RANSACs run single-threaded in OpenCV and release the GIL: the pairs go side by
-    # side on the cores (each RANSAC seeds its own generator, so the result does not depend on it)
-    with ThreadPoolExecutor(max_workers=pair_threads()) as pool:
-        found = list(pool.map(lambda j: candidate_rotations(j[3], j[4], j[5], j[6], j[2]), jobs))
-    out: dict[tuple[int, int], list[np.ndarray]] = {}
-    inliers: dict[tuple[int, int], int] = {}
-    for (a, b, g, *_), rs in zip(jobs, found, strict=True):
-        if rs:
-            key = _key(a, b)
-            out[key] = rs if a < b else [R.T for R in rs]
-            inliers[key] = len(g.inlier_matches)
-    return out, inliers
-
-
 def judge(
     rotations: Mapping[tuple[int, int], list[np.ndarray]],
     inliers: Mapping[tuple[int, int], int],
@@ -381,9 +297,9 @@ def judge(
     (pair, broken loops, loops), and the number of loops it saw. The loop check judges the pairs
     the tree check kept, and counts a loop through a pair the tree check dropped only against
     pairs weaker than that one (:func:`inconsistent_pairs`). It never drops a pair of the spanning
-    tree: where repeated structure makes many pairs wrong (76 of 171 on a 19-photo courtyard), the
-    loops through right neighbour pairs break too, and the loop check alone dropped such a pair
-    with 722 inliers, which left seven cameras attached by a wrong pair only. An image keeps
+    tree: where repeated structure makes many pairs wrong, the loops through right neighbour
+    pairs break too, and the loop check alone can drop a strong right pair and leave cameras
+    attached by wrong pairs only (docs/pipeline.md, "The view-graph checks"). An image keeps
     ``MIN_PAIRS`` pairs over both checks."""
     pairs_of = Counter(i for pair in rotations for i in pair)
     tree_drop = tree_inconsistent_pairs(rotations, inliers) if tree else []
@@ -414,7 +330,7 @@ def filter_database(
     reconstruct with more images judges them again."""
     db = pycolmap.Database.open(database)
     try:
-        rotations, inliers = _rotations(db, min_inliers)
+        rotations, inliers = verified_rotations(db, min_inliers)
         names = {im.image_id: im.name for im in db.read_all_images()}
         tree_drop, loop_drop, seen = judge(rotations, inliers, loop_deg, loops, tree)
         report = ViewGraphReport(pairs=len(rotations), loops=seen)

@@ -19,7 +19,7 @@ from geomatch_core.errors import BadFile, InvalidRequest, TooLarge
 from ..usecases.views import Upload
 from .status import Malformed
 
-MAX_CHUNK = 1 << 20  # 1 MiB, the issue's limit on a chunk (and on what GetModel sends)
+MAX_CHUNK = 1 << 20  # 1 MiB: the most a chunk carries, uploaded or sent by GetModel
 CAPTURES = {0: "auto", 1: "auto", 2: "aerial", 3: "ground"}  # Capture enum -> the use cases' words
 
 
