@@ -136,12 +136,14 @@ def _worker(
         rng = np.random.default_rng(seed)
         a, b, s = pair_matches(i, j, cams, X, rng)
         id0, id1 = divmod(id_pair, 1 << 20)
-        if split:
-            with open(lock, "w") as fh:  # opened under the lock, read beside the writers (WAL)
+        if split:  # opened and closed under the lock, read beside the writers (workers/jobs._readable)
+            with open(lock, "w") as fh:
                 fcntl.flock(fh, fcntl.LOCK_EX)
                 reader = ColmapDatabase(path)
-            with reader:
-                p = reader.prepare_pair(id0, id1, a, b, s, RADIUS, RADIUS)
+            p = reader.prepare_pair(id0, id1, a, b, s, RADIUS, RADIUS)
+            with open(lock, "w") as fh:
+                fcntl.flock(fh, fcntl.LOCK_EX)
+                reader.close()
             with open(lock, "w") as fh:
                 fcntl.flock(fh, fcntl.LOCK_EX)
                 with ColmapDatabase(path) as db:

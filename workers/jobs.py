@@ -255,15 +255,20 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
 
 @contextmanager
 def _readable(ctx: Context, pid: str, db_path: Path) -> Iterator[Any]:
-    """The project's COLMAP database for reading beside its writers: opened under the writer lock
-    (opening creates COLMAP's tables where missing, which a writer's transaction would refuse),
-    read without it (SQLite's WAL mode lets readers see the last commit while a writer works)."""
+    """The project's COLMAP database for reading beside its writers: read without the writer lock
+    (SQLite's WAL mode lets a reader see the last commit while a writer works), opened and closed
+    under it (opening creates COLMAP's tables where missing, and the last connection to close
+    checkpoints the WAL: both need the database to themselves, and SQLite answers "locked" at
+    once rather than wait)."""
     from geomatch.sfm.colmapdb import ColmapDatabase
 
     with ctx.locks.project(pid):
         db = ColmapDatabase(db_path)
-    with db:
+    try:
         yield db
+    finally:
+        with ctx.locks.project(pid):
+            db.close()
 
 
 @contextmanager
