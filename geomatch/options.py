@@ -67,7 +67,10 @@ SPARSE_BACKBONES = ("aliked", "disk")
 # ``disk-lightglue`` / ``aliked-lightglue``: a second detector's keypoints matched by its own
 # LightGlue, whose soft assignment is the dense branch's P_c (other points than the anchors')
 DENSE_BACKBONES = ("disk", "aliked", "loftr", "lightglue", "disk-lightglue", "aliked-lightglue")
-MAPPERS = ("incremental", "global")
+MAPPERS = ("auto", "incremental", "global")
+# ``auto``: COLMAP's incremental mapper below this many images, its global mapper from it on
+# (sfm/mapping.pick_mapper; the measurements behind it: docs/benchmarks.md, "A thousand photos")
+GLOBAL_MAPPER_IMAGES = 100
 TILING = ("auto", "on", "off")
 CAMERAS = ("auto", "per-image")
 CAPTURES = ("aerial", "ground", "auto")  # how an uploaded image was taken (auto: EXIF/XMP decides)
@@ -294,7 +297,13 @@ _OPTIONS: tuple[Option, ...] = (
     ),
     Option("camera", str, "auto", "auto: one camera per EXIF device; per-image", choices=CAMERAS),
     # reconstruction
-    Option("mapper", str, "incremental", "COLMAP mapper", choices=MAPPERS),
+    Option(
+        "mapper",
+        str,
+        "auto",
+        "COLMAP mapper (auto: incremental below GLOBAL_MAPPER_IMAGES images, global from it)",
+        choices=MAPPERS,
+    ),
     Option(
         "min_pose_inliers",
         int,

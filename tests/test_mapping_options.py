@@ -6,11 +6,13 @@ from __future__ import annotations
 import pycolmap
 import pytest
 
+from geomatch.options import DEFAULTS, GLOBAL_MAPPER_IMAGES, MAPPERS
 from geomatch.sfm.mapping import (
     LARGE_BA_GROWTH,
     LARGE_BA_REFINEMENTS,
     LARGE_PROJECT_IMAGES,
     incremental_options,
+    pick_mapper,
 )
 
 pytestmark = pytest.mark.unit
@@ -39,3 +41,14 @@ def test_a_survey_runs_fewer_and_lighter_global_adjustments() -> None:
 def test_the_run_options_reach_the_mapper() -> None:
     opts = incremental_options(10, 5, 15, 7)
     assert (opts.min_model_size, opts.mapper.abs_pose_min_num_inliers, opts.random_seed) == (5, 15, 7)
+
+
+def test_auto_maps_a_large_project_globally_and_a_small_one_incrementally() -> None:
+    """The ground scenes and the drone sets (a few dozen photos) keep the incremental mapper that
+    their tables were measured with; a survey of hundreds of photos gets the global one, whose
+    time does not grow with a bundle adjustment per image."""
+    assert pick_mapper("auto", GLOBAL_MAPPER_IMAGES - 1) == "incremental"
+    assert pick_mapper("auto", GLOBAL_MAPPER_IMAGES) == "global"
+    assert pick_mapper("incremental", 10_000) == "incremental"  # asked for: kept
+    assert pick_mapper("global", 3) == "global"
+    assert DEFAULTS["mapper"] == "auto" and "auto" in MAPPERS
