@@ -20,6 +20,7 @@ matcher (bench/peer_colmap.py) on those sizes, judged the same way.
     .venv/bin/python bench/scale.py                      # 100, 300 and 1000 photos
     .venv/bin/python bench/scale.py --sizes 100 --peer 100
     .venv/bin/python bench/scale.py --sizes 100,300 --report   # table and plot of saved rows
+    .venv/bin/python bench/scale.py --render-only              # the flights alone, cached
 
 Rows are saved per size (``ROW.json`` in the size's run folder) and the table and the log-log
 plot (``bench/out/scale/scale.png``: seconds per stage against photos) are made from every saved
@@ -63,7 +64,8 @@ COLUMNS = [
     ("registered", "registered", "s"),
     ("correct", "correct", "s"),
     ("models", "models", "d"),
-    ("median position error m", "median_position", ".2f"),
+    ("position error m (median / max)", "position", "s"),
+    ("wrong verified pairs (mapped)", "wrong_pairs", "s"),
 ]
 
 
@@ -147,14 +149,22 @@ def worker(images: Path, out: Path) -> None:
 
 # -- the parent ------------------------------------------------------------------------------------
 def judge(out: Path, gt: Path) -> dict[str, Any]:
+    """Cameras against the ground truth (geomatch eval), and the verified pairs its epipolar
+    geometry calls wrong with how many of them reached the mapper (geomatch/eval/pairtruth.py)."""
     from geomatch.eval.evaluate import evaluate_run
 
     m = evaluate_run(out, gt).metrics
+    nan = float("nan")
+    median, largest = m.get("median_position_error", nan), m.get("max_position_error", nan)
+    pairs = m.get("pairs") or {}
     return {
         "registered": f"{m['registered']}/{m['images']}",
         "correct": f"{m['correct']}/{m['images']}",
         "all_correct": m["correct"] == m["images"],
-        "median_position": m.get("median_position_error", float("nan")),
+        "position": f"{median:.2f} / {largest:.2f}",
+        "median_position": median,
+        "max_position": largest,
+        "wrong_pairs": f"{pairs.get('wrong_pairs', 0)} ({pairs.get('wrong_pairs_admitted', 0)})",
         "wrong": sorted(m["wrong"]),
         "unregistered": m["images"] - m["registered"],
     }
@@ -274,6 +284,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--peer", default="", help="sizes on which COLMAP's SIFT pipeline runs too")
     ap.add_argument("--report", action="store_true", help="table and plot from saved rows, run nothing")
+    ap.add_argument("--render-only", action="store_true", help="render (and cache) the flights, run nothing")
     ap.add_argument("--worker", nargs=2, type=Path, metavar=("IMAGES", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -288,12 +299,20 @@ def main() -> int:
             rows += [json.loads(p.read_text()) for p in sorted(scene.glob("*.row.json"))]
             continue
         rendered = render(n, args.ground, args.seed)
-        print(f"{n} photos rendered: {rendered['per_photo']:.2f} s a photo", flush=True)
+        print(
+            f"{n} photos rendered: {rendered['per_photo']:.2f} s a photo, "
+            f"peak RSS {rendered['rss_mib']:.0f} MiB",
+            flush=True,
+        )
+        if args.render_only:
+            continue
         rows.append(run_geomatch(n, args.ground, args.seed, rendered))
         print(json.dumps(rows[-1]), flush=True)
         if n in peer:
             rows.append(run_peer(n, args.ground, args.seed, rendered))
             print(json.dumps(rows[-1]), flush=True)
+    if args.render_only:
+        return 0
     print_table(
         f"Synthetic survey flights ({args.ground} ground photos, seed {args.seed}), geomatch run with "
         "its defaults; seconds per stage",
