@@ -253,6 +253,9 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from .synth.aerial import write_scene
 
     t0 = time.perf_counter()
+    if args.kind == "flight":
+        return _synth_flight(args, t0)
+    args.ground = 12 if args.ground is None else args.ground
     if args.kind == "indoor":
         from .synth.indoor import write_room
 
@@ -285,6 +288,32 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _synth_flight(args: argparse.Namespace, t0: float) -> int:
+    from .synth.aerial import BARO_NOISE_M
+    from .synth.flight import GPS_NOISE_M, write_flight
+
+    if args.photos < 1:
+        print(f"geomatch: error: --photos must be at least 1, not {args.photos}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    cams = write_flight(
+        args.out,
+        args.photos,
+        args.ground or 0,
+        args.seed,
+        args.width,
+        args.height,
+        GPS_NOISE_M if args.gps_noise is None else args.gps_noise,
+        BARO_NOISE_M if args.baro_noise is None else args.baro_noise,
+    )
+    seconds = time.perf_counter() - t0
+    print(
+        f"{len(cams)} images ({args.photos} aerial, {len(cams) - args.photos} ground) in {seconds:.1f}s "
+        f"({seconds / len(cams):.2f}s an image) -> {args.out}/images, ground truth in {args.out}/gt "
+        f"(flight plan: gt/flight.json), aerial names in {args.out}/aerial.txt"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The library's commands alone (``geomatch_app.cli.build_parser`` is the whole ``geomatch`` command)."""
     parser = argparse.ArgumentParser(prog="geomatch", description="Geometry-aware matching for SfM")
@@ -304,14 +333,17 @@ def register(sub: Any) -> None:
     s = sub.add_parser("synth", help="render a synthetic air-to-ground scene with ground truth")
     s.add_argument("out", type=Path)
     s.add_argument("--aerial", type=int, default=8)
-    s.add_argument("--ground", type=int, default=12)
+    s.add_argument("--ground", type=int, default=None, help="ground views (default 12; flight: 0)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument(
         "--kind",
-        choices=("outdoor", "indoor"),
+        choices=("outdoor", "indoor", "flight"),
         default="outdoor",
-        help="indoor: one room, --ground views (--aerial ignored), depth/ as .npy",
+        help="indoor: one room, --ground views (--aerial ignored), depth/ as .npy; flight: a nadir "
+        "survey of --photos photos over an area that grows with them, GPS and DJI XMP on every "
+        "photo (--gps-noise default 1.5), --ground handheld photos of buildings (--aerial ignored)",
     )
+    s.add_argument("--photos", type=int, default=100, help="with --kind flight: the survey's photos")
     s.add_argument("--width", type=int, default=640)
     s.add_argument("--height", type=int, default=480)
     s.add_argument(
