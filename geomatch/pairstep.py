@@ -112,7 +112,14 @@ def _match_turned(
     if pair.tiled:
         aerial, other = (image0, image1) if pair.aerial_first else (image1, image0)
         turns, crops = tiled_turn(matcher, aerial, other, pair.rotate)
-        t = match_tiled(matcher, quarter_turn(aerial, turns), other, pair.aerial_first, crops=crops)
+        t = match_tiled(
+            matcher,
+            quarter_turn(aerial, turns),
+            other,
+            pair.aerial_first,
+            crops=crops,
+            min_crop_matches=matcher.config.tile_crop_min_matches,
+        )
         if not turns:
             return t.keypoints0, t.keypoints1, t.scores, t, len(crops)
         h, w = aerial.shape[:2]

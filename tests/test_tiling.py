@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 import pytest
@@ -98,3 +100,40 @@ def test_probe_selects_the_crop_a_close_up_sees(matcher, astronaut_pair) -> None
     # pixel centres at integers: x_close = 2 * x_aerial + 0.5
     err = np.linalg.norm(r.keypoints1 - (2 * r.keypoints0 + 0.5), axis=1)
     assert np.median(err) < 2.0, np.median(err)
+
+
+class _CountingMatcher:
+    """Answers each crop with as many matches as the crop's first pixel says: stands in for a
+    matcher whose crops see the other photo's site (many matches) or not (a few dozen)."""
+
+    def match(self, image0: np.ndarray, image1: np.ndarray) -> _Found:
+        n = int(image0[0, 0, 0])
+        rng = np.random.default_rng(n)
+        k = rng.uniform(0, min(image0.shape[:2]) - 1, (n, 2))
+        return _Found(k, k + 1.0, np.linspace(1.0, 0.5, n))
+
+
+@dataclass
+class _Found:
+    keypoints0: np.ndarray
+    keypoints1: np.ndarray
+    scores: np.ndarray
+
+
+@pytest.mark.unit
+def test_a_crop_with_a_few_dozen_matches_adds_none_of_them() -> None:
+    """The crops that do not see the other photo's site return a few dozen coherent wrong matches;
+    merged, several of them verify under one wrong F. A crop under the floor adds nothing, and
+    per_crop still says how many it found."""
+    w, h = 200, 160
+    aerial = np.zeros((h, w, 3), np.uint8)
+    counts = {"top_left": 120, "top_right": 40, "bottom_left": 59, "bottom_right": 60}
+    for c in five_crops(w, h)[:4]:
+        aerial[c.y0 : c.y0 + c.height, c.x0 : c.x0 + c.width] = counts[c.name]
+    crops = five_crops(w, h)[:4]
+    kept = match_tiled(_CountingMatcher(), aerial, aerial, crops=crops, min_crop_matches=60, dedup_px=0.01)
+    everything = match_tiled(_CountingMatcher(), aerial, aerial, crops=crops, dedup_px=0.01)
+    assert kept.per_crop == everything.per_crop == counts
+    assert len(kept) == 120 + 60 and len(everything) == sum(counts.values())
+    inside = [c for c in crops if c.name in ("top_left", "bottom_right")]
+    assert all(any(c.contains(p[None])[0] for c in inside) for p in kept.keypoints0)

@@ -78,6 +78,11 @@ class MatcherConfig:
     # a tiled pair (geomatch.matching.tiling): "probe" matches only the aerial crops where the cheap probe's
     # F-consistent matches lie (all five when it finds too few to tell), "all" the five crops
     tile_crops: str = "probe"
+    # a tiled pair keeps a crop's matches only when the crop finds at least this many: a crop
+    # that does not see the other photo's site still returns a few dozen coherent matches (one
+    # F fits them, and several such crops merged fit one wrong F), while a crop that sees it
+    # returns more (the counts behind the floor: docs/benchmarks.md, "`geomatch run` over many seeds")
+    tile_crop_min_matches: int = 60
     loftr_weights: str | None = DEFAULTS["loftr_weights"]
     geo: GeoOptions = field(default_factory=GeoOptions)
     refine: RefineOptions = field(default_factory=RefineOptions)

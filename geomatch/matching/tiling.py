@@ -161,9 +161,11 @@ def match_tiled(
     aerial_first: bool = True,
     dedup_px: float = 2.0,
     crops: Sequence[Crop] | None = None,
+    min_crop_matches: int = 0,
 ) -> TiledMatches:
     """Match the aerial image's crops (``crops``, default the five) against ``other`` and merge in
-    the full frame.
+    the full frame; a crop with fewer than ``min_crop_matches`` matches adds none (``per_crop``
+    still counts them).
 
     ``aerial_first`` keeps the caller's pair order: keypoints0 belong to the first image of the
     pair as the caller named it.
@@ -174,6 +176,8 @@ def match_tiled(
     for crop in five_crops(w, h) if crops is None else crops:
         r = matcher.match(crop.cut(aerial), other)
         per_crop[crop.name] = len(r.scores)
+        if len(r.scores) < min_crop_matches:
+            continue
         parts.append((crop.to_full(r.keypoints0), np.asarray(r.keypoints1, np.float64), r.scores))
     ka, ko, sc = merge_matches(parts, dedup_px)
     k0, k1 = (ka, ko) if aerial_first else (ko, ka)
