@@ -425,6 +425,34 @@ def baro_heights(cams: list[Camera], sigma: float, seed: int) -> dict[str, float
     return {c.name: float(c.centre[2] + rng.normal(0.0, sigma)) for c in cams if c.aerial}
 
 
+def write_gps_truth(
+    gt: Path,
+    cams: list[Camera],
+    fixes: dict[str, np.ndarray],
+    gps_noise: float,
+    heights: dict[str, float],
+    baro_noise: float,
+) -> None:
+    """``gt/gps.json``: the cameras' true ENU centres beside the fixes and relative altitudes
+    written into their EXIF/XMP, with the noise they were drawn with."""
+    (gt / "gps.json").write_text(
+        json.dumps(
+            {
+                "origin": GPS_ORIGIN.as_dict(),
+                "frame": "ENU",
+                "sigma_m": gps_noise,
+                "vertical_factor": GPS_VERTICAL_FACTOR,
+                "true_enu": {c.name: c.centre.tolist() for c in cams},
+                "gps_enu": {n: v.tolist() for n, v in fixes.items()},
+                "baro_sigma_m": baro_noise,
+                "relative_altitude": heights,
+            },
+            indent=1,
+        )
+        + "\n"
+    )
+
+
 def write_scene(
     out: str | Path,
     n_aerial: int = 8,
@@ -454,22 +482,7 @@ def write_scene(
         save_png(out / "images" / c.name, img, c, fixes.get(c.name), heights.get(c.name))
     write_gt(cams, out / "gt")
     if gps_noise is not None:
-        (out / "gt" / "gps.json").write_text(
-            json.dumps(
-                {
-                    "origin": GPS_ORIGIN.as_dict(),
-                    "frame": "ENU",
-                    "sigma_m": gps_noise,
-                    "vertical_factor": GPS_VERTICAL_FACTOR,
-                    "true_enu": {c.name: c.centre.tolist() for c in cams},
-                    "gps_enu": {n: v.tolist() for n, v in fixes.items()},
-                    "baro_sigma_m": baro_noise,
-                    "relative_altitude": heights,
-                },
-                indent=1,
-            )
-            + "\n"
-        )
+        write_gps_truth(out / "gt", cams, fixes, gps_noise, heights, baro_noise)
     (out / "aerial.txt").write_text("".join(f"{c.name}\n" for c in cams if c.aerial))
     return cams
 

@@ -43,7 +43,6 @@ from ..metadata import dji_xmp, exif_for, gps_exif
 from .aerial import (
     BARO_NOISE_M,
     GPS_ORIGIN,
-    GPS_VERTICAL_FACTOR,
     SKY,
     Camera,
     baro_heights,
@@ -51,6 +50,7 @@ from .aerial import (
     gps_fixes,
     look_at,
     unique_texture,
+    write_gps_truth,
     write_gt,
 )
 from .photos import photo
@@ -641,22 +641,7 @@ def write_flight(
             save_jpeg(tmp, world.render(c)[0], c, fixes[c.name], heights.get(c.name), float(err))
             tmp.replace(path)
     write_gt(cams, out / "gt")
-    (out / "gt" / "gps.json").write_text(
-        json.dumps(
-            {
-                "origin": GPS_ORIGIN.as_dict(),
-                "frame": "ENU",
-                "sigma_m": gps_noise,
-                "vertical_factor": GPS_VERTICAL_FACTOR,
-                "true_enu": {c.name: c.centre.tolist() for c in cams},
-                "gps_enu": {n: v.tolist() for n, v in fixes.items()},
-                "baro_sigma_m": baro_noise,
-                "relative_altitude": heights,
-            },
-            indent=1,
-        )
-        + "\n"
-    )
+    write_gps_truth(out / "gt", cams, fixes, gps_noise, heights, baro_noise)
     (out / "gt" / "flight.json").write_text(
         json.dumps(
             {
