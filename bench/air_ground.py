@@ -35,7 +35,8 @@ from common import parse_value, print_table
 
 from geomatch.eval.evaluate import evaluate_run
 from geomatch.pipeline import RunOptions, run
-from geomatch.synth.aerial import Camera, Scene, write_scene
+from geomatch.synth.aerial import Scene, write_scene
+from geomatch.synth.camera import Camera
 
 OUT = Path(__file__).parent / "out" / "air_ground"
 

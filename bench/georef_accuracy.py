@@ -11,7 +11,7 @@ gets. The GPS fixes' own error is the baseline the reconstruction should beat.
 ``--model SPARSE --aerial A --ground G --seed S`` instead judges an existing reconstruction of
 the scene ``geomatch synth --aerial A --ground G --seed S`` (renders are the same with or without
 GPS): fixes with ``--gps-noise`` and the drones' heights with ``--baro-noise`` are drawn
-``--trials`` times (synth.gps_fixes and synth.baro_heights, their generators offset by the trial)
+``--trials`` times (synth.sensors.gps_fixes and baro_heights, their generators offset by the trial)
 and the model is georeferenced by the pipeline's own code (georef.align) each time, three ways:
 the free 7-parameter fit, the upright one (gimbal gravity) and upright with the heights; this
 measures the georeferencing on reconstructions too costly to redo on a shared CPU.
@@ -30,7 +30,8 @@ import pycolmap
 
 from geomatch.geo.geodesy import EnuFrame
 from geomatch.geo.georef import align, errors_against
-from geomatch.synth.aerial import BARO_NOISE_M, GPS_ORIGIN, Scene, baro_heights, gps_fixes, xmp_ups
+from geomatch.synth.aerial import Scene
+from geomatch.synth.sensors import BARO_NOISE_M, GPS_ORIGIN, baro_heights, gps_fixes, xmp_ups
 
 
 def simulated(args: argparse.Namespace) -> None:

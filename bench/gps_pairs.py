@@ -29,7 +29,7 @@ from common import print_table
 from geomatch.geo.gps import footprint, look_point
 from geomatch.metadata import ImageMeta
 from geomatch.sfm.pairs import gps_neighbours
-from geomatch.synth.aerial import look_at
+from geomatch.synth.camera import look_at
 
 WIDTH, HEIGHT = 4000, 3000
 FOCAL = 24.0 / 36.0 * WIDTH  # 24 mm equivalent on the 36 mm long side

@@ -31,7 +31,7 @@ from write_rate import ALT, META, H, W, plan, project, survey
 
 from geomatch.eval.evaluate import evaluate_run
 from geomatch.sfm.colmapdb import COLMAP_OFFSET, ColmapDatabase
-from geomatch.synth.aerial import rotmat_to_qvec
+from geomatch.synth.camera import rotmat_to_qvec
 
 OUT = Path(__file__).parent / "out" / "mapper_scale"
 R_NADIR = np.diag([1.0, -1.0, -1.0])  # camera x east, y south, z down (write_rate.project)

@@ -21,7 +21,8 @@ from common import print_table
 
 from geomatch.matching.matcher import Matcher, config_from_options
 from geomatch.sfm import pairs as pairing
-from geomatch.synth.aerial import Camera, Scene, covisibility, write_scene
+from geomatch.synth.aerial import Scene, covisibility, write_scene
+from geomatch.synth.camera import Camera
 
 OUT = Path(__file__).parent / "out" / "synth_precision"
 

@@ -273,7 +273,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         args.width,
         args.height,
         args.gps_noise,
-        baro_noise=args.baro_noise,  # None: synth.BARO_NOISE_M
+        baro_noise=args.baro_noise,  # None: synth.sensors.BARO_NOISE_M
     )
     if args.gcps:
         from .synth.aerial import Scene
@@ -289,8 +289,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _synth_flight(args: argparse.Namespace, t0: float) -> int:
-    from .synth.aerial import BARO_NOISE_M
-    from .synth.flight import GPS_NOISE_M, write_flight
+    from .synth.flight import write_flight
+    from .synth.sensors import BARO_NOISE_M, GPS_NOISE_M
 
     if args.photos < 1:
         print(f"geomatch: error: --photos must be at least 1, not {args.photos}", file=sys.stderr)
@@ -360,7 +360,7 @@ def register(sub: Any) -> None:
         default=None,
         metavar="METRES",
         help="with --gps-noise: noise N(0, METRES) on the aerial images' DJI relative altitude "
-        "(a barometer; default 0.3, synth.BARO_NOISE_M)",
+        "(a barometer; default 0.3, synth.sensors.BARO_NOISE_M)",
     )
     s.add_argument(
         "--gcps", type=int, default=0, metavar="N", help="write N ground control points (gt/gcp_list.txt)"

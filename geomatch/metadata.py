@@ -105,7 +105,7 @@ def gimbal_rotation(pitch_deg: float, yaw_deg: float, roll_deg: float) -> np.nda
     """cam_from_world rotation (world ENU; camera x right, y down, z forward) of DJI gimbal
     angles: pitch of the optical axis above the horizon (-90 nadir), yaw clockwise from north of
     the image's top-forward direction, roll positive with the image's right side down
-    (synth.gimbal_angles is the inverse)."""
+    (synth.camera.gimbal_angles is the inverse)."""
     p, y, r = np.radians(pitch_deg), np.radians(yaw_deg), np.radians(roll_deg)
     h = np.array([np.sin(y), np.cos(y), 0.0])  # heading
     z = np.array([np.cos(p) * h[0], np.cos(p) * h[1], np.sin(p)])

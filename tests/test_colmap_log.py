@@ -18,7 +18,8 @@ import pytest
 
 from geomatch.metadata import read_metadata
 from geomatch.sfm.colmapdb import ColmapDatabase
-from geomatch.synth.aerial import Scene, save_png
+from geomatch.synth.aerial import Scene
+from geomatch.synth.sensors import save_png
 
 pytestmark = pytest.mark.pipeline
 

@@ -33,15 +33,9 @@ from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata, up_i
 from geomatch.options import check, parse_plan
 from geomatch.sfm import pairs
 from geomatch.sfm.colmapdb import ColmapDatabase
-from geomatch.synth.aerial import (
-    GPS_ORIGIN,
-    Scene,
-    baro_heights,
-    gps_fixes,
-    write_gt,
-    write_scene,
-    xmp_ups,
-)
+from geomatch.synth.aerial import Scene, write_scene
+from geomatch.synth.groundtruth import write_gt
+from geomatch.synth.sensors import GPS_ORIGIN, baro_heights, gps_fixes, xmp_ups
 
 
 @pytest.mark.unit

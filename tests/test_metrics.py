@@ -5,7 +5,8 @@ import pycolmap
 import pytest
 
 from geomatch.eval.metrics import evaluate, relative_pose_errors, scene_extent
-from geomatch.synth.aerial import Scene, write_gt
+from geomatch.synth.aerial import Scene
+from geomatch.synth.groundtruth import write_gt
 
 pytestmark = pytest.mark.unit
 

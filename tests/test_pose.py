@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from geomatch.eval.pose import auc_over_runs, pose_auc, relative_pose_error, shuffled_errors
-from geomatch.synth.aerial import Camera, look_at
+from geomatch.synth.camera import Camera, look_at
 
 pytestmark = pytest.mark.unit
 

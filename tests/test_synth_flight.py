@@ -13,8 +13,10 @@ import pytest
 
 from geomatch.geo.gps import fixes
 from geomatch.metadata import read_metadata
-from geomatch.synth.aerial import GPS_ORIGIN
-from geomatch.synth.flight import FOCAL_PER_WIDTH, FlightPlan, World, aerial_cameras, write_flight
+from geomatch.synth.flight import write_flight
+from geomatch.synth.flightplan import FOCAL_PER_WIDTH, FlightPlan, aerial_cameras
+from geomatch.synth.sensors import GPS_ORIGIN
+from geomatch.synth.world import World
 
 pytestmark = pytest.mark.unit
 

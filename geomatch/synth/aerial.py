@@ -2,117 +2,32 @@
 
 A textured ground plane (z = 0, z up, metres) carries several textured axis-aligned boxes
 ("buildings"); textures are photos shipped by scikit-image, tiled so that every part of the
-scene looks different. Aerial cameras fly high (nadir and oblique); ground cameras stand 1.5-2 m
-above the ground on a ring around the scene, looking near-horizontally at its centre. Every pixel
-is a real perspective ray intersected with the plane and the boxes (nearest hit wins, i.e. a
-depth test), rendered at 2x and area-downsampled against aliasing.
+scene looks different (synth.texture). Aerial cameras fly high (nadir and oblique); ground cameras
+stand 1.5-2 m above the ground on a ring around the scene, looking near-horizontally at its centre.
+Every pixel is a real perspective ray intersected with the plane and the boxes (nearest hit wins,
+i.e. a depth test), rendered at 2x and area-downsampled against aliasing.
 
 Output of :func:`write_scene`: ``images/`` (PNG), ``gt/`` (COLMAP text model: cameras.txt,
-images.txt, empty points3D.txt; poses are cam_from_world as COLMAP stores them) and
-``aerial.txt`` (the aerial image names, one per line). With ``gps_noise`` (metres) every image
-also carries an EXIF GPS fix: the scene's metres are East-North-Up around :data:`GPS_ORIGIN`
-(so ``gt/`` is already in that ENU frame), each camera centre is perturbed by N(0, sigma) east and
-north and N(0, 1.5 sigma) up (consumer GNSS is worse vertically) and converted to WGS84, and
-the aerial images' DJI relative altitude (a barometer's height above take-off, exact without GPS)
-gets its own N(0, ``baro_noise``); ``gt/gps.json`` keeps the origin, both sigmas, every image's
-true and noisy ENU position and the noisy heights.
+images.txt, empty points3D.txt; synth.groundtruth) and ``aerial.txt`` (the aerial image names, one
+per line). With ``gps_noise`` (metres) every image also carries an EXIF GPS fix and the aerial
+images a DJI relative altitude, drawn as synth.sensors describes (the scene's metres are
+East-North-Up around its GPS_ORIGIN, so ``gt/`` is already in that ENU frame); ``gt/gps.json``
+keeps the origin, both sigmas, every image's true and noisy ENU position and the noisy heights.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
-from PIL import Image
-from PIL.PngImagePlugin import PngInfo
 
-from ..geo.geodesy import EnuFrame
-from ..metadata import ImageMeta, dji_xmp, exif_for, gps_exif, up_in_camera
+from .camera import Camera, look_at
+from .groundtruth import write_gps_truth, write_gt
 from .photos import photo
-
-TEXTURES = (
-    "astronaut",
-    "coffee",
-    "rocket",
-    "chelsea",
-    "immunohistochemistry",
-    "hubble_deep_field",
-    "retina",
-    "motorcycle_left",
-    "camera",
-    "brick",
-    "gravel",
-    "coins",
-    "clock",
-    "cell",
-    "moon",
-    "grass",
-    "logo",
-)
-SKY = np.array([200.0, 215.0, 235.0])
-GPS_ORIGIN = EnuFrame(47.3769, 8.5417, 408.0)  # Zurich; the scene's (0, 0, 0), ellipsoidal height
-GPS_VERTICAL_FACTOR = 1.5  # vertical GNSS noise over horizontal
-# a DJI barometer's relative altitude over one short flight: decimetres (per image, independent)
-BARO_NOISE_M = 0.3
-
-
-def scribble(img: np.ndarray, rng: np.random.Generator, n: int, max_radius: int | None = None) -> None:
-    """Random coloured shapes drawn in place: unique, corner-rich marks at every scale."""
-    h, w = img.shape[:2]
-    max_radius = max_radius or w // 24
-    for _ in range(n):
-        colour = tuple(int(c) for c in rng.integers(0, 256, 3))
-        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
-        r = int(rng.integers(3, max(4, max_radius)))
-        kind = rng.integers(3)
-        if kind == 0:
-            cv2.circle(img, (x, y), r, colour, -1 if rng.random() < 0.6 else 2, cv2.LINE_AA)
-        elif kind == 1:
-            cv2.rectangle(img, (x, y), (x + r, y + int(rng.integers(3, 2 * r + 4))), colour, -1)
-        else:
-            pts = (np.array([x, y]) + rng.integers(-2 * r, 2 * r + 1, (3, 2))).astype(np.int32)
-            cv2.polylines(img, [pts], False, colour, int(rng.integers(1, 4)), cv2.LINE_AA)
-
-
-def _patches(img: np.ndarray, n: int) -> list[np.ndarray]:
-    h, w = img.shape[:2]
-    return [
-        img[i * h // n : (i + 1) * h // n, j * w // n : (j + 1) * w // n] for i in range(n) for j in range(n)
-    ]
-
-
-def unique_texture(src: np.ndarray, size: int, rng: np.random.Generator, shapes: int = 60) -> np.ndarray:
-    """A photo patch, colour-shifted and marked with random shapes."""
-    img = cv2.resize(src, (size, size), interpolation=cv2.INTER_CUBIC)
-    gain = rng.uniform(0.7, 1.2, 3)
-    img = np.clip(img.astype(np.float32) * gain + rng.uniform(-25, 25, 3), 0, 255).astype(np.uint8)
-    img = np.ascontiguousarray(img)
-    scribble(img, rng, shapes)
-    return img
-
-
-@dataclass(frozen=True)
-class Camera:
-    name: str
-    K: np.ndarray  # 3x3
-    R: np.ndarray  # cam_from_world rotation (COLMAP: x right, y down, z forward)
-    t: np.ndarray  # cam_from_world translation
-    width: int
-    height: int
-    aerial: bool
-
-    @property
-    def centre(self) -> np.ndarray:
-        return -self.R.T @ self.t
-
-    def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels (pixel centres at integers) and depths of world points (N, 3)."""
-        Xc = X @ self.R.T + self.t
-        uv = Xc @ self.K.T
-        return uv[:, :2] / uv[:, 2:3] - 0.5, Xc[:, 2]
+from .sensors import BARO_NOISE_M, baro_heights, gps_fixes, save_png
+from .texture import SKY, TEXTURES, patches, sample_texture, scribble, unique_texture
 
 
 @dataclass(frozen=True)
@@ -120,22 +35,6 @@ class Box:
     lo: np.ndarray  # (3,) min corner
     hi: np.ndarray  # (3,) max corner
     textures: tuple[int, ...]  # texture index per face: -x, +x, -y, +y, -z, +z
-
-
-def look_at(
-    centre: np.ndarray, target: np.ndarray, up: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """cam_from_world looking from ``centre`` at ``target``; ``up`` is the world direction that
-    appears upwards in the image (default: +z, or +y when looking straight down)."""
-    f = target - centre
-    f = f / np.linalg.norm(f)
-    if up is None:
-        up = np.array([0.0, 0.0, 1.0]) if abs(f[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    d = np.cross(f, r)
-    R = np.stack([r, d, f])
-    return R, -R @ centre
 
 
 class Scene:
@@ -147,7 +46,7 @@ class Scene:
         self.textures: list[np.ndarray] = []
         # every surface gets its own patch: photos are cut into disjoint 3x3 patches and each patch is
         # used once, so no two places in the scene share content (repeats fold SfM reconstructions)
-        pool = [p for name in TEXTURES for p in _patches(photo(name), 3)]
+        pool = [p for name in TEXTURES for p in patches(photo(name), 3)]
         order = iter(rng.permutation(len(pool)))
         tiles_per_side = 6
         tile_px = 256
@@ -305,152 +204,6 @@ class Scene:
                 uu = (q[:, u_axis] - box.lo[u_axis]) / span * (tex.shape[1] - 1)
                 vv = (box.hi[v_axis] - q[:, v_axis]) / span * (tex.shape[0] - 1)
                 colour[idx[np.flatnonzero(sel)[m]]] = sample_texture(tex, uu, vv)
-
-
-def sample_texture(
-    tex: np.ndarray, x: np.ndarray, y: np.ndarray, border: int = cv2.BORDER_REFLECT
-) -> np.ndarray:
-    """Bilinear texture lookups at (x, y) texel coordinates; cv2.remap wants a 2-D map under 32767
-    a side, so the points are laid out in rows of 4096."""
-    n = x.size
-    cols = 4096
-    rows = -(-n // cols)
-    mx = np.zeros(rows * cols, np.float32)
-    my = np.zeros(rows * cols, np.float32)
-    mx[:n], my[:n] = x, y
-    out = cv2.remap(tex, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR, borderMode=border)
-    return out.reshape(-1, 3)[:n]
-
-
-def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
-    """Hamilton quaternion (w, x, y, z), COLMAP's convention."""
-    K = (
-        np.array(
-            [
-                [R[0, 0] - R[1, 1] - R[2, 2], 0, 0, 0],
-                [R[1, 0] + R[0, 1], R[1, 1] - R[0, 0] - R[2, 2], 0, 0],
-                [R[2, 0] + R[0, 2], R[2, 1] + R[1, 2], R[2, 2] - R[0, 0] - R[1, 1], 0],
-                [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], R[0, 0] + R[1, 1] + R[2, 2]],
-            ]
-        )
-        / 3.0
-    )
-    vals, vecs = np.linalg.eigh(K)
-    q = vecs[[3, 0, 1, 2], np.argmax(vals)]
-    return q if q[0] >= 0 else -q
-
-
-def write_gt(cams: list[Camera], gt: Path) -> None:
-    gt.mkdir(parents=True, exist_ok=True)
-    with open(gt / "cameras.txt", "w") as f:
-        f.write("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
-        for i, c in enumerate(cams, 1):
-            fx, fy, cx, cy = c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]
-            f.write(f"{i} PINHOLE {c.width} {c.height} {fx:.10g} {fy:.10g} {cx:.10g} {cy:.10g}\n")
-    with open(gt / "images.txt", "w") as f:
-        f.write(
-            "# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n# POINTS2D[] as (X, Y, POINT3D_ID)\n"
-        )
-        for i, c in enumerate(cams, 1):
-            q = rotmat_to_qvec(c.R)
-            vals = " ".join(f"{v:.12g}" for v in (*q, *c.t))
-            f.write(f"{i} {vals} {i} {c.name}\n\n")
-    (gt / "points3D.txt").write_text("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n")
-
-
-def gimbal_angles(R: np.ndarray) -> tuple[float, float, float]:
-    """DJI's gimbal pitch, yaw and roll (degrees) of a camera ``R`` (world -> camera, world ENU,
-    camera x right, y down, z forward). Pitch: the optical axis above the horizon (-90 nadir).
-    Yaw: clockwise from north, of the image's top-forward direction (the optical axis for a
-    level view, the image top for a nadir one: where the drone heads). Roll: positive when the
-    image's right side is down. metadata.gimbal_rotation is the inverse."""
-    pitch = float(np.degrees(np.arcsin(np.clip(R[2, 2], -1, 1))))
-    heading = R[2, :2] - R[1, :2]  # forward minus down, horizontal: the heading at any pitch
-    yaw = float(np.degrees(np.arctan2(heading[0], heading[1])))
-    roll = float(np.degrees(np.arctan2(-R[0, 2], -R[1, 2]))) if abs(R[2, 2]) < 0.999 else 0.0
-    return pitch, yaw, roll
-
-
-def xmp_ups(cams: list[Camera]) -> dict[str, np.ndarray]:
-    """The world's up in each aerial camera as ``geomatch run`` reads it from the XMP this module
-    writes (gimbal angles to the XMP's 0.1 deg, through metadata.up_in_camera): the gravity
-    benchmarks and tests georeference with, without rendering a scene."""
-    out = {}
-    for c in cams:
-        if c.aerial:
-            pitch, yaw, roll = (round(a, 1) for a in gimbal_angles(c.R))
-            up = up_in_camera(
-                ImageMeta(1, 1, gimbal_pitch_deg=pitch, gimbal_yaw_deg=yaw, gimbal_roll_deg=roll)
-            )
-            if up is not None:
-                out[c.name] = up
-    return out
-
-
-def save_png(
-    path: Path,
-    image: np.ndarray,
-    cam: Camera,
-    gps_enu: np.ndarray | None = None,
-    height: float | None = None,
-) -> None:
-    """PNG with the EXIF a camera would write (exact focal length, one device per capture type,
-    the GPS fix at ``gps_enu`` metres in :data:`GPS_ORIGIN`'s frame when given) and, for aerial
-    images, the DJI XMP a drone would (relative altitude, ``height`` or the true one, gimbal
-    pitch, yaw and roll)."""
-    info = PngInfo()
-    if cam.aerial:
-        h = float(cam.centre[2]) if height is None else height
-        info.add_itxt("XML:com.adobe.xmp", dji_xmp(h, *gimbal_angles(cam.R)))
-    model = "synth-drone" if cam.aerial else "synth-handheld"
-    exif = exif_for("geomatch", model, float(cam.K[0, 0]) / 100.0, 100.0)
-    if gps_enu is not None:
-        lat, lon, alt = GPS_ORIGIN.to_geodetic(np.asarray(gps_enu, np.float64))
-        gps_exif(exif, float(lat), float(lon), float(alt))
-    Image.fromarray(image).save(path, exif=exif.tobytes(), pnginfo=info)
-
-
-def gps_fixes(cams: list[Camera], sigma: float, seed: int) -> dict[str, np.ndarray]:
-    """Noisy ENU positions of the camera centres. A generator of its own (not the scene's), so
-    that asking for GPS leaves the scene and its renders bit-identical."""
-    rng = np.random.default_rng([seed, 0x675])
-    scale = np.array([sigma, sigma, GPS_VERTICAL_FACTOR * sigma])
-    return {c.name: c.centre + rng.normal(0.0, 1.0, 3) * scale for c in cams}
-
-
-def baro_heights(cams: list[Camera], sigma: float, seed: int) -> dict[str, float]:
-    """Noisy relative altitudes of the aerial cameras (take-off at the ground, z = 0), from a
-    generator of their own: adding them leaves the GPS draws as they were."""
-    rng = np.random.default_rng([seed, 0xBA0])
-    return {c.name: float(c.centre[2] + rng.normal(0.0, sigma)) for c in cams if c.aerial}
-
-
-def write_gps_truth(
-    gt: Path,
-    cams: list[Camera],
-    fixes: dict[str, np.ndarray],
-    gps_noise: float,
-    heights: dict[str, float],
-    baro_noise: float,
-) -> None:
-    """``gt/gps.json``: the cameras' true ENU centres beside the fixes and relative altitudes
-    written into their EXIF/XMP, with the noise they were drawn with."""
-    (gt / "gps.json").write_text(
-        json.dumps(
-            {
-                "origin": GPS_ORIGIN.as_dict(),
-                "frame": "ENU",
-                "sigma_m": gps_noise,
-                "vertical_factor": GPS_VERTICAL_FACTOR,
-                "true_enu": {c.name: c.centre.tolist() for c in cams},
-                "gps_enu": {n: v.tolist() for n, v in fixes.items()},
-                "baro_sigma_m": baro_noise,
-                "relative_altitude": heights,
-            },
-            indent=1,
-        )
-        + "\n"
-    )
 
 
 def write_scene(

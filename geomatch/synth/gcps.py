@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .aerial import Camera, Scene
+from .aerial import Scene
+from .camera import Camera
 
 CRS = "EPSG:32632"
 # scene metres -> easting, northing, height in the file: a place in UTM 32N near the GPS origin

@@ -21,8 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .aerial import Camera, save_png, write_gt
+from .camera import Camera
+from .groundtruth import write_gt
 from .room import Room
+from .sensors import save_png
 
 MIN_ROTATION_DEG, MAX_ROTATION_DEG, MIN_COVISIBILITY = 20.0, 70.0, 0.10
 PAIRS_PER_ROOM = 5

@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 
 from . import roomtex
-from .aerial import Camera, look_at, sample_texture
+from .camera import Camera, look_at
+from .texture import sample_texture
 
 
 @dataclass(frozen=True)

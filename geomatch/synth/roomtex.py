@@ -14,8 +14,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .aerial import scribble, unique_texture
 from .photos import photo as _load_photo
+from .texture import scribble, unique_texture
 
 PPM = 250.0  # texture pixels per metre: a wall 2 m away at f = 560 px is seen at ~280 px/m
 PHOTOS = ("astronaut", "coffee", "rocket", "chelsea", "motorcycle_left", "camera", "clock", "coins", "retina")

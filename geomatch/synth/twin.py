@@ -40,7 +40,7 @@ COLMAP's pose is right (its triangles close for every candidate, and a tie goes 
 the right pairs across that link disagree with the tree; the mapper does without them. Other seeds
 and method ``sparse`` end the same way. Figures: docs/pipeline.md, "The view-graph checks".
 
-Output of :func:`write_twin_scene`: ``images/`` (PNG with the EXIF of :func:`geomatch.synth.aerial.save_png`)
+Output of :func:`write_twin_scene`: ``images/`` (PNG with the EXIF of :func:`geomatch.synth.sensors.save_png`)
 and ``gt/`` (COLMAP text model), as :func:`geomatch.synth.aerial.write_scene` writes them.
 """
 
@@ -50,8 +50,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .aerial import TEXTURES, Box, Camera, Scene, look_at, save_png, unique_texture, write_gt
+from .aerial import Box, Scene
+from .camera import Camera, look_at
+from .groundtruth import write_gt
 from .photos import photo
+from .sensors import save_png
+from .texture import TEXTURES, unique_texture
 
 # the building (metres): the long faces along x carry the look-alike band; near square, so that
 # the views off its corners see an end face and a long face at workable angles
