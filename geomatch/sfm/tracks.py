@@ -30,22 +30,33 @@ def snap(existing: np.ndarray, points: np.ndarray, radius: float) -> tuple[np.nd
         hit = np.isfinite(dist)
         idx[hit] = nn[hit]
     rest = np.flatnonzero(idx < 0)
-    new_points: list[np.ndarray] = []
-    if len(rest):
-        # greedy clustering of the remaining points, in input order (callers pass best first)
-        tree = cKDTree(points[rest])
-        assigned = np.full(len(rest), -1, np.int64)
-        for k in range(len(rest)):
-            if assigned[k] >= 0:
-                continue
-            new_id = n0 + len(new_points)
-            new_points.append(points[rest[k]])
-            for m in tree.query_ball_point(points[rest[k]], radius):
-                if assigned[m] < 0:
-                    assigned[m] = new_id
-        idx[rest] = assigned
-    out = np.concatenate([existing, np.asarray(new_points, np.float32).reshape(-1, 2)])
-    return idx, out
+    cluster, first = _clusters(points[rest], radius)
+    idx[rest] = n0 + cluster
+    return idx, np.concatenate([existing, points[rest][first]])
+
+
+def _clusters(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy clustering in input order (callers pass best first): a point not yet taken starts
+    a cluster and takes every point within ``radius`` not yet taken. Each point's cluster (in
+    the order they start) and the mask of the points that start one.
+
+    Only points with a neighbour go through the Python loop (which holds the GIL): an isolated
+    point is never taken by another and takes only itself, and most points are isolated (a
+    pair's new keypoints; all of a prepared pair's when it is rebased)."""
+    n = len(points)
+    if not n:
+        return np.zeros(0, np.int64), np.zeros(0, bool)
+    tree = cKDTree(points)
+    owner = np.full(n, -1, np.int64)  # the point that started each point's cluster
+    crowded = tree.query_ball_point(points, radius, return_length=True) > 1  # itself and more
+    owner[~crowded] = np.flatnonzero(~crowded)
+    for k in np.flatnonzero(crowded).tolist():
+        if owner[k] < 0:
+            for m in tree.query_ball_point(points[k], radius):
+                if owner[m] < 0:
+                    owner[m] = k
+    first = owner == np.arange(n)
+    return (np.cumsum(first) - 1)[owner], first
 
 
 def unique_matches(idx0: np.ndarray, idx1: np.ndarray) -> np.ndarray:
