@@ -14,28 +14,14 @@ import numpy as np
 
 from ..lru import ByteLRU
 from .photos import photo
-from .texture import sample_texture
+from .texture import TEXTURES, sample_texture
 
 TILE = 256  # texels on a ground tile's side
 MARGIN = 24  # texels each tile reaches into its neighbours, cross-faded
 SHAPES_PER_TILE = 16
-# synth.texture.TEXTURES less those mostly blank (logo, hubble_deep_field, cell, retina): a crop
-# of blank photo is a patch of ground no feature lands on
-PHOTOS = (
-    "astronaut",
-    "coffee",
-    "rocket",
-    "chelsea",
-    "immunohistochemistry",
-    "motorcycle_left",
-    "camera",
-    "brick",
-    "gravel",
-    "coins",
-    "clock",
-    "moon",
-    "grass",
-)
+# a crop of a mostly blank photo is a patch of ground no feature lands on
+BLANK_PHOTOS = frozenset({"logo", "hubble_deep_field", "cell", "retina"})
+PHOTOS = tuple(t for t in TEXTURES if t not in BLANK_PHOTOS)
 
 
 def seed_key(*ints: int) -> list[int]:
