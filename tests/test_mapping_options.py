@@ -52,3 +52,12 @@ def test_auto_maps_a_large_project_globally_and_a_small_one_incrementally() -> N
     assert pick_mapper("incremental", 10_000) == "incremental"  # asked for: kept
     assert pick_mapper("global", 3) == "global"
     assert DEFAULTS["mapper"] == "auto" and "auto" in MAPPERS
+
+
+def test_a_project_with_tiled_pairs_triangulates_what_only_two_images_share() -> None:
+    """An aerial image's matches with the other aerial images are mostly seen by those two alone;
+    without their points a ground photo that reaches the project through it cannot register.
+    Ground-only projects keep COLMAP's choice."""
+    assert incremental_options(10, 3, 20, 0, tiled=True).triangulation.ignore_two_view_tracks is False
+    colmap = pycolmap.IncrementalPipelineOptions().triangulation.ignore_two_view_tracks
+    assert incremental_options(10, 3, 30, 0).triangulation.ignore_two_view_tracks == colmap

@@ -3,7 +3,8 @@
 Pairs written by colmapdb.py are verified as they are written; ``verify`` catches pairs of a
 database filled by other means. Mapping is COLMAP's incremental mapper for projects of a few dozen
 images and its global mapper (GLOMAP's, merged into COLMAP 4) for larger ones (``auto``,
-:func:`pick_mapper`), or either on request. The largest model is exported as
+:func:`pick_mapper`), or either on request; the incremental mapper's later models that share
+an image with its first are joined into it (modeljoin.py). The largest model is exported as
 ``sparse/0`` (binary and text, so both COLMAP and tools that parse text read it), ``points.ply``
 and ``summary.json``; other models, if any, go to ``sparse/1`` ...
 """
@@ -25,6 +26,7 @@ from ..geo import georef
 from ..geo.gps import GpsFixes
 from ..options import GLOBAL_MAPPER_IMAGES, MAPPERS, MIN_POSE_INLIERS, TILED_MIN_POSE_INLIERS
 from .colmaplog import colmap_log
+from .modeljoin import Join, join_models
 from .sqlitecopy import snapshot_sqlite
 from .trackrefine import refine_tracks
 from .viewgraph import filter_database
@@ -41,6 +43,10 @@ from .viewgraph import filter_database
 LARGE_PROJECT_IMAGES = 40
 LARGE_BA_GROWTH = 1.3
 LARGE_BA_REFINEMENTS = 1
+
+
+def _size(rec: pycolmap.Reconstruction) -> tuple[int, int]:
+    return (rec.num_reg_images(), rec.num_points3D())
 
 
 def sfm_stats(rec: pycolmap.Reconstruction, n_images: int) -> dict[str, Any]:
@@ -106,13 +112,18 @@ def pick_mapper(mapper: str, n_images: int) -> str:
 
 
 def incremental_options(
-    n_images: int, min_model_size: int, min_pose_inliers: int, seed: int
+    n_images: int, min_model_size: int, min_pose_inliers: int, seed: int, tiled: bool = False
 ) -> pycolmap.IncrementalPipelineOptions:
-    """COLMAP's incremental mapper as a project of ``n_images`` gets it (LARGE_PROJECT_IMAGES)."""
+    """COLMAP's incremental mapper as a project of ``n_images`` gets it (LARGE_PROJECT_IMAGES).
+    With ``tiled`` aerial x ground pairs it also triangulates the matches that only two images
+    share (COLMAP leaves them out): an aerial image's matches with the other aerial images, and
+    those of two ground photos that no third one sees, are mostly such, and without their points
+    a ground photo reaching the project through an aerial image has nothing to register from."""
     opts = pycolmap.IncrementalPipelineOptions()
     opts.min_model_size = min_model_size
     opts.random_seed = seed
     opts.mapper.abs_pose_min_num_inliers = min_pose_inliers
+    opts.triangulation.ignore_two_view_tracks = not tiled
     if n_images >= LARGE_PROJECT_IMAGES:
         opts.mapper.ba_global_ignore_redundant_points3D = True
         opts.ba_global_frames_ratio = LARGE_BA_GROWTH
@@ -185,22 +196,28 @@ def reconstruct(
         db.close()
     n_images = len(all_names)
     requested, mapper = mapper, pick_mapper(mapper, n_images)
+    joins: list[Join] = []
     bar = tqdm(total=n_images, desc=f"mapping ({mapper})", unit="image", disable=not progress)
     with bar, colmap_log(verbose):
         if mapper == "incremental":
-            models = pycolmap.incremental_mapping(
+            options = incremental_options(
+                n_images,
+                min_model_size,
+                min_pose_inliers or (TILED_MIN_POSE_INLIERS if tiled else MIN_POSE_INLIERS),
+                seed,
+                tiled,
+            )
+            found = pycolmap.incremental_mapping(
                 str(mapped),
                 str(image_dir),
                 str(work),
-                incremental_options(
-                    n_images,
-                    min_model_size,
-                    min_pose_inliers or (TILED_MIN_POSE_INLIERS if tiled else MIN_POSE_INLIERS),
-                    seed,
-                ),
+                options,
                 initial_image_pair_callback=lambda: bar.update(2),
                 next_image_callback=lambda: bar.update(1),
             )
+            ordered = sorted(found.values(), key=_size, reverse=True)
+            found_list, joins = join_models(ordered, mapped, image_dir, work / "joined", options)
+            models = dict(enumerate(found_list))
         else:
             gopts = pycolmap.GlobalPipelineOptions()
             if hasattr(gopts, "random_seed"):
@@ -210,7 +227,7 @@ def reconstruct(
         bar.n = best_count  # the bar ends at the largest model's count (the callbacks count tries)
         bar.refresh()
     lap("mapper")
-    ranked = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
+    ranked = sorted(models.values(), key=_size, reverse=True)
     alignments = [
         georef.align(rec, gps.enu, up_cam=gps.up, heights=gps.heights) if gps is not None else None
         for rec in ranked
@@ -227,6 +244,7 @@ def reconstruct(
     shutil.rmtree(work, ignore_errors=True)
     summary: dict[str, Any] = {"mapper": mapper, "mapper_requested": requested, "models": len(ranked)}
     summary["view_graph"] = report.as_dict() if report is not None else None
+    summary["joined_models"] = [j.as_dict() for j in joins]
     summary["track_refinement"] = refined
     summary["mapping_seconds"] = stages
     summary.update(georef.summary_fields(gps, alignments[0] if alignments else None))

@@ -1,0 +1,173 @@
+"""Join models that share an image: the mapper's second model placed into its first.
+
+Why: an aerial image matched against ground photos through its tiling crops gets keypoints at the
+crops' scale, and against other aerial images at its own; the two sets are different keypoints, so
+no track runs through both. When ground photos reach the rest of the project only through such an
+image, COLMAP's incremental mapper registers that image in its first model (from its aerial
+partner) and starts a second model from the ground photos, which registers the same image again
+from the crop keypoints. The two models share a camera but no 3D point, so COLMAP's own merge
+(common observations) cannot align them, and nothing in either model fixes their relative scale.
+
+The shared image does: its pose gives the rotation and translation between the models, and the
+scale is the ratio of depths, in that image, of the two models' points seen at nearby pixels
+(the same surfaces, reached through different keypoints). A join is kept only when enough such
+neighbours agree on one scale; the joined cameras are then fixed in the first model, every point
+is triangulated again from the database with the poses held, and a bundle adjustment refines the
+whole.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from scipy.spatial import cKDTree
+
+# two observations, one per model, within this many pixels of each other in the shared image see
+# the same surface: close enough that a facade edge between them is rare, far enough that the
+# crop keypoints (at twice the aerial image's scale) find neighbours among the full-image ones
+NEIGHBOUR_PX = 8.0
+# a scale rests on at least this many neighbours, whose log depth ratios spread (median absolute
+# deviation) less than MAX_SCALE_SPREAD: a join on a few or disagreeing ratios would place the
+# second model's cameras at a wrong distance, worse than leaving them out
+MIN_NEIGHBOURS = 5
+MAX_SCALE_SPREAD = 0.1
+
+
+@dataclass(frozen=True)
+class Join:
+    """How a second model was placed into the first, for the run's summary."""
+
+    via: str  # the shared image
+    scale: float  # the second model's units in the first's
+    neighbours: int  # depth ratios the scale rests on
+    spread: float  # their median absolute deviation in log scale
+    images: tuple[str, ...]  # the images the first model gained
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "via": self.via,
+            "scale": round(self.scale, 4),
+            "neighbours": self.neighbours,
+            "spread": round(self.spread, 4),
+            "images": list(self.images),
+        }
+
+
+def _depths(rec: pycolmap.Reconstruction, image: pycolmap.Image) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels and camera-frame depths of the image's observations that have a 3D point."""
+    pose = image.cam_from_world()
+    uv, depth = [], []
+    for p in image.points2D:
+        if p.has_point3D():
+            uv.append(p.xy)
+            depth.append((pose * rec.points3D[p.point3D_id].xyz)[2])
+    return np.asarray(uv, np.float64).reshape(-1, 2), np.asarray(depth, np.float64)
+
+
+def depth_scale(
+    first: pycolmap.Reconstruction, second: pycolmap.Reconstruction, name: str
+) -> tuple[float, int, float] | None:
+    """(scale, neighbours, spread) of ``second`` in ``first``'s units from the image ``name``
+    registered in both: for each of the second model's observations in that image, the median
+    depth of the first model's observations within NEIGHBOUR_PX over its own depth; the median of
+    those ratios (in log). None when no observation has a neighbour."""
+    uv0, d0 = _depths(first, first.find_image_with_name(name))
+    uv1, d1 = _depths(second, second.find_image_with_name(name))
+    if not len(uv0) or not len(uv1):
+        return None
+    tree = cKDTree(uv0)
+    logs = []
+    for near, d in zip(tree.query_ball_point(uv1, NEIGHBOUR_PX), d1, strict=True):
+        if near and d > 0:
+            ahead = d0[near][d0[near] > 0]
+            if len(ahead):
+                logs.append(np.log(np.median(ahead) / d))
+    if not logs:
+        return None
+    r = np.asarray(logs)
+    med = float(np.median(r))
+    return float(np.exp(med)), len(r), float(np.median(np.abs(r - med)))
+
+
+def similarity(
+    first: pycolmap.Reconstruction, second: pycolmap.Reconstruction, name: str, scale: float
+) -> pycolmap.Sim3d:
+    """first_from_second: the transform that gives the image ``name`` the same pose in both."""
+    p0 = first.find_image_with_name(name).cam_from_world()
+    p1 = second.find_image_with_name(name).cam_from_world()
+    r0, t0 = p0.rotation.matrix(), np.asarray(p0.translation)
+    r1, t1 = p1.rotation.matrix(), np.asarray(p1.translation)
+    # x_cam = R0 X0 + t0 = scale (R1 X1 + t1) with X0 = scale R X1 + t
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(r0.T @ r1), r0.T @ (scale * t1 - t0))
+
+
+def _registered(rec: pycolmap.Reconstruction) -> set[str]:
+    return {im.name for im in rec.images.values() if im.has_pose}
+
+
+def place(first: pycolmap.Reconstruction, second: pycolmap.Reconstruction) -> Join | None:
+    """Place ``second``'s cameras that ``first`` lacks into ``first`` (poses only, no points)
+    through the shared image with the most neighbours, if its scale holds (module docstring)."""
+    new = _registered(second) - _registered(first)
+    if not new:
+        return None
+    best: tuple[str, float, int, float] | None = None
+    for name in sorted(_registered(first) & _registered(second)):
+        found = depth_scale(first, second, name)
+        if found is None:
+            continue
+        scale, n, spread = found
+        if n >= MIN_NEIGHBOURS and spread <= MAX_SCALE_SPREAD and (best is None or n > best[2]):
+            best = (name, scale, n, spread)
+    if best is None:
+        return None
+    via, scale, n, spread = best
+    moved = pycolmap.Reconstruction(second)
+    moved.transform(similarity(first, second, via, scale))
+    for name in sorted(new):
+        src = moved.find_image_with_name(name)
+        if not first.exists_camera(src.camera_id):
+            first.add_camera_with_trivial_rig(moved.cameras[src.camera_id])
+        image = pycolmap.Image()
+        image.name, image.image_id, image.camera_id = name, src.image_id, src.camera_id
+        image.points2D = pycolmap.Point2DList([pycolmap.Point2D(p.xy) for p in src.points2D])
+        first.add_image_with_trivial_frame(image, src.cam_from_world())
+    return Join(via, scale, n, spread, tuple(sorted(new)))
+
+
+def join_models(
+    models: list[pycolmap.Reconstruction],
+    database: Path,
+    image_dir: Path,
+    work: Path,
+    options: pycolmap.IncrementalPipelineOptions,
+) -> tuple[list[pycolmap.Reconstruction], list[Join]]:
+    """``models`` (largest first) with every later model that shares an image with the first
+    placed into it, its points triangulated again from ``database`` (the mapper's copy) with the
+    poses held and the whole bundle-adjusted; the models that could not be joined follow as they
+    were. ``work``: a scratch folder for the triangulation."""
+    if len(models) < 2:
+        return models, []
+    first, rest = pycolmap.Reconstruction(models[0]), []
+    joins = []
+    for other in models[1:]:
+        j = place(first, other)
+        if j is None:
+            rest.append(other)
+        else:
+            joins.append(j)
+    if not joins:
+        return models, []
+    work.mkdir(parents=True, exist_ok=True)
+    joined = pycolmap.triangulate_points(
+        first, str(database), str(image_dir), str(work), clear_points=True, options=options
+    )
+    adjust = pycolmap.BundleAdjustmentOptions()
+    adjust.print_summary = False
+    pycolmap.bundle_adjustment(joined, adjust)
+    # a model whose images all went into the first adds nothing more
+    kept = [m for m in rest if _registered(m) - _registered(joined)]
+    return [joined, *kept], joins
