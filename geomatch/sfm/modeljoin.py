@@ -165,9 +165,19 @@ def join_models(
     joined = pycolmap.triangulate_points(
         first, str(database), str(image_dir), str(work), clear_points=True, options=options
     )
-    adjust = pycolmap.BundleAdjustmentOptions()
-    adjust.print_summary = False
-    pycolmap.bundle_adjustment(joined, adjust)
+    _adjust(joined)
     # a model whose images all went into the first adds nothing more
     kept = [m for m in rest if _registered(m) - _registered(joined)]
     return [joined, *kept], joins
+
+
+def _adjust(rec: pycolmap.Reconstruction) -> None:
+    """A global bundle adjustment of every registered image and point, through the adjuster
+    itself: ``pycolmap.bundle_adjustment`` logs past the quiet level (colmaplog.py)."""
+    options = pycolmap.BundleAdjustmentOptions()
+    options.print_summary = False
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+    pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
