@@ -148,6 +148,12 @@ MIN_POSE_INLIERS = 30
 # synthetic sweep's split tuning scenes; 15, the inliers that verify a pair, places more cameras
 # wrongly (docs/pipeline.md, "Mapping"; docs/benchmarks.md, "`geomatch run` over many seeds")
 TILED_MIN_POSE_INLIERS = 20
+# ...and once that model is built (and joined, sfm/modeljoin.py), the images it still lacks get one
+# more pass at 15: COLMAP considers an image only from as many visible points as its PnP minimum,
+# structure-less registration included, and an aerial image whose whole-image keypoints meet the
+# model's crop keypoints at 15-19 points is otherwise never tried; late, a weak registration no
+# longer steers the rest of the model
+LEFTOVER_MIN_POSE_INLIERS = 15
 
 # GEOMATCH_CACHE_MB: the in-memory caches of one job (a worker's job thread, or `geomatch run`), in
 # MiB, all together. One number because an operator sizes a process, not its caches.

@@ -24,7 +24,13 @@ from tqdm import tqdm
 
 from ..geo import georef
 from ..geo.gps import GpsFixes
-from ..options import GLOBAL_MAPPER_IMAGES, MAPPERS, MIN_POSE_INLIERS, TILED_MIN_POSE_INLIERS
+from ..options import (
+    GLOBAL_MAPPER_IMAGES,
+    LEFTOVER_MIN_POSE_INLIERS,
+    MAPPERS,
+    MIN_POSE_INLIERS,
+    TILED_MIN_POSE_INLIERS,
+)
 from .colmaplog import colmap_log
 from .modeljoin import Join, join_models
 from .sqlitecopy import snapshot_sqlite
@@ -132,6 +138,34 @@ def incremental_options(
     return opts
 
 
+def register_leftovers(
+    model: pycolmap.Reconstruction,
+    database: Path,
+    image_dir: Path,
+    work: Path,
+    options: pycolmap.IncrementalPipelineOptions,
+    n_images: int,
+) -> pycolmap.Reconstruction:
+    """``model`` continued by the incremental mapper at LEFTOVER_MIN_POSE_INLIERS for the images
+    of the project's ``n_images`` it lacks (options.py says why); ``model`` itself when that
+    registers nothing more."""
+    if model.num_reg_images() == 0 or model.num_reg_images() >= n_images:
+        return model
+    start, cont = work / "leftovers_in", work / "leftovers_out"
+    start.mkdir(parents=True, exist_ok=True)
+    cont.mkdir(parents=True, exist_ok=True)
+    model.write_binary(str(start))
+    again = pycolmap.IncrementalPipelineOptions(options.todict())
+    floor = options.mapper.abs_pose_min_num_inliers
+    again.mapper.abs_pose_min_num_inliers = min(LEFTOVER_MIN_POSE_INLIERS, floor)
+    again.multiple_models = False
+    found = pycolmap.incremental_mapping(
+        str(database), str(image_dir), str(cont), again, input_path=str(start)
+    )
+    best = max(found.values(), key=_size, default=None)
+    return best if best is not None and best.num_reg_images() > model.num_reg_images() else model
+
+
 def reconstruct(
     database: Path,
     image_dir: Path,
@@ -217,6 +251,8 @@ def reconstruct(
             )
             ordered = sorted(found.values(), key=_size, reverse=True)
             found_list, joins = join_models(ordered, mapped, image_dir, work / "joined", options)
+            if tiled and found_list:
+                found_list[0] = register_leftovers(found_list[0], mapped, image_dir, work, options, n_images)
             models = dict(enumerate(found_list))
         else:
             gopts = pycolmap.GlobalPipelineOptions()
