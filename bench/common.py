@@ -56,7 +56,10 @@ def print_table(title: str, columns: list[tuple[str, str, str]], rows: list[dict
         cells = []
         for _, key, spec in columns:
             v = r[key]
-            cells.append(f"{100 * v:.1f}" if spec == "%" else format(v, spec))
+            if v is None:
+                cells.append("-")
+            else:
+                cells.append(f"{100 * v:.1f}" if spec == "%" else format(v, spec))
         print("| " + " | ".join(cells) + " |")
 
 

@@ -17,9 +17,17 @@ a thread of their own, behind the matching), then the mapping's own laps (summar
 folded into ``mapper``). ``--peer SIZES`` also runs COLMAP's SIFT pipeline with its spatial
 matcher (bench/peer_colmap.py) on those sizes, judged the same way.
 
+``--service embedded`` and ``--service redis`` run the same flight through the service as a cloud
+batch user does (``geomatch submit FOLDER --wait --out``, the server's defaults): the embedded
+server doing the work in its own process, or Redis with ``--workers`` ``geomatch worker``
+processes (each its own host's worth: one Celery process tree). Their rows give the wall time
+split at the reconstruct job's start (matching through the queue, then the mapping's own laps) and
+the peak RSS of the largest process of each tree (server, or each worker), sampled every 0.5 s.
+
     .venv/bin/python bench/scale.py                      # 100, 300 and 1000 photos
     .venv/bin/python bench/scale.py --sizes 100 --peer 100
     .venv/bin/python bench/scale.py --sizes 100,300 --report   # table and plot of saved rows
+    .venv/bin/python bench/scale.py --sizes 1000 --runs redis --workers 2   # the service alone
     .venv/bin/python bench/scale.py --render-only              # the flights alone, cached
 
 Rows are saved per size (``ROW.json`` in the size's run folder) and the table and the log-log
@@ -41,6 +49,8 @@ from pathlib import Path
 from typing import Any
 
 from common import print_table
+from load_upload import start_server
+from worker_memory import REDIS, Sampler
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out" / "scale"
@@ -209,6 +219,97 @@ def run_geomatch(photos: int, ground: int, seed: int, rendered: dict[str, Any]) 
     return row
 
 
+def run_service(
+    photos: int, ground: int, seed: int, rendered: dict[str, Any], mode: str, workers: int
+) -> dict[str, Any]:
+    """The flight through the service: ``geomatch submit --wait --out`` against a server started
+    here (embedded, or Redis with ``workers`` worker processes), the model judged as the run's."""
+    scene = flight_dir(photos, ground, seed)
+    home = scene / f"service-{mode}"
+    shutil.rmtree(home, ignore_errors=True)
+    home.mkdir(parents=True)
+    geomatch = str(Path(sys.executable).parent / "geomatch")
+    procs: list[subprocess.Popen[bytes]] = []
+
+    def start_workers() -> None:
+        """The workers, once the server has made the storage: its readiness waits for them."""
+        for _ in range(600):
+            server_log = home / "server.log"
+            if server_log.is_file() and "geomatch API on" in server_log.read_text(errors="replace"):
+                break
+            time.sleep(0.2)
+        env = {
+            k: v
+            for k, v in os.environ.items()
+            if not k.startswith(("GEOMATCH_", "REDIS_URL", "DATABASE_URL"))
+        }
+        # the prefix start_server gives the server (this process's pid), so the workers share its queues
+        env.update(GEOMATCH_HOME=str(home), GEOMATCH_LOG_FORMAT="text", REDIS_URL=REDIS)
+        env["GEOMATCH_REDIS_PREFIX"] = f"gmload-{os.getpid()}:"
+        # the cores shared out, as docs/configuration.md has it for several workers on one host
+        env["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // workers))
+        for i in range(workers):
+            log = (home / f"worker{i}.log").open("wb")
+            procs.append(
+                subprocess.Popen([geomatch, "worker"], env=env, stdout=log, stderr=subprocess.STDOUT)
+            )
+
+    starter = threading.Thread(target=start_workers, daemon=True)
+    if mode == "redis":
+        starter.start()
+    server, url, key = start_server(home, REDIS if mode == "redis" else None)
+    if mode == "redis":
+        starter.join()
+    samplers = [Sampler(p.pid) for p in [server, *procs]]
+    for sm in samplers:
+        sm.start()
+    out = home / "model"
+    t0 = time.perf_counter()
+    try:
+        cmd = [geomatch, "submit", str(scene / "images"), "--server", url, "--key", key, "--wait"]
+        cmd += ["--out", str(out), "--no-progress"]
+        with open(home / "submit.log", "w") as f:
+            rc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT).returncode
+        wall = time.perf_counter() - t0
+    finally:
+        for sm in samplers:
+            sm.stop.set()
+            sm.join()
+        for p in [*procs, server]:
+            p.terminate()
+        for p in [*procs, server]:
+            p.wait(60)
+    if rc:
+        sys.exit(f"the service ({mode}) failed on {photos} photos (log: {home / 'submit.log'})")
+    s = json.loads((out / "summary.json").read_text())
+    m = s.get("mapping_seconds", {})
+    mapping = float(s.get("timings", {}).get("mapping", sum(m.values())))
+    peaks = [max(sm.hwm_kb.values(), default=0) / 1024 for sm in samplers]
+    label = "service, embedded" if mode == "embedded" else f"service, Redis + {workers} workers"
+    row: dict[str, Any] = {
+        "photos": photos + ground,
+        "run": f"{label} (`geomatch submit`)",
+        "pairs": str(s.get("database", {}).get("matched_pairs", "?")),
+        "render_per_photo": rendered["per_photo"],
+        "features": None,
+        "plan": None,
+        "matching": wall - mapping,
+        "writing": None,
+        "view_graph": m.get("view_graph", 0.0),
+        "track_refine": m.get("track_refine", 0.0),
+        "mapper": m.get("mapper", 0.0) + m.get("verify", 0.0),
+        "georeference": m.get("georeference", 0.0),
+        "total": wall,
+        "wall": wall,
+        "rss_mib": max(peaks),
+        "rss": " / ".join(f"{p:.0f}" for p in peaks) + f" / {rendered['rss_mib']:.0f}",
+        "models": s.get("models", 0),
+    }
+    row.update(judge(out, scene / "gt"))
+    (scene / f"service-{mode}.row.json").write_text(json.dumps(row, indent=1) + "\n")
+    return row
+
+
 def run_peer(photos: int, ground: int, seed: int, rendered: dict[str, Any]) -> dict[str, Any]:
     scene = flight_dir(photos, ground, seed)
     out = scene / "colmap"
@@ -258,9 +359,11 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     for stage in (*STAGES, "total"):
         secs = [max(r[stage], 0.01) for r in ours]
         ax.plot(n, secs, "o-", label=stage, lw=2.5 if stage == "total" else 1.2)
-    peers = sorted((r for r in rows if not r["run"].startswith("geomatch")), key=lambda r: r["photos"])
-    if peers:
-        ax.plot([r["photos"] for r in peers], [r["total"] for r in peers], "ks--", label="COLMAP SIFT total")
+    for prefix, style in (("COLMAP", "ks--"), ("service, embedded", "b^--"), ("service, Redis", "rv--")):
+        others = sorted((r for r in rows if r["run"].startswith(prefix)), key=lambda r: r["photos"])
+        if others:
+            name = "COLMAP SIFT" if prefix == "COLMAP" else prefix
+            ax.plot([r["photos"] for r in others], [r["total"] for r in others], style, label=f"{name} total")
     if len(n) > 1:
         x0, y0 = n[0], ours[0]["total"]
         for power, style in ((1, ":"), (2, "--")):
@@ -283,6 +386,8 @@ def main() -> int:
     ap.add_argument("--ground", type=int, default=0, help="handheld photos of buildings added to each flight")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--peer", default="", help="sizes on which COLMAP's SIFT pipeline runs too")
+    ap.add_argument("--runs", default="run", help="run, embedded, redis: comma-separated, in that order")
+    ap.add_argument("--workers", type=int, default=2, help="worker processes of the redis run")
     ap.add_argument("--report", action="store_true", help="table and plot from saved rows, run nothing")
     ap.add_argument("--render-only", action="store_true", help="render (and cache) the flights, run nothing")
     ap.add_argument("--worker", nargs=2, type=Path, metavar=("IMAGES", "OUT"), help=argparse.SUPPRESS)
@@ -306,8 +411,16 @@ def main() -> int:
         )
         if args.render_only:
             continue
-        rows.append(run_geomatch(n, args.ground, args.seed, rendered))
-        print(json.dumps(rows[-1]), flush=True)
+        runs = {r.strip() for r in args.runs.split(",") if r.strip()}
+        if runs - {"run", "embedded", "redis"}:
+            sys.exit(f"--runs: unknown {sorted(runs - {'run', 'embedded', 'redis'})}")
+        if "run" in runs:
+            rows.append(run_geomatch(n, args.ground, args.seed, rendered))
+            print(json.dumps(rows[-1]), flush=True)
+        for mode in ("embedded", "redis"):
+            if mode in runs:
+                rows.append(run_service(n, args.ground, args.seed, rendered, mode, args.workers))
+                print(json.dumps(rows[-1]), flush=True)
         if n in peer:
             rows.append(run_peer(n, args.ground, args.seed, rendered))
             print(json.dumps(rows[-1]), flush=True)
