@@ -32,10 +32,12 @@ MAX_FEATURES = 8192
 MAX_IMAGE_SIZE = 1600
 
 
-def run_peer(images: Path, out: Path, threads: int = -1, matcher: str = "exhaustive") -> dict[str, Any]:
+def run_peer(
+    images: Path, out: Path, threads: int = -1, matcher: str = "exhaustive", mapper: str = "incremental"
+) -> dict[str, Any]:
     """SIFT extraction, exhaustive (or ``spatial``: COLMAP's GPS neighbours, its defaults of 50
     neighbours within 100 m, from the pose priors extraction reads from EXIF GPS) matching and
-    incremental mapping; returns the summary."""
+    incremental (or ``global``, as geomatch maps large projects) mapping; returns the summary."""
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     db = out / "database.db"
@@ -55,7 +57,10 @@ def run_peer(images: Path, out: Path, threads: int = -1, matcher: str = "exhaust
         t2 = time.perf_counter()
         work = out / ".mapping"
         work.mkdir()
-        models = pycolmap.incremental_mapping(db, images, work)
+        if mapper == "global":
+            models = pycolmap.global_mapping(db, images, work, pycolmap.GlobalPipelineOptions())
+        else:
+            models = pycolmap.incremental_mapping(db, images, work)
     t3 = time.perf_counter()
     timings.update(extraction=t1 - t0, matching=t2 - t1, mapping=t3 - t2, total=t3 - t0)
     ranked = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
@@ -68,6 +73,7 @@ def run_peer(images: Path, out: Path, threads: int = -1, matcher: str = "exhaust
     summary: dict[str, Any] = {
         "method": "colmap-sift",
         "matcher": matcher,
+        "mapper": mapper,
         "models": len(ranked),
         "timings": timings,
     }
@@ -152,8 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gt", type=Path, help="ground-truth COLMAP model: print geomatch eval's table")
     ap.add_argument("--threads", type=int, default=-1, help="SIFT threads (-1: all cores)")
     ap.add_argument("--matcher", choices=("exhaustive", "spatial"), default="exhaustive")
+    ap.add_argument("--mapper", choices=("incremental", "global"), default="incremental")
     args = ap.parse_args(argv)
-    s = run_peer(args.images, args.out, args.threads, args.matcher)
+    s = run_peer(args.images, args.out, args.threads, args.matcher, args.mapper)
     t = s["timings"]
     print(
         f"COLMAP SIFT: {s['registered']}/{s['images']} registered, {s['points3D']} points; "

@@ -15,7 +15,8 @@ less the features they extracted, ``writing`` is the COLMAP database writes (the
 a thread of their own, behind the matching), then the mapping's own laps (summary.json
 ``mapping_seconds``: ``view_graph``, ``track_refine``, ``mapper``, ``georeference``; ``verify`` is
 folded into ``mapper``). ``--peer SIZES`` also runs COLMAP's SIFT pipeline with its spatial
-matcher (bench/peer_colmap.py) on those sizes, judged the same way.
+matcher (bench/peer_colmap.py) on those sizes, judged the same way, with the mapper geomatch picks
+at those sizes (``--peer-mapper``, global by default).
 
 ``--service embedded`` and ``--service redis`` run the same flight through the service as a cloud
 batch user does (``geomatch submit FOLDER --wait --out``, the server's defaults): the embedded
@@ -70,7 +71,7 @@ COLUMNS = [
     ("mapper s", "mapper", ".0f"),
     ("georef s", "georeference", ".1f"),
     ("total s", "total", ".0f"),
-    ("peak RSS MiB (run / render)", "rss", "s"),
+    ("peak RSS MiB (run, or server / each worker; render)", "rss", "s"),
     ("registered", "registered", "s"),
     ("correct", "correct", "s"),
     ("models", "models", "d"),
@@ -310,18 +311,20 @@ def run_service(
     return row
 
 
-def run_peer(photos: int, ground: int, seed: int, rendered: dict[str, Any]) -> dict[str, Any]:
+def run_peer(photos: int, ground: int, seed: int, rendered: dict[str, Any], mapper: str) -> dict[str, Any]:
     scene = flight_dir(photos, ground, seed)
-    out = scene / "colmap"
+    name = "colmap" if mapper == "incremental" else f"colmap-{mapper}"
+    out = scene / name
     cmd = [sys.executable, "bench/peer_colmap.py", str(scene / "images"), str(out), "--matcher", "spatial"]
-    wall, rss, rc = timed(cmd, scene / "colmap.log")
+    cmd += ["--mapper", mapper]
+    wall, rss, rc = timed(cmd, scene / f"{name}.log")
     if rc:
         sys.exit(f"the COLMAP peer failed on {photos} photos")
     s = json.loads((out / "summary.json").read_text())
     t = s["timings"]
     row: dict[str, Any] = {
         "photos": photos + ground,
-        "run": "COLMAP SIFT (spatial)",
+        "run": f"COLMAP SIFT (spatial, {mapper} mapper)",
         "pairs": "-",
         "render_per_photo": rendered["per_photo"],
         "features": t["extraction"],
@@ -339,7 +342,7 @@ def run_peer(photos: int, ground: int, seed: int, rendered: dict[str, Any]) -> d
         "models": s.get("models", 0),
     }
     row.update(judge(out, scene / "gt"))
-    (scene / "colmap.row.json").write_text(json.dumps(row, indent=1) + "\n")
+    (scene / f"{name}.row.json").write_text(json.dumps(row, indent=1) + "\n")
     return row
 
 
@@ -386,6 +389,7 @@ def main() -> int:
     ap.add_argument("--ground", type=int, default=0, help="handheld photos of buildings added to each flight")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--peer", default="", help="sizes on which COLMAP's SIFT pipeline runs too")
+    ap.add_argument("--peer-mapper", choices=("incremental", "global"), default="global")
     ap.add_argument("--runs", default="run", help="run, embedded, redis: comma-separated, in that order")
     ap.add_argument("--workers", type=int, default=2, help="worker processes of the redis run")
     ap.add_argument("--report", action="store_true", help="table and plot from saved rows, run nothing")
@@ -422,7 +426,7 @@ def main() -> int:
                 rows.append(run_service(n, args.ground, args.seed, rendered, mode, args.workers))
                 print(json.dumps(rows[-1]), flush=True)
         if n in peer:
-            rows.append(run_peer(n, args.ground, args.seed, rendered))
+            rows.append(run_peer(n, args.ground, args.seed, rendered, args.peer_mapper))
             print(json.dumps(rows[-1]), flush=True)
     if args.render_only:
         return 0
