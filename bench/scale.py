@@ -209,7 +209,7 @@ def run_geomatch(photos: int, ground: int, seed: int, rendered: dict[str, Any]) 
         "total": t["total"],
         "wall": wall,
         "rss_mib": rss,
-        "rss": f"{rss:.0f} / {rendered['rss_mib']:.0f}",
+        "rss": f"{rss:.0f}; {rendered['rss_mib']:.0f}",
         "models": s.get("models", 0),
         "georeferenced": s.get("georeferenced"),
     }
@@ -303,7 +303,7 @@ def run_service(
         "total": wall,
         "wall": wall,
         "rss_mib": max(peaks),
-        "rss": " / ".join(f"{p:.0f}" for p in peaks) + f" / {rendered['rss_mib']:.0f}",
+        "rss": " / ".join(f"{p:.0f}" for p in peaks) + f"; {rendered['rss_mib']:.0f}",
         "models": s.get("models", 0),
     }
     row.update(judge(out, scene / "gt"))
@@ -338,7 +338,7 @@ def run_peer(photos: int, ground: int, seed: int, rendered: dict[str, Any], mapp
         "total": t["total"],
         "wall": wall,
         "rss_mib": rss,
-        "rss": f"{rss:.0f} / {rendered['rss_mib']:.0f}",
+        "rss": f"{rss:.0f}; {rendered['rss_mib']:.0f}",
         "models": s.get("models", 0),
     }
     row.update(judge(out, scene / "gt"))
