@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from ..geo import georef
 from ..geo.gps import GpsFixes
+from ..geo.priorba import adjust_to_fixes, with_residuals
 from ..options import (
     GLOBAL_MAPPER_IMAGES,
     LEFTOVER_MIN_POSE_INLIERS,
@@ -187,7 +188,9 @@ def reconstruct(
     With ``gps`` every model with three or more registered images that have a fix is moved into
     the fixes' ENU frame (geo/georef.py) before it is written, so ``sparse/``, ``points.ply`` and the
     summary are all in ENU metres; the summary says whether the largest model was
-    (``georeferenced``) and how well its cameras fit their fixes (``alignment``).
+    (``georeferenced``) and how well its cameras fit their fixes (``alignment``). A model the global
+    mapper made (a large survey) is then bundle-adjusted with the inlier fixes as position priors
+    (geo/priorba.py; ``prior_adjustment``), since its shape bends where a similarity cannot follow.
 
     The mapper reads a private copy of the database in which the pairs that the view graph's
     loops or its spanning tree of the strongest pairs reject (viewgraph.py) are marked
@@ -269,6 +272,13 @@ def reconstruct(
         for rec in ranked
     ]
     lap("georeference")
+    adjusted = None
+    if mapper == "global" and gps is not None and alignments and alignments[0] is not None:
+        # a large survey's globally mapped shape bends where a similarity cannot follow (priorba.py)
+        adjusted = adjust_to_fixes(ranked[0], gps.enu, alignments[0])
+        if adjusted is not None:
+            alignments[0] = with_residuals(ranked[0], gps.enu, alignments[0])
+        lap("prior_adjustment")
     sparse = out / "sparse"
     shutil.rmtree(sparse, ignore_errors=True)
     for i, rec in enumerate(ranked):
@@ -283,6 +293,7 @@ def reconstruct(
     summary["joined_models"] = [j.as_dict() for j in joins]
     summary["track_refinement"] = refined
     summary["mapping_seconds"] = stages
+    summary["prior_adjustment"] = adjusted.as_dict() if adjusted is not None else None
     summary.update(georef.summary_fields(gps, alignments[0] if alignments else None))
     if ranked:
         best = ranked[0]
