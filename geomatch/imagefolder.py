@@ -47,5 +47,8 @@ class Images:
     def nbytes(self) -> int:
         return self._cache.nbytes()
 
+    def clear(self) -> None:
+        self._cache.clear()
+
     def __len__(self) -> int:
         return len(self._cache)

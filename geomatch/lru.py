@@ -54,6 +54,10 @@ class ByteLRU(Generic[K, V]):
     def nbytes(self) -> int:
         return self._total
 
+    def clear(self) -> None:
+        self._data.clear()
+        self._total = 0
+
     def __len__(self) -> int:
         return len(self._data)
 

@@ -31,6 +31,7 @@ from .imagefolder import PipelineError as PipelineError  # a run's bad input
 from .imagefolder import list_images as list_images
 from .matching.matcher import config_from_options
 from .matching.stored import stored
+from .memory import return_freed_memory
 from .metadata import read_metadata
 from .options import DEFAULTS, cache_budget, parse_plan, resolve
 from .report import survey_report
@@ -212,6 +213,11 @@ def run(
             if writer.last is not None:
                 bar.set_postfix(matches=writer.last.matches, inliers=writer.last.inliers)
     timings["writing"] = writer.seconds
+    # the matcher's caches (GEOMATCH_CACHE_MB) are not needed by the mapper, whose memory grows
+    # with the project: emptied and handed back, they do not add to a large survey's peak
+    matcher.clear_caches()
+    images.clear()
+    return_freed_memory()
     with ColmapDatabase(out / "database.db") as db:
         db_stats = db.stats()
     t_map = time.perf_counter()

@@ -308,6 +308,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     if not db_path.is_file():
         raise PermanentError("the project has no COLMAP database: run a match job first")
     t0 = time.perf_counter()
+    runtime.release()
     for name in ctx.storage.remove_stale_work(pid):  # left by attempts that died (SIGKILL)
         log.info("removed stale work folder %s", name, extra={"job_id": job_id, "project_id": pid})
     with ctx.storage.work(pid, f"reconstruct-{job_id}") as work:

@@ -59,6 +59,21 @@ def matcher(ctx: Context, options: Mapping[str, Any]) -> Matcher:
     return m
 
 
+def release() -> None:
+    """Empty this thread's matcher and image caches and hand the memory back: a reconstruct step
+    needs none of them, and its mapper's memory grows with the project, so the caches would only
+    add to its peak. The networks stay loaded; the next match step refills the caches from the
+    feature store."""
+    from geomatch.memory import return_freed_memory
+
+    for m in _local.__dict__.get("matchers", {}).values():
+        m.clear_caches()
+    images = getattr(_local, "images", None)
+    if images is not None:
+        images.clear()
+    return_freed_memory()
+
+
 def image(ctx: Context, path: Path) -> np.ndarray:
     """A decoded image, from the thread's byte-bounded LRU when it was read lately (a tiled
     aerial image meets all its ground partners in a row)."""
