@@ -31,6 +31,7 @@ RANKS = {
     "geomatch.imageio": 0,
     "geomatch.metadata": 0,
     "geomatch.lru": 0,
+    "geomatch.memory": 0,
     "geomatch.weights": 0,
     "geomatch.geometry": 0,
     "geomatch.report": 0,

@@ -37,6 +37,22 @@ def test_byte_lru_keeps_the_newest_entry_even_over_budget() -> None:
     assert len(lru) == 1 and "big" in lru
 
 
+def test_emptied_caches_go_back_to_the_system_before_mapping() -> None:
+    """The mapper's peak must not land on caches a finished stage no longer needs: emptied, a
+    cache counts nothing, and on glibc the heap pages those caches held are handed back."""
+    import platform
+
+    from geomatch.memory import return_freed_memory
+
+    lru: ByteLRU[str, np.ndarray] = ByteLRU(64.0)
+    for k in "abcd":
+        lru.put(k, np.ones(4 * MB, np.uint8))
+    lru.clear()
+    assert len(lru) == 0 and lru.nbytes() == 0 and lru.get("a") is None
+    trimmed = return_freed_memory()
+    assert trimmed or platform.libc_ver()[0] != "glibc"
+
+
 def test_cache_budget_default_is_the_matchers_own_and_follows_the_environment(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -35,6 +35,7 @@ from ..options import (
 from .colmaplog import colmap_log
 from .modeljoin import Join, join_models
 from .sqlitecopy import snapshot_sqlite
+from .thinmatches import per_image_budget, thin_matches
 from .trackrefine import refine_tracks
 from .viewgraph import filter_database
 
@@ -195,9 +196,10 @@ def reconstruct(
     The mapper reads a private copy of the database in which the pairs that the view graph's
     loops or its spanning tree of the strongest pairs reject (viewgraph.py) are marked
     degenerate and, with ``track_refine``, each track's keypoints are aligned on the photos
-    (trackrefine.py); ``database`` itself keeps every verified pair and the matcher's keypoints,
-    and the summary lists the dropped pairs (``view_graph``) and the moved points
-    (``track_refinement``). ``verbose`` lets COLMAP's own
+    (trackrefine.py); for the global mapper its matches are thinned to a memory budget
+    (thinmatches.py); ``database`` itself keeps every verified pair and the matcher's keypoints,
+    and the summary lists the dropped pairs (``view_graph``), the moved points
+    (``track_refinement``) and the kept matches (``thinning``). ``verbose`` lets COLMAP's own
     log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
     line a user watching a terminal needs. ``min_pose_inliers`` 0 is COLMAP's 30, or 20 where
     the project has tiled aerial x ground pairs (``tiled``; options.TILED_MIN_POSE_INLIERS).
@@ -233,6 +235,8 @@ def reconstruct(
         db.close()
     n_images = len(all_names)
     requested, mapper = mapper, pick_mapper(mapper, n_images)
+    thinned = thin_matches(mapped, per_image_budget(n_images)) if mapper == "global" else None
+    lap("thinning")
     joins: list[Join] = []
     bar = tqdm(total=n_images, desc=f"mapping ({mapper})", unit="image", disable=not progress)
     with bar, colmap_log(verbose):
@@ -292,6 +296,7 @@ def reconstruct(
     summary["view_graph"] = report.as_dict() if report is not None else None
     summary["joined_models"] = [j.as_dict() for j in joins]
     summary["track_refinement"] = refined
+    summary["thinning"] = thinned
     summary["mapping_seconds"] = stages
     summary["prior_adjustment"] = adjusted.as_dict() if adjusted is not None else None
     summary.update(georef.summary_fields(gps, alignments[0] if alignments else None))

@@ -84,6 +84,22 @@ def read_tracks(db: pycolmap.Database) -> tuple[Tracks, dict[int, np.ndarray]]:
     return Tracks(ids, offsets, e), keypoints
 
 
+def components(tracks: Tracks, max_track: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each node's track (label), each track's size in keypoints, and whether it is a clean one:
+    two to ``max_track`` keypoints, no two of them in one image."""
+    n = int(tracks.offsets[-1])
+    e = tracks.edges
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    size = np.bincount(label)
+    n_images = len(tracks.image_ids)
+    slot = np.searchsorted(tracks.image_ids, tracks.image_of(np.arange(n)))
+    # images per track: fewer than its keypoints means two keypoints of one image
+    distinct = np.bincount(np.unique(label * n_images + slot) // n_images, minlength=len(size))
+    good = (size >= 2) & (size <= max_track) & (distinct == size)
+    return label, size, good
+
+
 def references(tracks: Tracks, max_track: int) -> np.ndarray:
     """The reference node of each node's track, or -1 where the track is not refined (a single
     keypoint, too long, or two keypoints of one image)."""
@@ -92,15 +108,8 @@ def references(tracks: Tracks, max_track: int) -> np.ndarray:
     if not len(tracks.edges):
         return ref
     e = tracks.edges
-    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    _, label = connected_components(graph, directed=False)
+    label, size, good = components(tracks, max_track)
     degree = np.bincount(e.ravel(), minlength=n)
-    size = np.bincount(label)
-    n_images = len(tracks.image_ids)
-    slot = np.searchsorted(tracks.image_ids, tracks.image_of(np.arange(n)))
-    # images per track: fewer than its keypoints means two keypoints of one image
-    distinct = np.bincount(np.unique(label * n_images + slot) // n_images, minlength=len(size))
-    good = (size >= 2) & (size <= max_track) & (distinct == size)
     order = np.lexsort((np.arange(n), -degree, label))  # by track, most matched first
     first = np.ones(n, bool)
     first[1:] = label[order][1:] != label[order][:-1]
