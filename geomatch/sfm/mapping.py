@@ -25,6 +25,7 @@ from tqdm import tqdm
 from ..geo import georef
 from ..geo.gps import GpsFixes
 from ..geo.priorba import adjust_to_fixes, with_residuals
+from ..memory import return_freed_memory
 from ..options import (
     GLOBAL_MAPPER_IMAGES,
     LEFTOVER_MIN_POSE_INLIERS,
@@ -226,8 +227,6 @@ def reconstruct(
     checked = loop_check or tree_check
     report = filter_database(str(mapped), loops=loop_check, tree=tree_check) if checked else None
     lap("view_graph")
-    refined = refine_tracks(mapped, image_dir) if track_refine else None
-    lap("track_refine")
     db = pycolmap.Database.open(str(mapped))
     try:
         all_names = sorted(im.name for im in db.read_all_images())
@@ -235,8 +234,12 @@ def reconstruct(
         db.close()
     n_images = len(all_names)
     requested, mapper = mapper, pick_mapper(mapper, n_images)
+    # thinned before the refinement, which then aligns only the observations the mapper will see
     thinned = thin_matches(mapped, per_image_budget(n_images)) if mapper == "global" else None
     lap("thinning")
+    refined = refine_tracks(mapped, image_dir) if track_refine else None
+    return_freed_memory()  # the stages' peaks do not stack on each other's freed heap
+    lap("track_refine")
     joins: list[Join] = []
     bar = tqdm(total=n_images, desc=f"mapping ({mapper})", unit="image", disable=not progress)
     with bar, colmap_log(verbose):
@@ -269,6 +272,7 @@ def reconstruct(
         best_count = max((r.num_reg_images() for r in models.values()), default=0)
         bar.n = best_count  # the bar ends at the largest model's count (the callbacks count tries)
         bar.refresh()
+    return_freed_memory()
     lap("mapper")
     ranked = sorted(models.values(), key=_size, reverse=True)
     alignments = [
