@@ -90,7 +90,8 @@ def components(tracks: Tracks, max_track: int) -> tuple[np.ndarray, np.ndarray, 
     n = int(tracks.offsets[-1])
     e = tracks.edges
     graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    _, label = connected_components(graph, directed=False)
+    _, label32 = connected_components(graph, directed=False)
+    label = label32.astype(np.int64)  # label * n_images below passes int32 on a large survey
     size = np.bincount(label)
     n_images = len(tracks.image_ids)
     slot = np.searchsorted(tracks.image_ids, tracks.image_of(np.arange(n)))
