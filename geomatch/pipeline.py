@@ -217,6 +217,7 @@ def run(
     # with the project: emptied and handed back, they do not add to a large survey's peak
     matcher.clear_caches()
     images.clear()
+    del matcher, images  # the networks and whatever else the matcher holds go too
     return_freed_memory()
     with ColmapDatabase(out / "database.db") as db:
         db_stats = db.stats()

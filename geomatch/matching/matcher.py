@@ -183,12 +183,16 @@ class Matcher:
         self.feature_cache.put(ck, feats, prep, self.config.cache_features_mb)
 
     def clear_caches(self, features: bool = True, anchors: bool = True) -> None:
-        """Empty the per-image feature cache and / or the recent pairs' anchors (shared with the
-        matchers :meth:`derive` made)."""
+        """Empty the per-image feature cache and / or the recent pairs' anchors, and those of the
+        variants kept in ``variants`` (a variant with other LightGlue options has anchors of its
+        own)."""
         if features:
             self.feature_cache.clear()
         if anchors:
             self.anchor_cache.clear()
+        for variant in self.variants.values():
+            if variant is not self:
+                variant.clear_caches(features, anchors)
 
     def cache_nbytes(self) -> int:
         """Bytes the feature cache holds (features and the prepared network inputs)."""
