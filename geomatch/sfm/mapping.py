@@ -196,9 +196,9 @@ def reconstruct(
 
     The mapper reads a private copy of the database in which the pairs that the view graph's
     loops or its spanning tree of the strongest pairs reject (viewgraph.py) are marked
-    degenerate and, with ``track_refine``, each track's keypoints are aligned on the photos
-    (trackrefine.py); for the global mapper its matches are thinned to a memory budget
-    (thinmatches.py); ``database`` itself keeps every verified pair and the matcher's keypoints,
+    degenerate, for the global mapper its matches are thinned to a memory budget
+    (thinmatches.py), and then, with ``track_refine``, each track's keypoints are aligned on the
+    photos (trackrefine.py); ``database`` itself keeps every verified pair and the matcher's keypoints,
     and the summary lists the dropped pairs (``view_graph``), the moved points
     (``track_refinement``) and the kept matches (``thinning``). ``verbose`` lets COLMAP's own
     log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
