@@ -50,6 +50,7 @@ SEED_COLUMNS = [
     ("wrong mapped", "wrong_used", "d"),
     ("right dropped", "right_dropped", "d"),
     ("tiled verified (wrong)", "tiled", "s"),
+    ("cameras wrong / left out", "cameras_off", "s"),
     ("matching s", "matching_s", ".0f"),
 ]
 
@@ -94,6 +95,11 @@ def run_seed(layout: str, seed: int, split: str, min_pose_inliers: int = 0) -> d
         "wrong_used": pairs.get("wrong_pairs_admitted", 0),
         "right_dropped": pairs.get("right_pairs_dropped", 0),
         "tiled": f"{len(tiled)} ({sum(v.wrong for v in tiled)})",
+        "cameras_off": " ".join(
+            [f"{n.split('.')[0]} wrong" for n in sorted(m.get("wrong") or {})]
+            + [f"{n.split('.')[0]} out" for n in sorted(s.get("unregistered_names") or [])]
+        )
+        or "-",
         "matching_s": s["timings"]["matching"],
         "wrong_pairs": pairs.get("wrong", []),
     }
