@@ -3,13 +3,13 @@ skips tiled pairs sharing nothing would be tuned on.
 
 A tiled pair (aerial x ground) first ranks the aerial image's quarter turns with the cheap probe,
 and with four full-strength LightGlue calls where the probe is not clear-cut
-(matching.rotation.best_turn), then probes the five crops of the turned aerial image
+(matching.rotation.ranked_turns), then probes the five crops of the turned aerial image
 (matching.probes.crop_probe_points): where fewer than ``tiling.SELECT_MIN_PROBE`` probe matches
 come back, every crop is matched at full strength, the dearest path a tiled pair takes. This
 prints, for each tiled pair of scenes ``bench/air_ground_sweep.py`` has run (their databases
 under bench/out/air_ground_sweep), the probe and anchor counts, the turn, the crop probe's
 matches, the seconds the probes took, and the pair's verified inliers and the share of them on
-the ground truth's epipolar lines (geomatch/eval/pairtruth.py). Tuning seeds only.
+the ground truth's epipolar lines (geomatch/eval/pairtruth.judge_pairs). Tuning seeds only.
 
     python bench/air_ground_sweep.py --layouts 2+6 --seeds 1,6     # the scenes and databases
     OMP_NUM_THREADS=1 python bench/tiled_probes.py --layout 2+6 --seeds 1,6
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,11 +26,11 @@ import pycolmap
 from air_ground_sweep import OUT, seeds
 from common import print_table
 
-from geomatch.eval.pairtruth import epipolar_distances, gt_fundamental
+from geomatch.eval.pairtruth import judge_pairs
 from geomatch.imageio import read_image
-from geomatch.matching import rotation
 from geomatch.matching.matcher import Matcher
 from geomatch.matching.probes import crop_probe_points
+from geomatch.matching.rotation import quarter_turn, ranked_turns
 from geomatch.matching.tiling import SELECT_MIN_PROBE
 from geomatch.matching.variants import for_pair
 
@@ -45,44 +44,15 @@ COLUMNS = [
     ("crop probe matches", "crop_probe", "d"),
     ("probes s", "seconds", ".1f"),
     ("verified inliers", "inliers", "d"),
-    ("on the true lines", "agree", "s"),
+    ("on the true epipolar lines", "agree", "s"),
 ]
-
-
-def verified(database: Path, gt: pycolmap.Reconstruction) -> dict[frozenset[str], tuple[int, float]]:
-    """Each verified pair's inliers and their share within 4 px of the true epipolar lines."""
-    db = pycolmap.Database.open(str(database))
-    try:
-        names = {im.image_id: im.name for im in db.read_all_images()}
-        kps = {i: db.read_keypoints(i)[:, :2] - 0.5 for i in names}  # COLMAP pixel centres at .5
-        out = {}
-        for pid, g in zip(*db.read_two_view_geometries(), strict=True):
-            a, b = pycolmap.pair_id_to_image_pair(pid)
-            inl = g.inlier_matches
-            F = gt_fundamental(gt, names[a], names[b])
-            if F is None or not len(inl):
-                continue
-            d = epipolar_distances(F, kps[a][inl[:, 0]], kps[b][inl[:, 1]])
-            out[frozenset((names[a], names[b]))] = (len(inl), float((d < 4.0).mean()))
-        return out
-    finally:
-        db.close()
 
 
 def probe_pair(matcher: Matcher, aerial: np.ndarray, ground: np.ndarray) -> dict[str, Any]:
     """The probes as a tiled pair runs them (probes.tiled_turn, then the crop probe)."""
     t0 = time.perf_counter()
-    probe = [rotation.probe_count(matcher, ground, rotation.quarter_turn(aerial, t)) for t in rotation.TURNS]
-    best, runner_up = sorted(probe, reverse=True)[:2]
-    anchors: list[int] | None = None
-    if best >= rotation.PROBE_MARGIN * max(runner_up, 1):
-        turn = int(np.argmax(probe))
-    else:
-        anchors = [
-            rotation.anchor_count(matcher, ground, rotation.quarter_turn(aerial, t)) for t in rotation.TURNS
-        ]
-        turn = int(np.argmax(anchors))
-    crop_probe = len(crop_probe_points(matcher, rotation.quarter_turn(aerial, turn), ground))
+    turn, probe, anchors = ranked_turns(matcher, ground, aerial)
+    crop_probe = len(crop_probe_points(matcher, quarter_turn(aerial, turn), ground))
     return {
         "probe": "/".join(map(str, probe)),
         "anchors": "/".join(map(str, anchors)) if anchors else "clear-cut",
@@ -106,7 +76,8 @@ def main() -> None:
         runs = sorted(scene.glob("run_*/database.db"))
         if not runs:
             raise SystemExit(f"{scene}: no run; run bench/air_ground_sweep.py on this seed first")
-        truth = verified(runs[0], pycolmap.Reconstruction(str(scene / "gt")))
+        gt = pycolmap.Reconstruction(str(scene / "gt"))
+        truth = {frozenset((v.name0, v.name1)): (v.inliers, v.agreeing) for v in judge_pairs(runs[0], gt)}
         names = sorted(p.name for p in (scene / "images").iterdir())
         for a in (n for n in names if n.startswith("aerial")):
             aerial = read_image(scene / "images" / a)

@@ -119,9 +119,17 @@ def best_turn(matcher: Matcher, fixed: np.ndarray, moving: np.ndarray) -> int:
     """The quarter turn of ``moving`` that gives the most matches against ``fixed`` (ties: fewer
     turns, so an upright pair stays upright): by the cheap probe when it is clear-cut, else by the
     full-strength anchors (cached, so the chosen turn's are reused by the match)."""
-    counts = [probe_count(matcher, fixed, quarter_turn(moving, t)) for t in TURNS]
-    best, runner_up = sorted(counts, reverse=True)[:2]
+    return ranked_turns(matcher, fixed, moving)[0]
+
+
+def ranked_turns(
+    matcher: Matcher, fixed: np.ndarray, moving: np.ndarray
+) -> tuple[int, list[int], list[int] | None]:
+    """:func:`best_turn`'s turn with the counts that chose it: the probe's per turn, and the
+    anchors' per turn (None where the probe was clear-cut and no anchors were counted)."""
+    probes = [probe_count(matcher, fixed, quarter_turn(moving, t)) for t in TURNS]
+    best, runner_up = sorted(probes, reverse=True)[:2]
     if best >= PROBE_MARGIN * max(runner_up, 1):
-        return int(np.argmax(counts))
-    counts = [anchor_count(matcher, fixed, quarter_turn(moving, t)) for t in TURNS]
-    return int(np.argmax(counts))
+        return int(np.argmax(probes)), probes, None
+    anchors = [anchor_count(matcher, fixed, quarter_turn(moving, t)) for t in TURNS]
+    return int(np.argmax(anchors)), probes, anchors
