@@ -12,7 +12,9 @@ Raw pair matches are cached per scene under bench/out/air_ground_sweep, keyed by
 pair and the matcher's config, so a re-run after a change re-matches only the pairs it changes.
 ``--tiled-floor N`` writes the tiled pairs with dbwrite.TILED_MIN_INLIERS set to N (0: COLMAP's own
 floor only), the ablation row of that floor; ``--min-pose-inliers N`` maps with that PnP minimum
-(RunOptions.min_pose_inliers; 0: the default); neither matches anything again.
+(RunOptions.min_pose_inliers; 0: the default); neither matches anything again. ``--tile-min-probe N``
+matches with MatcherConfig.tile_min_probe set to N (0: a tiled pair whose crop probe finds too few
+matches matches all five crops instead of none), the ablation row of that skip.
 
     python bench/air_ground_sweep.py --layouts 2+4 --seeds 4242,1,2 --test-seeds 100,101
 """
@@ -68,14 +70,17 @@ SUMMARY_COLUMNS = [
 ]
 
 
-def run_seed(layout: str, seed: int, split: str, min_pose_inliers: int = 0) -> dict[str, Any]:
+def run_seed(
+    layout: str, seed: int, split: str, min_pose_inliers: int = 0, matcher: dict[str, Any] | None = None
+) -> dict[str, Any]:
     n_aerial, n_ground = (int(x) for x in layout.split("+"))
     scene = OUT / f"scene_a{n_aerial}_g{n_ground}_s{seed}"
     if not (scene / "gt" / "images.txt").is_file():
         write_scene(scene, n_aerial, n_ground, seed)
-    out = scene / f"run_floor{dbwrite.TILED_MIN_INLIERS}_pnp{min_pose_inliers}"
+    extra = "".join(f"_{k}{v}" for k, v in sorted((matcher or {}).items()))
+    out = scene / f"run_floor{dbwrite.TILED_MIN_INLIERS}_pnp{min_pose_inliers}{extra}"
     shutil.rmtree(out, ignore_errors=True)  # a fresh database; raw matches come from the cache
-    opts = RunOptions(progress=False, min_pose_inliers=min_pose_inliers)
+    opts = RunOptions(progress=False, min_pose_inliers=min_pose_inliers, matcher=dict(matcher or {}))
     s = run(scene / "images", out, opts, match=matchcache.cached(scene / "matches"))
     m = evaluate_run(out, scene / "gt").metrics
     gt = pycolmap.Reconstruction(str(scene / "gt"))
@@ -150,16 +155,18 @@ def main() -> None:
     ap.add_argument("--test-seeds", default="", help="test seeds, reported apart (never tune on them)")
     ap.add_argument("--tiled-floor", type=int, help="dbwrite.TILED_MIN_INLIERS for this run")
     ap.add_argument("--min-pose-inliers", type=int, default=0, help="PnP minimum (0: the default)")
+    ap.add_argument("--tile-min-probe", type=int, help="MatcherConfig.tile_min_probe for this run")
     ap.add_argument("--json", type=Path, help="append each seed's row to this JSON-lines file")
     args = ap.parse_args()
     if args.tiled_floor is not None:
         dbwrite.TILED_MIN_INLIERS = args.tiled_floor
+    matcher = {} if args.tile_min_probe is None else {"tile_min_probe": args.tile_min_probe}
     rows = []
     t0 = time.perf_counter()
     for layout in args.layouts.split(","):
         for split, spec in (("tuning", args.seeds), ("test", args.test_seeds)):
             for seed in seeds(spec):
-                row = run_seed(layout, seed, split, args.min_pose_inliers)
+                row = run_seed(layout, seed, split, args.min_pose_inliers, matcher)
                 rows.append(row)
                 if args.json:
                     with args.json.open("a") as f:
@@ -167,6 +174,8 @@ def main() -> None:
     label = f"defaults, tiled pairs verified from {dbwrite.TILED_MIN_INLIERS} inliers"
     if args.min_pose_inliers:
         label += f", PnP minimum {args.min_pose_inliers}"
+    if matcher:
+        label += ", " + ", ".join(f"{k} {v}" for k, v in matcher.items())
     print_table(f"Air-to-ground sweep, geomatch run ({label}), per seed", SEED_COLUMNS, rows)
     print_table(
         f"Air-to-ground sweep ({label}): correct = <= 3 deg and <= 5% of the scene extent; "

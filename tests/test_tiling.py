@@ -9,6 +9,7 @@ import pytest
 from geomatch.eval.homography import reprojection_errors
 from geomatch.matching.probes import tile_crops
 from geomatch.matching.tiling import SELECT_MIN_PROBE, five_crops, match_tiled, merge_matches, select_crops
+from geomatch.synth.photos import warped_pair
 
 
 @pytest.mark.unit
@@ -100,6 +101,20 @@ def test_probe_selects_the_crop_a_close_up_sees(matcher, astronaut_pair) -> None
     # pixel centres at integers: x_close = 2 * x_aerial + 0.5
     err = np.linalg.norm(r.keypoints1 - (2 * r.keypoints0 + 0.5), axis=1)
     assert np.median(err) < 2.0, np.median(err)
+
+
+@pytest.mark.nets
+def test_a_tiled_pair_the_probe_finds_no_overlap_in_matches_no_crop(matcher, astronaut_pair) -> None:
+    """Real networks: a ground photo of another scene leaves the crop probe with a handful of
+    matches, so the pair matches no crop (and gives no matches) instead of all five at full
+    strength; with the floor off it falls back to all five."""
+    aerial = astronaut_pair.image0
+    other = warped_pair("coffee", seed=2, strength=0.1).image0
+    assert tile_crops(matcher, aerial, other) == []
+    r = match_tiled(matcher, aerial, other, crops=tile_crops(matcher, aerial, other))
+    assert len(r) == 0 and r.per_crop == {}
+    off = matcher.derive(tile_min_probe=0)
+    assert len(tile_crops(off, aerial, other)) == 5
 
 
 class _CountingMatcher:

@@ -78,6 +78,12 @@ class MatcherConfig:
     # a tiled pair (geomatch.matching.tiling): "probe" matches only the aerial crops where the cheap probe's
     # F-consistent matches lie (all five when it finds too few to tell), "all" the five crops
     tile_crops: str = "probe"
+    # with ``tile_crops="probe"``, a tiled pair whose crop probe finds fewer than this many
+    # F-consistent matches is not matched at all (0: it matches all five crops instead). On the
+    # air-to-ground tuning seeds no such pair came to a verified pair, right or wrong, while
+    # matching all five crops at full strength made most of such a pair's time; every pair that
+    # did verify had at least 29 (bench/tiled_probes.py, docs/benchmarks.md)
+    tile_min_probe: int = 24
     # a tiled pair keeps a crop's matches only when the crop finds at least this many: a crop
     # that does not see the other photo's site still returns a few dozen coherent matches (one
     # F fits them, and several such crops merged fit one wrong F), while a crop that sees it
@@ -133,6 +139,8 @@ class MatcherConfig:
             raise ValueError(f"unknown dense backbone {self.dense!r}; choose from {DENSE_BACKBONES}")
         if self.tile_crops not in ("probe", "all"):
             raise ValueError(f"unknown tile_crops {self.tile_crops!r}; choose from probe, all")
+        if self.tile_min_probe < 0:
+            raise ValueError(f"tile_min_probe must be >= 0, got {self.tile_min_probe}")
         if self.subpixel not in ("auto", "lsm", "off"):
             raise ValueError(f"unknown subpixel mode {self.subpixel!r}; choose from auto, lsm, off")
 

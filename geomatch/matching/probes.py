@@ -99,9 +99,13 @@ def crop_probe_points(matcher: Matcher, aerial: np.ndarray, other: np.ndarray) -
 
 def tile_crops(matcher: Matcher, aerial: np.ndarray, other: np.ndarray) -> list[Crop]:
     """The aerial image's crops a tiled pair matches: with ``tile_crops="probe"`` those holding
-    the crop probe's F-consistent matches (geomatch.matching.tiling.select_crops), else all five."""
+    the crop probe's F-consistent matches (geomatch.matching.tiling.select_crops), none when the
+    probe finds fewer than ``tile_min_probe`` (MatcherConfig says why), else all five."""
     h, w = aerial.shape[:2]
     crops = five_crops(w, h)
     if matcher.config.tile_crops == "all":
         return crops
-    return select_crops(crops, crop_probe_points(matcher, aerial, other))
+    points = crop_probe_points(matcher, aerial, other)
+    if len(points) < matcher.config.tile_min_probe:
+        return []
+    return select_crops(crops, points)
