@@ -76,7 +76,7 @@ class MatcherConfig:
     # compares the two probes' choices; costs in docs/benchmarks.md)
     probe_keypoints: int = 512
     # a tiled pair (geomatch.matching.tiling): "probe" matches only the aerial crops where the cheap probe's
-    # F-consistent matches lie (all five when it finds too few to tell), "all" the five crops
+    # F-consistent matches lie (none when it finds too few: ``tile_min_probe``), "all" the five crops
     tile_crops: str = "probe"
     # with ``tile_crops="probe"``, a tiled pair whose crop probe finds fewer than this many
     # F-consistent matches is not matched at all (0: it matches all five crops instead). On the

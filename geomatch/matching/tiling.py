@@ -66,9 +66,10 @@ def five_crops(width: int, height: int) -> list[Crop]:
 
 
 # crop selection from the cheap probe's matches (``select_crops``): below this many F-consistent
-# probe matches the probe cannot tell where the overlap is (the hard pairs tiling exists for) and
-# every crop is matched; otherwise crops are taken, the one holding most uncovered probe matches
-# first, until they hold ``SELECT_COVERAGE`` of them
+# probe matches the probe cannot tell where the overlap is and every crop is matched (a tiled
+# pair reaches that only with MatcherConfig.tile_min_probe off: by default such a pair matches no
+# crop); otherwise crops are taken, the one holding most uncovered probe matches first, until
+# they hold ``SELECT_COVERAGE`` of them
 SELECT_MIN_PROBE = 24
 SELECT_COVERAGE = 0.9
 
