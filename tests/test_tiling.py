@@ -94,9 +94,10 @@ def test_probe_selects_the_crop_a_close_up_sees(matcher, astronaut_pair) -> None
     aerial = astronaut_pair.image0
     h, w = aerial.shape[:2]
     close = cv2.resize(aerial[: h // 2, : w // 2], (w, h), interpolation=cv2.INTER_LINEAR)
-    chosen = [c.name for c in tile_crops(matcher, aerial, close)]
+    crops = tile_crops(matcher, aerial, close)
+    chosen = [c.name for c in crops]
     assert "top_left" in chosen and "bottom_right" not in chosen and len(chosen) <= 2, chosen
-    r = match_tiled(matcher, aerial, close, crops=tile_crops(matcher, aerial, close))
+    r = match_tiled(matcher, aerial, close, crops=crops)
     assert len(r) > 200
     # pixel centres at integers: x_close = 2 * x_aerial + 0.5
     err = np.linalg.norm(r.keypoints1 - (2 * r.keypoints0 + 0.5), axis=1)
@@ -110,8 +111,9 @@ def test_a_tiled_pair_the_probe_finds_no_overlap_in_matches_no_crop(matcher, ast
     strength; with the floor off it falls back to all five."""
     aerial = astronaut_pair.image0
     other = warped_pair("coffee", seed=2, strength=0.1).image0
-    assert tile_crops(matcher, aerial, other) == []
-    r = match_tiled(matcher, aerial, other, crops=tile_crops(matcher, aerial, other))
+    crops = tile_crops(matcher, aerial, other)
+    assert crops == []
+    r = match_tiled(matcher, aerial, other, crops=crops)
     assert len(r) == 0 and r.per_crop == {}
     off = matcher.derive(tile_min_probe=0)
     assert len(tile_crops(off, aerial, other)) == 5
