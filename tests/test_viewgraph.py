@@ -239,3 +239,24 @@ def test_loops_through_judged_pairs_count_only_against_weaker_pairs() -> None:
         support = {e: 300 for e in edges} | dict.fromkeys(judged, 100) | {(0, 1): own}
         dropped = inconsistent_pairs(edges, support=support, keep=judged, judged=judged)[0]
         assert [e for e, _, _ in dropped] == expect, own
+
+
+def test_a_pair_whose_rotation_only_weak_wrong_triangles_confirm_does_not_join_the_tree() -> None:
+    """Images 0-2 and 3-5 are two groups, linked right by (2, 3) and (1, 3). Pair (0, 4) has more
+    inliers than either but admits two rotations, and the only triangle its candidates close runs
+    through a weak wrong pair (0, 5), so its vote takes the wrong one, 60 deg off (a flat site's
+    tiled pair on an air-to-ground scene). Chained by inliers alone it would turn the second
+    group and the check would drop the right links; it enters only as far as that triangle
+    confirms it, after the right link, and only the wrong pair goes."""
+    world, edges, _ = _graph(6, seed=11, noise_deg=0.0)
+    right = {(0, 1), (0, 2), (1, 2), (3, 4), (3, 5), (4, 5), (2, 3), (1, 3)}
+    edges = {e: r for e, r in edges.items() if e in right}
+    support = dict.fromkeys(edges, 800) | {(2, 3): 200, (1, 3): 150}
+    true04 = world[4] @ world[0].T
+    wrong04 = _turn(60) @ true04
+    edges[(0, 4)] = [true04, wrong04]
+    edges[(0, 5)] = [edges[(4, 5)][0] @ wrong04]  # closes 0-4-5 with the wrong rotation
+    support |= {(0, 4): 400, (0, 5): 50}
+    assert (0, 4) in spanning_tree(edges, support), "the scene no longer shows the trap"
+    dropped = tree_inconsistent_pairs(edges, support)
+    assert [e for e, _, _ in dropped] == [(0, 5)]
