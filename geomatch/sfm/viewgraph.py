@@ -13,11 +13,12 @@ inliers of that loop, since one broken loop does not say which of its three pair
 
 Where the scene repeats, non-overlapping views of look-alike facades can match each other
 consistently, so their loops hold. They cannot agree with the chain of the strongest pairs, hence
-the tree check (:func:`tree_inconsistent_pairs`): the maximum spanning tree by inlier count gives
-every image an absolute rotation, and a pair outside the tree more than ``TREE_DEG +
-TREE_DEG_PER_HOP * hops`` from the tree's rotation is dropped. A wrong pair whose rotation is
-right (the same facade shifted by a window) passes: rotations alone cannot tell. The scenes behind
-the thresholds are in docs/benchmarks.md.
+the tree check (:func:`tree_inconsistent_pairs`): a spanning tree of the strongest pairs
+(:func:`trusted_tree`: by inlier count, a pair admitting several rotations only as far as a
+triangle confirms the one it chains) gives every image an absolute rotation, and a pair outside
+the tree more than ``TREE_DEG + TREE_DEG_PER_HOP * hops`` from the tree's rotation is dropped.
+A wrong pair whose rotation is right (the same facade shifted by a window) passes: rotations alone
+cannot tell. The scenes behind the thresholds are in docs/benchmarks.md.
 
 The relative rotations judged are each verified pair's candidates (pairrotations.py).
 """
@@ -192,11 +193,10 @@ def trusted_tree(
         e: min(support.get(e, 0), closing) if _ambiguous(R, edges[e]) else support.get(e, 0)
         for e, (R, closing) in voted.items()
     }
-    order = {e: (trust[e], support.get(e, 0)) for e in edges}
-    ranked = sorted(edges, key=lambda e: (-order[e][0], -order[e][1], e))
-    # spanning_tree keeps the first of equal keys in the order given: rank, then hand it the rank
-    position = {e: len(ranked) - i for i, e in enumerate(ranked)}
-    return {e: voted[e][0] for e in spanning_tree(ranked, position)}
+    ranked = sorted(edges, key=lambda e: (-trust[e], -support.get(e, 0), e))
+    # spanning_tree takes the highest key first: the rank, reversed, is that key
+    rank = {e: len(ranked) - i for i, e in enumerate(ranked)}
+    return {e: voted[e][0] for e in spanning_tree(ranked, rank)}
 
 
 def tree_inconsistent_pairs(
@@ -205,8 +205,8 @@ def tree_inconsistent_pairs(
     base_deg: float = TREE_DEG,
     per_hop_deg: float = TREE_DEG_PER_HOP,
 ) -> list[tuple[tuple[int, int], float, int]]:
-    """The pairs of ``rotations`` {(i, j): candidate R_ij, i < j} that disagree with the maximum
-    spanning tree by ``support`` (module docstring), each with its angle to the tree's rotation
+    """The pairs of ``rotations`` {(i, j): candidate R_ij, i < j} that disagree with the tree of
+    :func:`trusted_tree` (module docstring), each with its angle to the tree's rotation
     and the tree path length. Tree pairs are never returned, and an image keeps ``MIN_PAIRS``
     pairs (the most inconsistent go first)."""
     edges = dict(rotations)
