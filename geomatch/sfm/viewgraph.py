@@ -188,7 +188,7 @@ def trusted_tree(
         return edges[(a, b)] if a < b else [R.T for R in edges[(b, a)]]
 
     nbrs = _neighbours(edges)
-    voted = {e: _voted_candidate(*e, rot, nbrs, support) for e in edges}
+    voted = {e: _voted_candidate(e[0], e[1], rot, nbrs, support) for e in edges}
     trust = {
         e: min(support.get(e, 0), closing) if _ambiguous(R, edges[e]) else support.get(e, 0)
         for e, (R, closing) in voted.items()
