@@ -260,3 +260,24 @@ def test_a_pair_whose_rotation_only_weak_wrong_triangles_confirm_does_not_join_t
     assert (0, 4) in spanning_tree(edges, support), "the scene no longer shows the trap"
     dropped = tree_inconsistent_pairs(edges, support)
     assert [e for e, _, _ in dropped] == [(0, 5)]
+
+
+def test_pairs_colmap_left_uncalibrated_come_last_in_the_tree() -> None:
+    """Image 5's one right pair, (4, 5), admits two rotations and closes no triangle: its other
+    pairs, (1, 5) and (3, 5), are look-alikes that agree with each other (as if 5 were turned),
+    so the weak one confirms the other. Ranked by that confirmation, image 5 hangs on the wrong
+    pair and the right one goes; the two are what COLMAP's verification leaves UNCALIBRATED (no
+    essential matrix of the known cameras fits them), and marked so they come after the right
+    pair, which stays while a wrong one goes (image 5 keeps two pairs)."""
+    world, edges, _ = _graph(6, seed=13, noise_deg=0.0)
+    edges = {e: r for e, r in edges.items() if e[1] < 5}
+    support = dict.fromkeys(edges, 500)
+    edges[(4, 5)] = [world[5] @ world[4].T, _turn(40) @ world[5] @ world[4].T]
+    turned = _turn(120, "y") @ world[5]
+    edges[(1, 5)] = [turned @ world[1].T]
+    edges[(3, 5)] = [turned @ world[3].T]
+    support |= {(4, 5): 114, (1, 5): 92, (3, 5): 63}
+    fooled = [e for e, _, _ in tree_inconsistent_pairs(edges, support)]
+    assert (4, 5) in fooled, "the scene no longer shows the trap"
+    dropped = [e for e, _, _ in tree_inconsistent_pairs(edges, support, uncalibrated={(1, 5), (3, 5)})]
+    assert len(dropped) == 1 and set(dropped) <= {(1, 5), (3, 5)}
