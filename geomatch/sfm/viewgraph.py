@@ -309,7 +309,7 @@ def _voted_candidate(
         e = _closing_errors(cands, np.stack(rot(b, k)), np.stack(rot(a, k)))
         closes = e <= LOOP_DEG
         votes += weight * closes
-        error += np.minimum(e, 4 * LOOP_DEG)
+        error += weight * np.minimum(e, 4 * LOOP_DEG)
         strongest = np.maximum(strongest, weight * closes)
     best = min(range(len(cands)), key=lambda i: (-votes[i], error[i], i))
     return cands[best], int(strongest[best])
