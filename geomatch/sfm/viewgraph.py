@@ -71,7 +71,7 @@ class ViewGraphReport:
 
 def loop_error(ij: list[np.ndarray], jk: list[np.ndarray], ik: list[np.ndarray]) -> float:
     """Degrees from the identity of R_ik^T R_jk R_ij, for the best choice of candidates."""
-    return min(rotation_angle(c.T @ b @ a) for a in ij for b in jk for c in ik)
+    return float(_closing_errors(np.stack(ij), np.stack(jk), np.stack(ik)).min())
 
 
 def inconsistent_pairs(
@@ -218,11 +218,12 @@ def tree_inconsistent_pairs(
     base_deg: float = TREE_DEG,
     per_hop_deg: float = TREE_DEG_PER_HOP,
     uncalibrated: Set[tuple[int, int]] = frozenset(),
+    trusted: Mapping[tuple[int, int], np.ndarray] | None = None,
 ) -> list[tuple[tuple[int, int], float, int]]:
     """The pairs of ``rotations`` {(i, j): candidate R_ij, i < j} that disagree with the tree of
     :func:`trusted_tree` (module docstring), each with its angle to the tree's rotation
     and the tree path length. Tree pairs are never returned, and an image keeps ``MIN_PAIRS``
-    pairs (the most inconsistent go first)."""
+    pairs (the most inconsistent go first). ``trusted``: that tree, where the caller has it."""
     edges = dict(rotations)
 
     def rot(a: int, b: int) -> list[np.ndarray]:
@@ -230,7 +231,9 @@ def tree_inconsistent_pairs(
 
     nbrs = _neighbours(edges)
     tree: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for (a, b), R in trusted_tree(edges, support, uncalibrated).items():
+    if trusted is None:
+        trusted = trusted_tree(edges, support, uncalibrated)
+    for (a, b), R in trusted.items():
         tree.setdefault(a, []).append((b, R))
         tree.setdefault(b, []).append((a, R.T))
     absolute: dict[int, np.ndarray] = {}
@@ -372,13 +375,15 @@ def judge(
     attached by wrong pairs only (docs/pipeline.md, "The view-graph checks"). An image keeps
     ``MIN_PAIRS`` pairs over both checks. ``uncalibrated``: :func:`trusted_tree`'s."""
     pairs_of = Counter(i for pair in rotations for i in pair)
-    tree_drop = tree_inconsistent_pairs(rotations, inliers, uncalibrated=uncalibrated) if tree else []
+    # the tree votes on every pair: built once for both checks
+    trusted = trusted_tree(rotations, inliers, uncalibrated) if tree else {}
+    tree_drop = tree_inconsistent_pairs(rotations, inliers, trusted=trusted) if tree else []
     gone = {pair for pair, _, _ in tree_drop}
     pairs_of.subtract(i for pair in gone for i in pair)
     loop_drop: list[tuple[tuple[int, int], int, int]] = []
     seen = 0
     if loops:
-        keep = set(trusted_tree(rotations, inliers, uncalibrated)) if tree else set()
+        keep = set(trusted)
         drop, seen = inconsistent_pairs(rotations, loop_deg, inliers, keep, judged=gone)
         for (a, b), bad, n in drop:
             if min(pairs_of[a], pairs_of[b]) <= MIN_PAIRS:
