@@ -37,6 +37,7 @@ from .options import DEFAULTS, cache_budget, parse_plan, resolve
 from .report import survey_report
 from .sfm import mapping
 from .sfm.colmapdb import ColmapDatabase, PairWrite
+from .sfm.upright import image_up
 
 
 @dataclass
@@ -236,6 +237,7 @@ def run(
         track_refine=opts.track_refine,
         gps=fixes,
         tiled=any(p.tiled for p in planned),
+        up=image_up(metas, survey),
     )
     summary["pose_priors"] = priors
     if gcps is not None:

@@ -299,6 +299,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     from geomatch.report import survey_report
     from geomatch.sfm import mapping
     from geomatch.sfm.colmapdb import ColmapDatabase
+    from geomatch.sfm.upright import up_of_database
 
     job = jobstate.claim(ctx.store, job_id)
     if job is None:
@@ -327,6 +328,9 @@ def reconstruct(ctx: Context, job_id: str) -> str:
             opts["mapper"],
             gps=gps.fixes_of_database(snapshot, images),
             tiled=len(kinds) == 2 and opts["tiling"] != "off",
+            # each photo's up where it is known (its gimbal, a survey's nadir camera), as `geomatch
+            # run` gives it: the view graph holds the pairs' rotations to it
+            up=up_of_database(snapshot, images, kinds == {True}),
         )
         with ColmapDatabase(snapshot) as db:
             summary["database"] = db.stats()

@@ -15,6 +15,7 @@ import json
 import shutil
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -184,6 +185,7 @@ def reconstruct(
     tree_check: bool = True,
     track_refine: bool = True,
     tiled: bool = False,
+    up: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Map, export the largest model and return (and write) the summary.
 
@@ -204,6 +206,8 @@ def reconstruct(
     log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
     line a user watching a terminal needs. ``min_pose_inliers`` 0 is COLMAP's 30, or 20 where
     the project has tiled aerial x ground pairs (``tiled``; options.TILED_MIN_POSE_INLIERS).
+    ``up``: each photo's up in its camera frame where the photo knows it (upright.image_up), which
+    the view graph holds a pair's rotation to.
     """
     if mapper not in MAPPERS:
         raise ValueError(f"unknown mapper {mapper!r}; choose from {', '.join(MAPPERS)}")
@@ -225,7 +229,7 @@ def reconstruct(
     mapped = work / "database.db"
     snapshot_sqlite(database, mapped)
     checked = loop_check or tree_check
-    report = filter_database(str(mapped), loops=loop_check, tree=tree_check) if checked else None
+    report = filter_database(str(mapped), loops=loop_check, tree=tree_check, up=up) if checked else None
     lap("view_graph")
     db = pycolmap.Database.open(str(mapped))
     try:

@@ -33,6 +33,7 @@ import numpy as np
 import pycolmap
 
 from .pairrotations import rotation_angle, verified_rotations
+from .upright import upright_candidates
 
 # a loop holds when the composed rotation is within this angle of the identity; three noisy
 # estimates compose their errors, and pairs with little parallax give rotations to about a degree
@@ -399,14 +400,19 @@ def filter_database(
     loop_deg: float = LOOP_DEG,
     loops: bool = True,
     tree: bool = True,
+    up: Mapping[str, np.ndarray] | None = None,
 ) -> ViewGraphReport:
     """Mark the pairs :func:`judge` drops as DEGENERATE (no inliers) in ``database``, which must
     be the mapper's private copy: the project's database keeps every verified pair, so a later
-    reconstruct with more images judges them again."""
+    reconstruct with more images judges them again. ``up``: each photo's up in its camera frame
+    where known (upright.image_up); a pair of two such photos is judged by the candidate rotations
+    that carry one's up onto the other's (upright.py)."""
     db = pycolmap.Database.open(database)
     try:
         rotations, inliers = verified_rotations(db, min_inliers)
         names = {im.image_id: im.name for im in db.read_all_images()}
+        if up:
+            rotations = upright_candidates(rotations, names, up)
         tree_drop, loop_drop, seen = judge(
             rotations, inliers, loop_deg, loops, tree, uncalibrated=_uncalibrated_pairs(db)
         )
