@@ -299,7 +299,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     from geomatch.report import survey_report
     from geomatch.sfm import mapping
     from geomatch.sfm.colmapdb import ColmapDatabase
-    from geomatch.sfm.upright import up_of_database
+    from geomatch.sfm.upright import image_up
 
     job = jobstate.claim(ctx.store, job_id)
     if job is None:
@@ -321,16 +321,17 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         opts = runtime.job_options(job.options)
         with ctx.store.session() as s:  # aerial and ground images: the project's pairs were tiled
             kinds = set(s.scalars(select(Image.aerial).where(Image.project_id == pid).distinct()))
+        metas = gps.metadata_of_database(snapshot, images)  # read once for the fixes and up
         summary = mapping.reconstruct(
             snapshot,
             images,
             out,
             opts["mapper"],
-            gps=gps.fixes_of_database(snapshot, images),
+            gps=gps.fixes(list(metas), metas),
             tiled=len(kinds) == 2 and opts["tiling"] != "off",
             # each photo's up where it is known (its gimbal, a survey's nadir camera), as `geomatch
             # run` gives it: the view graph holds the pairs' rotations to it
-            up=up_of_database(snapshot, images, kinds == {True}),
+            up=image_up(metas, kinds == {True}),
         )
         with ColmapDatabase(snapshot) as db:
             summary["database"] = db.stats()

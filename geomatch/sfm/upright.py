@@ -17,12 +17,10 @@ and the tree check drops 5 right pairs (docs/benchmarks.md, "Drone surveys").
 from __future__ import annotations
 
 from collections.abc import Mapping
-from pathlib import Path
 
 import numpy as np
-import pycolmap
 
-from ..metadata import ImageMeta, read_metadata, up_in_camera
+from ..metadata import ImageMeta, up_in_camera
 
 # a nadir camera without a gimbal sways a few degrees each way: the two photos' ups differ by up to
 # about twice that, so candidates within this of the best carrying of up stay (the second
@@ -46,18 +44,6 @@ def image_up(metas: Mapping[str, ImageMeta], survey: bool) -> dict[str, np.ndarr
         elif survey and meta.gimbal_pitch_deg is None:
             out[name] = NADIR_UP
     return out
-
-
-def up_of_database(database: Path, image_dir: Path, survey: bool) -> dict[str, np.ndarray]:
-    """:func:`image_up` of the images a COLMAP database holds, read from their files in
-    ``image_dir`` (a reconstruct job has the database and the folder, not the run's metadata);
-    files gone from the folder are left out."""
-    db = pycolmap.Database.open(str(database))
-    try:
-        names = [im.name for im in db.read_all_images()]
-    finally:
-        db.close()
-    return image_up({n: read_metadata(image_dir / n) for n in names if (image_dir / n).is_file()}, survey)
 
 
 def up_error_deg(R: np.ndarray, up0: np.ndarray, up1: np.ndarray) -> float:
