@@ -20,7 +20,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -34,6 +33,8 @@ from typing import Any, TypeGuard
 
 import pytest
 import yaml
+
+from .service.harness import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -815,12 +816,6 @@ def test_selfcheck_passes_here_and_fails_on_the_wrong_variant() -> None:
 
 
 # -- the image's health check against real processes ------------------------------------------------------
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _healthcheck(pid: int, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, str(ROOT / "docker" / "healthcheck.py"), "--pid", str(pid)],
@@ -862,7 +857,7 @@ def test_healthcheck_of_a_real_api_and_worker(tmp_path: Path) -> None:
         GEOMATCH_QUEUE=f"gmdeploy-{uid}",
         GEOMATCH_LOG_FORMAT="text",
     )
-    http, grpc = _free_port(), _free_port()
+    http, grpc = free_port(), free_port()
     geomatch = str(BIN / "geomatch")
     procs = []
     try:

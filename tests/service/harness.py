@@ -29,10 +29,23 @@ GEOMATCH = [sys.executable, "-m", "geomatch_app"]  # the `geomatch` command (geo
 TERMINAL = ("succeeded", "failed", "cancelled")
 
 
+_HANDED_OUT: set[int] = set()
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A loopback port nothing listens on and this test process has not handed out before.
+
+    The probe socket is closed before the server binds, so the kernel may offer the same
+    ephemeral port to the next probe; a deployment that asks for an HTTP and a gRPC port in a row
+    would then give both to one server, which fails to bind the second.
+    """
+    while True:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = int(s.getsockname()[1])
+        if port not in _HANDED_OUT:
+            _HANDED_OUT.add(port)
+            return port
 
 
 class Deployment:
