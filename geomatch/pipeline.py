@@ -238,6 +238,7 @@ def run(
         gps=fixes,
         tiled=any(p.tiled for p in planned),
         up=image_up(metas, survey),
+        survey=survey,
     )
     summary["pose_priors"] = priors
     if gcps is not None:

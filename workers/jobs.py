@@ -332,6 +332,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
             # each photo's up where it is known (its gimbal, a survey's nadir camera), as `geomatch
             # run` gives it: the view graph holds the pairs' rotations to it
             up=image_up(metas, kinds == {True}),
+            survey=kinds == {True},
         )
         with ColmapDatabase(snapshot) as db:
             summary["database"] = db.stats()

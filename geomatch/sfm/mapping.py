@@ -38,7 +38,7 @@ from .colmaplog import colmap_log
 from .modeljoin import Join, join_models
 from .sqlitecopy import snapshot_sqlite
 from .thinmatches import per_image_budget, thin_matches
-from .trackrefine import refine_tracks
+from .trackrefine import SURVEY, refine_tracks
 from .viewgraph import filter_database
 
 # from this many images on, the incremental mapper's global bundle adjustments are lighter: they
@@ -186,6 +186,7 @@ def reconstruct(
     track_refine: bool = True,
     tiled: bool = False,
     up: Mapping[str, np.ndarray] | None = None,
+    survey: bool = False,
 ) -> dict[str, Any]:
     """Map, export the largest model and return (and write) the summary.
 
@@ -207,7 +208,8 @@ def reconstruct(
     line a user watching a terminal needs. ``min_pose_inliers`` 0 is COLMAP's 30, or 20 where
     the project has tiled aerial x ground pairs (``tiled``; options.TILED_MIN_POSE_INLIERS).
     ``up``: each photo's up in its camera frame where the photo knows it (upright.image_up), which
-    the view graph holds a pair's rotation to.
+    the view graph holds a pair's rotation to. ``survey``: every photo is aerial, and the track
+    refinement takes the settings of such projects (trackrefine.SURVEY).
     """
     if mapper not in MAPPERS:
         raise ValueError(f"unknown mapper {mapper!r}; choose from {', '.join(MAPPERS)}")
@@ -241,7 +243,7 @@ def reconstruct(
     # thinned before the refinement, which then aligns only the observations the mapper will see
     thinned = thin_matches(mapped, per_image_budget(n_images)) if mapper == "global" else None
     lap("thinning")
-    refined = refine_tracks(mapped, image_dir) if track_refine else None
+    refined = refine_tracks(mapped, image_dir, SURVEY if survey else None) if track_refine else None
     return_freed_memory()  # the stages' peaks do not stack on each other's freed heap
     lap("track_refine")
     joins: list[Join] = []
