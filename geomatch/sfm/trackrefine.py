@@ -65,12 +65,12 @@ class TrackRefineOptions:
 
 # A survey's photos (every one aerial) see the ground from one height, so two views of a point differ
 # by little more than a turn and a shift in the image plane: a point may come from farther (the coarse
-# pass, max_shift), a smaller patch suffices and a lower correlation still means the same spot. On
-# brighton_beach this aligns twice the observations (12,400 of 21,000) and brings the GPS residual
-# median from 0.41 to 0.37 m; on the ground scenes, whose pairs are wide-baseline perspective views,
-# the same settings lose 0.5-1 AUC@3 on Herz-Jesus-P8 and entry-P10 and 2-6 on sacre_coeur, so
-# they keep the defaults (docs/benchmarks.md, "Drone surveys beside COLMAP SIFT").
-SURVEY = TrackRefineOptions(radius=8, max_shift=4.0, min_ncc=0.7, coarse_sigma=2.0)
+# pass, max_shift) and a lower correlation still means the same spot. On brighton_beach this aligns
+# 13,800 of 21,000 observations instead of 6,100 and brings the camera centres' rms residual to the
+# GPS from 0.45 to 0.43 m (median 0.41 to 0.38); on the ground scenes, whose pairs are wide-baseline
+# perspective views, such settings lose 0.5-1 AUC@3 on Herz-Jesus-P8 and entry-P10 and 2-6 on
+# sacre_coeur, so they keep the defaults (docs/benchmarks.md, "Drone surveys beside COLMAP SIFT").
+SURVEY = TrackRefineOptions(max_shift=4.0, min_ncc=0.6, coarse_sigma=3.0)
 
 
 @dataclass
