@@ -51,6 +51,7 @@ class TrackRefineOptions:
     sigma: float = 1.0  # Gaussian pre-smoothing, photo pixels
     max_shift: float = 2.5  # photo pixels a point may move; farther means it converged elsewhere
     min_ncc: float = 0.9
+    iterations: int = 15  # Gauss-Newton steps a pass at most
     # a first alignment on the photos at half size, smoothed this much more (photo pixels; 0: no
     # such pass), brings points from up to coarse_max_shift into the fine one's reach; they are then
     # accepted by the fine alignment's NCC and max_shift counted from where the coarse one left them
@@ -65,12 +66,13 @@ class TrackRefineOptions:
 
 # A survey's photos (every one aerial) see the ground from one height, so two views of a point differ
 # by little more than a turn and a shift in the image plane: a point may come from farther (the coarse
-# pass, max_shift) and a lower correlation still means the same spot. On brighton_beach this aligns
-# 13,800 of 21,000 observations instead of 6,100 and brings the camera centres' rms residual to the
-# GPS from 0.45 to 0.43 m (median 0.41 to 0.38); on the ground scenes, whose pairs are wide-baseline
-# perspective views, such settings lose 0.5-1 AUC@3 on Herz-Jesus-P8 and entry-P10 and 2-6 on
-# sacre_coeur, so they keep the defaults (docs/benchmarks.md, "Drone surveys beside COLMAP SIFT").
-SURVEY = TrackRefineOptions(max_shift=4.0, min_ncc=0.6, coarse_sigma=3.0)
+# pass, max_shift) and a lower correlation still means the same spot; six steps a pass keep the cost
+# near the ground settings'. On brighton_beach this aligns 13,600 of 21,000 observations instead of
+# 6,100 and brings the camera centres' rms residual to the GPS from 0.45 to 0.44 m (median 0.41 to
+# 0.37); on the ground scenes, whose pairs are wide-baseline perspective views, such settings lose
+# 0.5-1 AUC@3 on Herz-Jesus-P8 and entry-P10 and 2-6 on sacre_coeur, so they keep the defaults
+# (docs/benchmarks.md, "Drone surveys beside COLMAP SIFT").
+SURVEY = TrackRefineOptions(max_shift=4.0, min_ncc=0.6, iterations=6, coarse_sigma=3.0)
 
 
 @dataclass
@@ -197,6 +199,7 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
         min_ncc=opts.min_ncc,
         neighbour_radius=opts.neighbour_radius,
         tolerance=1e-2,
+        iterations=opts.iterations,
     )
     db = pycolmap.Database.open(str(database))
     try:
@@ -215,6 +218,7 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
             min_ncc=opts.coarse_min_ncc,
             neighbour_radius=opts.neighbour_radius / 2,
             tolerance=1e-2,
+            iterations=opts.iterations,
         )
         photos: ByteLRU[int, tuple[torch.Tensor, torch.Tensor | None]] = ByteLRU(
             opts.images_mb, lambda t: sum(m.numel() * m.element_size() for m in t if m is not None)
