@@ -130,7 +130,8 @@ def references(tracks: Tracks, max_track: int) -> np.ndarray:
     match (on a drone survey such keypoints lie a median 300 px apart); which of them is the
     reference's point is not known, so they stay where they are, while the photos that hold one
     keypoint of the track are aligned on the reference chosen among those (the mapper splits the
-    chain itself; it would otherwise keep the network's placing on a third of a survey's keypoints).
+    chain itself). Leaving such a track wholly alone kept the network's placing on a third of a
+    survey's keypoints.
     """
     n = int(tracks.offsets[-1])
     ref = np.full(n, -1, np.int64)

@@ -430,10 +430,13 @@ def test_quotas_of_a_tenant(small: Deployment) -> None:
 def test_a_tenant_over_its_rate_gets_429_with_retry_after(small: Deployment) -> None:
     key, other = small.create_key("rate"), small.create_key("rate-other")
     with small.client(key) as c, small.client(other) as o:
-        codes = [c.get("/v1/projects").status_code for _ in range(120)]
+        burst = [c.get("/v1/projects") for _ in range(120)]
+        codes = [r.status_code for r in burst]
         assert codes[:40] == [200] * 40 and 429 in codes and set(codes) <= {200, 429}, codes
-        r = c.get("/v1/projects")
-        assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1, r.text
+        # the refused answer itself says when to come back: a request sent after the burst may
+        # already find a token refilled (5 a second) on a loaded machine
+        refused = burst[codes.index(429)]
+        assert int(refused.headers["retry-after"]) >= 1, refused.text
         assert o.get("/v1/projects").status_code == 200  # another tenant is not slowed
         assert c.get("/healthz").status_code == 200
         time.sleep(1.5)
