@@ -29,10 +29,12 @@ def unit(n: int, seed: int) -> torch.Tensor:
     return torch.nn.functional.normalize(torch.randn(n, 16, generator=g), dim=1)
 
 
+@pytest.mark.parametrize("low", [False, True])  # float32 throughout; bfloat16 blocks where the CPU has them
 @pytest.mark.parametrize("block_bytes", [64 * 2**20, 4 * 40])  # one block; blocks of 4 rows
 def test_mutual_neighbours_match_a_pair_by_pair_reference(
-    block_bytes: int, monkeypatch: pytest.MonkeyPatch
+    block_bytes: int, low: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(guided, "LOW_PRECISION", low)
     monkeypatch.setattr(guided, "CPU_BLOCK_BYTES", block_bytes)
     monkeypatch.setattr(guided, "BLOCK_BYTES", block_bytes)
     db = unit(40, 1)
@@ -45,9 +47,34 @@ def test_mutual_neighbours_match_a_pair_by_pair_reference(
     assert torch.allclose(sim, (da[ia] * db[ib]).sum(1))
 
 
-def test_two_identical_rows_do_not_both_take_one_column() -> None:
+@pytest.mark.parametrize("low", [False, True])
+def test_two_identical_rows_do_not_both_take_one_column(low: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(guided, "LOW_PRECISION", low)
     db = unit(10, 4)
     da = torch.cat([db[:5], db[2:3]])  # rows 2 and 5 are the same descriptor
     _, ib, _ = mutual_ratio(da, db, 0.99)
     assert ib.tolist().count(2) == 1
     assert len(set(ib.tolist())) == len(ib)
+
+
+@pytest.mark.skipif(not guided._cpu_bf16(), reason="this CPU has no bfloat16 units: float32 is used")
+def test_bfloat16_blocks_keep_float32s_matches_on_survey_sized_sets(monkeypatch: pytest.MonkeyPatch) -> None:
+    """4096 x 4096 128-d descriptors, noisy copies: the rounded product may let through only a pair
+    whose column has another row within its rounding, and the ratio test and similarities are
+    float32's."""
+    g = torch.Generator().manual_seed(7)
+    db = torch.nn.functional.normalize(torch.randn(4096, 128, generator=g), dim=1)
+    da = torch.nn.functional.normalize(db + 0.5 * torch.randn(4096, 128, generator=g), dim=1)
+    monkeypatch.setattr(guided, "LOW_PRECISION", False)
+    ea, eb, _ = mutual_ratio(da, db, 0.9)
+    monkeypatch.setattr(guided, "LOW_PRECISION", True)
+    la, lb, sim = mutual_ratio(da, db, 0.9)
+    exact = set(zip(ea.tolist(), eb.tolist(), strict=True))
+    low = set(zip(la.tolist(), lb.tolist(), strict=True))
+    assert len(exact) > 500
+    assert len(exact - low) <= len(exact) // 100
+    assert len(low - exact) <= len(exact) // 50
+    s = da @ db.T
+    for i, j in low - exact:
+        assert s[:, j].max() - s[i, j] < 0.01
+    assert torch.allclose(sim, (da[la] * db[lb]).sum(1), atol=1e-6)

@@ -19,6 +19,8 @@ The (N, M) similarity and Sampson matrices are computed in row blocks bounded in
 
 from __future__ import annotations
 
+import functools
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -39,6 +41,32 @@ if TYPE_CHECKING:
 # launches.
 CPU_BLOCK_BYTES = 2 * 2**20
 BLOCK_BYTES = 64 * 2**20
+# On a CPU with bfloat16 units (AVX512-BF16, AMX) the similarity blocks are computed from bfloat16
+# descriptors, three times faster than float32 on 4096 x 4096 ALIKED points, and each row's best
+# LOW_CANDIDATES are ranked again by their float32 similarity: the ratio test and the similarity
+# returned are float32's; a column's best is compared in the block's rounding (ties there go to
+# the row most similar in float32), so a match can differ only where two rows' similarities to
+# one point lie within bfloat16's rounding (~0.002) of each other.
+LOW_CANDIDATES = 4
+LOW_PRECISION = True
+
+
+def low_precision(device: torch.device) -> bool:
+    return LOW_PRECISION and device.type == "cpu" and _cpu_bf16()
+
+
+@functools.cache
+def _cpu_bf16() -> bool:
+    """Whether the CPU multiplies bfloat16 in hardware (elsewhere torch emulates it, slower than
+    float32): the flags Linux reports; other systems keep float32."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    flags = next(
+        (line.split(":", 1)[1].split() for line in text.splitlines() if line.startswith("flags")), []
+    )
+    return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
 def mutual_ratio(
@@ -57,9 +85,15 @@ def mutual_ratio(
         empty = torch.zeros(0, dtype=torch.long, device=da.device)
         return empty, empty, torch.zeros(0, device=da.device)
     da, db = da.float(), db.float()
+    low = low_precision(da.device)
+    if low:
+        da_low, db_low = da.bfloat16(), db.bfloat16()
     best_b = torch.empty(n, dtype=torch.long, device=da.device)
     s1 = torch.empty(n, device=da.device)
     s2 = torch.empty(n, device=da.device)
+    s1_block = s1  # a row's best as the block holds it, which the columns' best are compared with
+    if low:
+        s1_block = torch.empty(n, device=da.device)
     # each column's best similarity only, not where it is: on the CPU an argmax down the columns
     # costs many times the max (amax) of the same values; a row's best is mutual when it equals its
     # column's best
@@ -73,29 +107,43 @@ def mutual_ratio(
         den_b = ftxb[:, 0] ** 2 + ftxb[:, 1] ** 2
     block_bytes = CPU_BLOCK_BYTES if da.device.type == "cpu" else BLOCK_BYTES
     step = max(1, block_bytes // max(4 * m, 1))
+    k = min(LOW_CANDIDATES, m)
     for r0 in range(0, n, step):
         r1 = min(n, r0 + step)
-        s = da[r0:r1] @ db.T
+        s = (da_low[r0:r1] @ db_low.T).float() if low else da[r0:r1] @ db.T
         if gate is not None:
             la = lines[r0:r1]
             num = (la @ xb.T).square_()
             den = (la[:, 0:1] ** 2 + la[:, 1:2] ** 2) + den_b[None]
             s.masked_fill_(num > tau * den, -1.0)
-        top = s.topk(2, dim=1)
-        best_b[r0:r1], s1[r0:r1], s2[r0:r1] = top.indices[:, 0], top.values[:, 0], top.values[:, 1]
+        if low:
+            # the block's best few by the rounded similarities, ranked again by the exact ones
+            cand = s.topk(k, dim=1)
+            exact = torch.einsum("rd,rkd->rk", da[r0:r1], db[cand.indices])
+            exact = torch.where(cand.values <= -1.0, -1.0, exact)  # gated out stays out
+            top = exact.topk(2, dim=1)
+            best = cand.indices.gather(1, top.indices[:, :1]).squeeze(1)
+            best_b[r0:r1], s1[r0:r1], s2[r0:r1] = best, top.values[:, 0], top.values[:, 1]
+            s1_block[r0:r1] = s.gather(1, best[:, None]).squeeze(1)
+        else:
+            top = s.topk(2, dim=1)
+            best_b[r0:r1], s1[r0:r1], s2[r0:r1] = top.indices[:, 0], top.values[:, 0], top.values[:, 1]
         col_best = torch.maximum(col_best, s.amax(dim=0))
     rows = torch.arange(n, device=da.device)
-    keep = (s1 >= col_best[best_b]) & (s1 > 0) & (s2 < ratio * s1)
+    keep = (s1_block >= col_best[best_b]) & (s1 > 0) & (s2 < ratio * s1)
     ia = rows[keep]
     ib = best_b[ia]
-    # rows tied for one column's best: the first keeps it, as an argmax would give it
+    sk = s1[keep]
+    # rows that take one column (tied for its best, or within the rounding of the low-precision
+    # product): the most similar keeps it, the first of exact ties, as an argmax would give it
     first = torch.ones_like(ib, dtype=torch.bool)
     if ib.numel() > 1:
-        order = torch.argsort(ib, stable=True)
+        by_sim = torch.argsort(-sk, stable=True)
+        order = by_sim[torch.argsort(ib[by_sim], stable=True)]
         dup = torch.zeros_like(first)
         dup[order[1:]] = ib[order[1:]] == ib[order[:-1]]
         first = ~dup
-    return ia[first], ib[first], s1[keep][first]
+    return ia[first], ib[first], sk[first]
 
 
 def strongest(f: SparseFeatures | None, n: int) -> SparseFeatures:
