@@ -8,11 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from geomatch import Matcher
 from geomatch.eval.homography import reprojection_errors
+from geomatch.geometry import sampson_distance
 from geomatch.imagefolder import Images
+from geomatch.matching.guided import KEEP_SAMPSON
 from geomatch.matching.matcher import MatcherConfig
 from geomatch.matching.rotation import anchor_count, quarter_turn
 from geomatch.matching.variants import for_pair
@@ -73,6 +76,15 @@ def test_two_aerial_photos_of_a_survey_are_matched_guided_and_other_pairs_keep_g
     err = reprojection_errors(astronaut_pair.H, r.keypoints0, r.keypoints1)
     assert np.median(err) < 1.5 and np.mean(err < 5.0) > 0.9
     assert "dense_coarse" not in r.timings  # no dense maps for this pair
+    # what goes on to COLMAP's verification lies near the F the guided matches fit (the rest
+    # would not verify and would only make its RANSAC long)
+    scale = max(astronaut_pair.image0.shape[:2]) / 480
+    d = sampson_distance(
+        torch.from_numpy(r.F),
+        torch.from_numpy(r.keypoints0).double(),
+        torch.from_numpy(r.keypoints1).double(),
+    )
+    assert float(d.max()) <= KEEP_SAMPSON * scale**2 * 1.01
 
     other = warped_pair("coffee", seed=3).image0
     # two aerial photos that share nothing: the seed's answer stands, no full method
