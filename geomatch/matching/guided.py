@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 CPU_BLOCK_BYTES = 2 * 2**20
 BLOCK_BYTES = 64 * 2**20
 # On a CPU with bfloat16 units (AVX512-BF16, AMX) the similarity blocks are computed from bfloat16
-# descriptors, three times faster than float32 on 4096 x 4096 ALIKED points, and each row's best
+# descriptors (on 4096 x 4096 points 2.2x faster than float32 unguided, 1.4x guided), and each row's best
 # LOW_CANDIDATES are ranked again by their float32 similarity: the ratio test and the similarity
 # returned are float32's; a column's best is compared in the block's rounding (ties there go to
 # the row most similar in float32), so a match can differ only where two rows' similarities to
