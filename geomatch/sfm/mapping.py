@@ -35,11 +35,13 @@ from ..options import (
     TILED_MIN_POSE_INLIERS,
 )
 from .colmaplog import colmap_log
-from .modeljoin import Join, join_models
+from .modelagree import Agreement, agreement, misplaced
+from .modeljoin import Join, adjust, join_models
+from .pairpose import Placement, place
 from .sqlitecopy import snapshot_sqlite
 from .thinmatches import per_image_budget, thin_matches
 from .trackrefine import SURVEY, refine_tracks
-from .viewgraph import filter_database
+from .viewgraph import ViewGraphReport, filter_database
 
 # from this many images on, the incremental mapper's global bundle adjustments are lighter: they
 # leave out the 3D points whose cameras other points already hold (COLMAP's
@@ -53,6 +55,9 @@ from .viewgraph import filter_database
 LARGE_PROJECT_IMAGES = 40
 LARGE_BA_GROWTH = 1.3
 LARGE_BA_REFINEMENTS = 1
+# a tiled project is mapped up to this many times (from the seeds after the run's) while its model
+# contradicts its pairs' rotations (modelagree.py); each attempt costs seconds on such a project
+MAPPING_ATTEMPTS = 4
 
 
 def _size(rec: pycolmap.Reconstruction) -> tuple[int, int]:
@@ -170,6 +175,85 @@ def register_leftovers(
     return best if best is not None and best.num_reg_images() > model.num_reg_images() else model
 
 
+def place_leftovers(
+    model: pycolmap.Reconstruction,
+    database: Path,
+    image_dir: Path,
+    work: Path,
+    options: pycolmap.IncrementalPipelineOptions,
+    n_images: int,
+) -> tuple[pycolmap.Reconstruction, list[Placement]]:
+    """``model`` with the images it lacks placed from their pairs' relative poses where no 3D
+    point reaches them (pairpose.py), one at a time: each placed image's matches are triangulated
+    with the poses held and the mapper carries on from there (:func:`register_leftovers`), which
+    may register others the new points reach; the placements made, for the summary."""
+    placements: list[Placement] = []
+    db = pycolmap.Database.open(str(database))
+    try:
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, geometries = db.read_two_view_geometries()
+        pairs = [
+            (*pycolmap.pair_id_to_image_pair(p), len(g.inlier_matches))
+            for p, g in zip(pair_ids, geometries, strict=True)
+        ]
+    finally:
+        db.close()
+    for step in range(n_images):
+        registered = {i for i, im in model.images.items() if im.has_pose}
+        if model.num_reg_images() == 0 or len(registered) >= n_images:
+            break
+        # the images most tied to the model first: their poses rest on the most inliers
+        mass: dict[int, int] = {}
+        for a, b, n in pairs:
+            for x, y in ((a, b), (b, a)):
+                if x not in registered and y in registered:
+                    mass[x] = mass.get(x, 0) + n
+        trial = pycolmap.Reconstruction(model)
+        placed = None
+        for image_id in sorted(mass, key=lambda i: -mass[i]):
+            placed = place(trial, database, names[image_id])
+            if placed is not None:
+                break
+        if placed is None:
+            break
+        out = work / f"placed_{step}"
+        out.mkdir(parents=True, exist_ok=True)
+        trial = pycolmap.triangulate_points(
+            trial, str(database), str(image_dir), str(out), clear_points=False, options=options
+        )
+        adjust(trial)
+        grown = register_leftovers(trial, database, image_dir, out, options, n_images)
+        placements.append(placed)
+        model = grown
+    return model, placements
+
+
+def replace_misplaced(
+    model: pycolmap.Reconstruction,
+    report: ViewGraphReport,
+    database: Path,
+    image_dir: Path,
+    work: Path,
+    options: pycolmap.IncrementalPipelineOptions,
+    n_images: int,
+) -> tuple[pycolmap.Reconstruction, list[Placement]]:
+    """``model`` with the images it places against their own pairs (modelagree.misplaced) taken
+    out and placed again from those pairs (:func:`place_leftovers`), where the model then agrees
+    with its pairs better; ``model`` itself otherwise."""
+    off = set(misplaced(model, report.kept_rotations, report.kept_inliers))
+    if not off or 2 * len(off) >= model.num_reg_images():
+        return model, []
+    before = agreement(model, report.kept_rotations, report.kept_inliers)
+    trial = pycolmap.Reconstruction(model)
+    for im in list(trial.images.values()):
+        if im.name in off and im.has_pose:
+            trial.deregister_frame(im.frame_id)
+    trial, placed = place_leftovers(trial, database, image_dir, work, options, n_images)
+    if agreement(trial, report.kept_rotations, report.kept_inliers).score <= before.score:
+        return model, []
+    return trial, placed
+
+
 def reconstruct(
     database: Path,
     image_dir: Path,
@@ -247,28 +331,67 @@ def reconstruct(
     return_freed_memory()  # the stages' peaks do not stack on each other's freed heap
     lap("track_refine")
     joins: list[Join] = []
+    placements: list[Placement] = []
+    agreed: Agreement | None = None
+    attempts = 1
     bar = tqdm(total=n_images, desc=f"mapping ({mapper})", unit="image", disable=not progress)
     with bar, colmap_log(verbose):
         if mapper == "incremental":
-            options = incremental_options(
-                n_images,
-                min_model_size,
-                min_pose_inliers or (TILED_MIN_POSE_INLIERS if tiled else MIN_POSE_INLIERS),
-                seed,
-                tiled,
-            )
-            found = pycolmap.incremental_mapping(
-                str(mapped),
-                str(image_dir),
-                str(work),
-                options,
-                initial_image_pair_callback=lambda: bar.update(2),
-                next_image_callback=lambda: bar.update(1),
-            )
-            ordered = sorted(found.values(), key=_size, reverse=True)
-            found_list, joins = join_models(ordered, mapped, image_dir, work / "joined", options)
-            if tiled and found_list:
-                found_list[0] = register_leftovers(found_list[0], mapped, image_dir, work, options, n_images)
+
+            def attempt(k: int) -> tuple[list[pycolmap.Reconstruction], list[Join], list[Placement]]:
+                options = incremental_options(
+                    n_images,
+                    min_model_size,
+                    min_pose_inliers or (TILED_MIN_POSE_INLIERS if tiled else MIN_POSE_INLIERS),
+                    seed + k,
+                    tiled,
+                )
+                into = work if k == 0 else work / f"attempt_{k}"
+                into.mkdir(parents=True, exist_ok=True)
+                found = pycolmap.incremental_mapping(
+                    str(mapped),
+                    str(image_dir),
+                    str(into),
+                    options,
+                    initial_image_pair_callback=lambda: bar.update(2),
+                    next_image_callback=lambda: bar.update(1),
+                )
+                ordered = sorted(found.values(), key=_size, reverse=True)
+                found_list, joins = join_models(ordered, mapped, image_dir, into / "joined", options)
+                placements: list[Placement] = []
+                if tiled and found_list:
+                    found_list[0] = register_leftovers(
+                        found_list[0], mapped, image_dir, into, options, n_images
+                    )
+                    found_list[0], placements = place_leftovers(
+                        found_list[0], mapped, image_dir, into / "placed", options, n_images
+                    )
+                    if report is not None:
+                        found_list[0], replaced = replace_misplaced(
+                            found_list[0], report, mapped, image_dir, into / "replaced", options, n_images
+                        )
+                        placements += replaced
+                return found_list, joins, placements
+
+            # a tiled project's model is held to its pairs' rotations (modelagree.py): one that
+            # contradicts them or lacks images is mapped again from the next seed, and the
+            # attempt whose model agrees best is kept
+            tries = MAPPING_ATTEMPTS if tiled and report is not None else 1
+            best_score = None
+            for k in range(tries):
+                found_list_k, joins_k, placements_k = attempt(k)
+                held = (
+                    agreement(found_list_k[0], report.kept_rotations, report.kept_inliers)
+                    if found_list_k and report is not None
+                    else None
+                )
+                score = held.score if held is not None else -1
+                if best_score is None or score > best_score:
+                    best_score, agreed = score, held
+                    found_list, joins, placements = found_list_k, joins_k, placements_k
+                attempts = k + 1
+                if held is None or (held.clean and found_list_k[0].num_reg_images() >= n_images):
+                    break
             models = dict(enumerate(found_list))
         else:
             gopts = pycolmap.GlobalPipelineOptions()
@@ -305,6 +428,9 @@ def reconstruct(
     summary: dict[str, Any] = {"mapper": mapper, "mapper_requested": requested, "models": len(ranked)}
     summary["view_graph"] = report.as_dict() if report is not None else None
     summary["joined_models"] = [j.as_dict() for j in joins]
+    summary["placed_from_pairs"] = [p.as_dict() for p in placements]
+    summary["mapping_attempts"] = attempts
+    summary["pair_agreement"] = agreed.as_dict() if agreed is not None else None
     summary["track_refinement"] = refined
     summary["thinning"] = thinned
     summary["mapping_seconds"] = stages

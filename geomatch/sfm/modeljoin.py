@@ -165,13 +165,13 @@ def join_models(
     joined = pycolmap.triangulate_points(
         first, str(database), str(image_dir), str(work), clear_points=True, options=options
     )
-    _adjust(joined)
+    adjust(joined)
     # a model whose images all went into the first adds nothing more
     kept = [m for m in rest if _registered(m) - _registered(joined)]
     return [joined, *kept], joins
 
 
-def _adjust(rec: pycolmap.Reconstruction) -> None:
+def adjust(rec: pycolmap.Reconstruction) -> None:
     """A global bundle adjustment of every registered image and point, through the adjuster
     itself: ``pycolmap.bundle_adjustment`` logs past the quiet level (colmaplog.py)."""
     options = pycolmap.BundleAdjustmentOptions()

@@ -57,6 +57,10 @@ class ViewGraphReport:
     dropped: list[tuple[str, str, int, int]] = field(default_factory=list)  # (name0, name1, bad, loops)
     # the tree check's drops: (name0, name1, degrees off the tree's rotation, tree path length)
     tree_dropped: list[tuple[str, str, float, int]] = field(default_factory=list)
+    # the pairs both checks kept, by image names (a, b): their candidate rotations (x_b ~ R x_a)
+    # and inliers, which a finished model is held to (modelagree.py); not in the summary
+    kept_rotations: dict[tuple[str, str], list[np.ndarray]] = field(default_factory=dict, repr=False)
+    kept_inliers: dict[tuple[str, str], int] = field(default_factory=dict, repr=False)
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -423,6 +427,11 @@ def filter_database(
         for (a, b), bad, n in loop_drop:
             _degenerate(db, a, b)
             report.dropped.append((names[a], names[b], bad, n))
+        gone = {pair for pair, _, _ in tree_drop} | {pair for pair, _, _ in loop_drop}
+        for (a, b), cands in rotations.items():
+            if (a, b) not in gone:
+                report.kept_rotations[(names[a], names[b])] = cands
+                report.kept_inliers[(names[a], names[b])] = inliers[(a, b)]
     finally:
         db.close()
     return report

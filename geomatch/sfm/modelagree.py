@@ -1,0 +1,112 @@
+"""How well a model's cameras agree with the relative rotations of the pairs it was built from.
+
+Why: on the air-to-ground scenes the incremental mapper sometimes places a block of cameras
+tens of degrees off though every pair it used is right; which block, and whether at all, depends
+on its random seed (RANSAC samples, the order images are tried). Such a model contradicts its
+strongest pairs: an aerial image and the street photo it shares 958 inliers with, placed 10-80
+deg from that pair's two-view rotation, while a right model holds each right pair within a
+degree or two and disagrees only with the few weak wrong pairs the view-graph checks let through.
+The inliers of the pairs it contradicts, against those it holds, say which of several attempts
+to keep without any ground truth.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+from .pairrotations import rotation_angle
+
+# a model's relative rotation within this angle of one of a pair's candidate rotations holds the
+# pair: the view-graph loops hold at 5 deg, and a right pair's rotation is good to about a degree
+AGREE_DEG = 5.0
+# a model that contradicts at most this share of its pairs' inliers is taken as it is: right
+# models of the synthetic seeds contradict 0-5 % (weak wrong pairs kept), misplaced ones 20 % on
+CLEAN_SHARE = 0.1
+
+
+@dataclass(frozen=True)
+class Agreement:
+    held: int  # inliers of the pairs between registered images that the model holds
+    contradicted: int  # ...and of those it contradicts
+    off: tuple[tuple[str, str, float], ...]  # the contradicted pairs, degrees off
+
+    @property
+    def score(self) -> int:
+        """More cameras held right adds inliers held; a misplaced block moves its strong pairs to
+        the other side, which counts twice."""
+        return self.held - self.contradicted
+
+    @property
+    def clean(self) -> bool:
+        total = self.held + self.contradicted
+        return total == 0 or self.contradicted <= CLEAN_SHARE * total
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "held": self.held,
+            "contradicted": self.contradicted,
+            "off": [{"pair": [a, b], "degrees": round(d, 1)} for a, b, d in self.off],
+        }
+
+
+# an image is misplaced where the model contradicts at least this many inliers of its own pairs
+# and holds at most MISPLACED_HELD_SHARE of that: the mapper's wrong PnP or structure-less pose
+# for one image, its right pairs all turned against it; an image bent with a misplaced block
+# still holds some of its pairs and is left to the attempts (mapping.py)
+MISPLACED_MIN_INLIERS = 100
+MISPLACED_HELD_SHARE = 0.1
+
+
+def misplaced(
+    rec: pycolmap.Reconstruction,
+    rotations: Mapping[tuple[str, str], list[np.ndarray]],
+    inliers: Mapping[tuple[str, str], int],
+) -> list[str]:
+    """The registered images the model places against their own pairs, by name."""
+    held: dict[str, int] = {}
+    contradicted: dict[str, int] = {}
+    for a, b, err in _pair_errors(rec, rotations):
+        side = held if err <= AGREE_DEG else contradicted
+        for name in (a, b):
+            side[name] = side.get(name, 0) + inliers[(a, b)]
+    return sorted(
+        n
+        for n, c in contradicted.items()
+        if c >= MISPLACED_MIN_INLIERS and held.get(n, 0) <= MISPLACED_HELD_SHARE * c
+    )
+
+
+def _pair_errors(
+    rec: pycolmap.Reconstruction, rotations: Mapping[tuple[str, str], list[np.ndarray]]
+) -> list[tuple[str, str, float]]:
+    """(a, b, degrees) for each pair between registered images: how far the model's relative
+    rotation is from the nearest of the pair's candidates."""
+    poses = {im.name: im.cam_from_world().rotation.matrix() for im in rec.images.values() if im.has_pose}
+    out = []
+    for (a, b), cands in rotations.items():
+        if a in poses and b in poses and cands:
+            rel = poses[b] @ poses[a].T
+            out.append((a, b, min(rotation_angle(rel.T @ C) for C in cands)))
+    return out
+
+
+def agreement(
+    rec: pycolmap.Reconstruction,
+    rotations: Mapping[tuple[str, str], list[np.ndarray]],
+    inliers: Mapping[tuple[str, str], int],
+) -> Agreement:
+    """``rotations``: each pair's candidate rotations R (x_b ~ R x_a + t) keyed by image names
+    (a, b); ``inliers`` its inlier count. Pairs with an image the model lacks are not counted."""
+    held = contradicted = 0
+    off = []
+    for a, b, err in _pair_errors(rec, rotations):
+        if err <= AGREE_DEG:
+            held += inliers[(a, b)]
+        else:
+            contradicted += inliers[(a, b)]
+            off.append((a, b, err))
+    return Agreement(held, contradicted, tuple(sorted(off, key=lambda o: -o[2])))

@@ -1,0 +1,92 @@
+"""An image the mapper left out, placed from its pairs' relative poses: on COLMAP's synthetic
+dataset (exact matches, known poses) the pose comes back, a misplaced partner is outvoted rather
+than followed, one partner alone places nothing, and the mapper's continuation keeps the image."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from geomatch.sfm import pairpose
+from geomatch.sfm.mapping import incremental_options, place_leftovers
+from geomatch.sfm.pairrotations import rotation_angle
+
+pytestmark = pytest.mark.unit
+
+
+def _dataset(tmp_path: Path, frames: int = 6) -> tuple[pycolmap.Reconstruction, Path]:
+    opts = pycolmap.SyntheticDatasetOptions()
+    opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig, opts.num_points3D = 1, 1, frames, 300
+    path = tmp_path / "database.db"
+    db = pycolmap.Database.open(str(path))
+    try:
+        rec = pycolmap.synthesize_dataset(opts, db)
+    finally:
+        db.close()
+    return rec, path
+
+
+def _without(rec: pycolmap.Reconstruction, *image_ids: int) -> pycolmap.Reconstruction:
+    out = pycolmap.Reconstruction(rec)
+    for i in image_ids:
+        out.deregister_frame(out.images[i].frame_id)
+    return out
+
+
+def _errors(a: pycolmap.Image, b: pycolmap.Image) -> tuple[float, float]:
+    ra, rb = a.cam_from_world().rotation.matrix(), b.cam_from_world().rotation.matrix()
+    return rotation_angle(ra.T @ rb), float(np.linalg.norm(a.projection_center() - b.projection_center()))
+
+
+def test_an_image_taken_out_is_placed_back_at_its_pose(tmp_path: Path) -> None:
+    rec, db = _dataset(tmp_path)
+    trial = _without(rec, 3)
+    placed = pairpose.place(trial, db, rec.images[3].name)
+    assert placed is not None and len(placed.partners) == 5
+    deg, dist = _errors(trial.images[3], rec.images[3])
+    extent = np.ptp([im.projection_center() for im in rec.images.values()], axis=0).max()
+    assert deg < 0.1 and dist < 1e-3 * extent
+
+
+def test_a_misplaced_partner_is_outvoted(tmp_path: Path) -> None:
+    rec, db = _dataset(tmp_path)
+    trial = _without(rec, 3)
+    # partner 1 turned 40 deg in the model: its pair implies a rotation the others contradict
+    im = trial.images[1]
+    pose = im.cam_from_world()
+    turn = pycolmap.Rotation3d(np.array([0.0, np.sin(np.radians(20)), 0.0, np.cos(np.radians(20))]))
+    trial.frames[im.frame_id].set_cam_from_world(
+        im.camera_id, pycolmap.Rigid3d(turn * pose.rotation, pose.translation)
+    )
+    placed = pairpose.place(trial, db, rec.images[3].name)
+    assert placed is not None and rec.images[1].name not in placed.partners
+    deg, _ = _errors(trial.images[3], rec.images[3])
+    assert deg < 0.1
+
+
+def test_one_partner_alone_places_nothing(tmp_path: Path) -> None:
+    rec, db = _dataset(tmp_path, frames=3)
+    trial = _without(rec, 2, 3)
+    # one registered partner gives a direction to the image but no distance along it
+    assert pairpose.place(trial, db, rec.images[3].name) is None
+    assert not trial.images[3].has_pose
+
+
+def test_the_mapper_carries_on_from_a_placed_image(tmp_path: Path) -> None:
+    rec, db = _dataset(tmp_path)
+    trial = _without(rec, 3, 5)
+    images = tmp_path / "images"
+    images.mkdir()
+    options = incremental_options(6, 3, 15, 0, tiled=True)
+    out, placements = place_leftovers(trial, db, images, tmp_path / "work", options, 6)
+    assert out.num_reg_images() == 6
+    assert {p.image for p in placements} <= {rec.images[3].name, rec.images[5].name}
+    for i in (3, 5):
+        deg, _ = _errors(
+            next(im for im in out.images.values() if im.name == rec.images[i].name), rec.images[i]
+        )
+        # the model's frame is the dataset's: the placed images were adjusted with the rest
+        assert deg < 0.5
