@@ -11,8 +11,9 @@ import pycolmap
 import pytest
 
 from geomatch.sfm import pairpose
-from geomatch.sfm.mapping import incremental_options, place_leftovers
+from geomatch.sfm.mapping import incremental_options, place_leftovers, replace_misplaced
 from geomatch.sfm.pairrotations import rotation_angle
+from geomatch.sfm.viewgraph import ViewGraphReport
 
 pytestmark = pytest.mark.unit
 
@@ -90,3 +91,31 @@ def test_the_mapper_carries_on_from_a_placed_image(tmp_path: Path) -> None:
         )
         # the model's frame is the dataset's: the placed images were adjusted with the rest
         assert deg < 0.5
+
+
+def test_an_image_the_model_turns_against_its_pairs_is_placed_again(tmp_path: Path) -> None:
+    rec, db = _dataset(tmp_path)
+    ims = sorted(rec.images.values(), key=lambda im: im.name)
+    report = ViewGraphReport()
+    for i, a in enumerate(ims):
+        for b in ims[i + 1 :]:
+            ra, rb = a.cam_from_world().rotation.matrix(), b.cam_from_world().rotation.matrix()
+            report.kept_rotations[(a.name, b.name)] = [rb @ ra.T]
+            report.kept_inliers[(a.name, b.name)] = 300
+    bad = pycolmap.Reconstruction(rec)
+    im = bad.images[4]
+    pose = im.cam_from_world()
+    turn = pycolmap.Rotation3d(np.array([np.sin(np.radians(25)), 0.0, 0.0, np.cos(np.radians(25))]))
+    bad.frames[im.frame_id].set_cam_from_world(
+        im.camera_id, pycolmap.Rigid3d(turn * pose.rotation, pose.translation)
+    )
+    images = tmp_path / "images"
+    images.mkdir()
+    options = incremental_options(6, 3, 15, 0, tiled=True)
+    fixed, placed = replace_misplaced(bad, report, db, images, tmp_path / "work", options, 6)
+    assert [p.image for p in placed] == [rec.images[4].name]
+    deg, _ = _errors(fixed.images[4], rec.images[4])
+    assert deg < 0.5
+    # a model that holds its pairs is returned as it is
+    same, none = replace_misplaced(rec, report, db, images, tmp_path / "work2", options, 6)
+    assert same is rec and none == []

@@ -45,6 +45,11 @@ def test_every_image_is_registered(run_dir, scene) -> None:
     # the pairs that share little) are written without a geometry and are not in it
     vg = s["view_graph"]
     assert vg["pairs"] >= 10 and vg["loops"] >= 6 and isinstance(vg["dropped"], list), vg
+    # a tiled project's model is held to its kept pairs' rotations (sfm/modelagree.py): this one,
+    # right by the ground truth (test_eval_against_ground_truth), holds at least 90 % of their inliers
+    agree = s["pair_agreement"]
+    assert agree["held"] > 0 and agree["contradicted"] <= 0.1 * (agree["held"] + agree["contradicted"]), agree
+    assert 1 <= s["mapping_attempts"] <= 4 and isinstance(s["placed_from_pairs"], list)
 
 
 @pytest.mark.pipeline

@@ -251,6 +251,12 @@ def replace_misplaced(
     trial, placed = place_leftovers(trial, database, image_dir, work, options, n_images)
     if agreement(trial, report.kept_rotations, report.kept_inliers).score <= before.score:
         return model, []
+    if any(not im.has_pose for im in trial.images.values()):
+        # an image taken out and not placed again stays out, as the mapper's own models leave
+        # out what they do not register (written and read back, a model keeps its posed images)
+        (work / "posed").mkdir(parents=True, exist_ok=True)
+        trial.write_binary(str(work / "posed"))
+        trial = pycolmap.Reconstruction(str(work / "posed"))
     return trial, placed
 
 
@@ -390,7 +396,7 @@ def reconstruct(
                     best_score, agreed = score, held
                     found_list, joins, placements = found_list_k, joins_k, placements_k
                 attempts = k + 1
-                if held is None or (held.clean and found_list_k[0].num_reg_images() >= n_images):
+                if held is not None and held.clean and found_list_k[0].num_reg_images() >= n_images:
                     break
             models = dict(enumerate(found_list))
         else:
