@@ -11,6 +11,8 @@ import pytest
 from geomatch.sfm.modelagree import agreement, misplaced
 from geomatch.sfm.viewgraph import filter_database
 
+from .colmap_synthetic import synthetic_database
+
 pytestmark = pytest.mark.unit
 
 
@@ -78,14 +80,8 @@ def test_pairs_with_an_image_the_model_lacks_do_not_count() -> None:
 
 
 def test_the_view_graph_hands_on_the_pairs_it_kept(tmp_path) -> None:
-    opts = pycolmap.SyntheticDatasetOptions()
-    opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig, opts.num_points3D = 1, 1, 5, 200
     path = tmp_path / "database.db"
-    db = pycolmap.Database.open(str(path))
-    try:
-        rec = pycolmap.synthesize_dataset(opts, db)
-    finally:
-        db.close()
+    rec = synthetic_database(path, 5, 200)
     report = filter_database(str(path))
     assert not report.dropped and not report.tree_dropped
     assert len(report.kept_rotations) == 10 and set(report.kept_inliers.values()) == {200}

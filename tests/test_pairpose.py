@@ -11,23 +11,19 @@ import pycolmap
 import pytest
 
 from geomatch.sfm import pairpose
-from geomatch.sfm.mapping import incremental_options, place_leftovers, replace_misplaced
+from geomatch.sfm.leftovers import Continuation, place_leftovers, replace_misplaced
+from geomatch.sfm.mapping import incremental_options
 from geomatch.sfm.pairrotations import rotation_angle
 from geomatch.sfm.viewgraph import ViewGraphReport
+
+from .colmap_synthetic import synthetic_database
 
 pytestmark = pytest.mark.unit
 
 
 def _dataset(tmp_path: Path, frames: int = 6) -> tuple[pycolmap.Reconstruction, Path]:
-    opts = pycolmap.SyntheticDatasetOptions()
-    opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig, opts.num_points3D = 1, 1, frames, 300
     path = tmp_path / "database.db"
-    db = pycolmap.Database.open(str(path))
-    try:
-        rec = pycolmap.synthesize_dataset(opts, db)
-    finally:
-        db.close()
-    return rec, path
+    return synthetic_database(path, frames, 300), path
 
 
 def _without(rec: pycolmap.Reconstruction, *image_ids: int) -> pycolmap.Reconstruction:
@@ -82,7 +78,7 @@ def test_the_mapper_carries_on_from_a_placed_image(tmp_path: Path) -> None:
     images = tmp_path / "images"
     images.mkdir()
     options = incremental_options(6, 3, 15, 0, tiled=True)
-    out, placements = place_leftovers(trial, db, images, tmp_path / "work", options, 6)
+    out, placements = place_leftovers(trial, Continuation(db, images, options, 6), tmp_path / "work")
     assert out.num_reg_images() == 6
     assert {p.image for p in placements} <= {rec.images[3].name, rec.images[5].name}
     for i in (3, 5):
@@ -112,10 +108,10 @@ def test_an_image_the_model_turns_against_its_pairs_is_placed_again(tmp_path: Pa
     images = tmp_path / "images"
     images.mkdir()
     options = incremental_options(6, 3, 15, 0, tiled=True)
-    fixed, placed = replace_misplaced(bad, report, db, images, tmp_path / "work", options, 6)
+    fixed, placed = replace_misplaced(bad, report, Continuation(db, images, options, 6), tmp_path / "work")
     assert [p.image for p in placed] == [rec.images[4].name]
     deg, _ = _errors(fixed.images[4], rec.images[4])
     assert deg < 0.5
     # a model that holds its pairs is returned as it is
-    same, none = replace_misplaced(rec, report, db, images, tmp_path / "work2", options, 6)
+    same, none = replace_misplaced(rec, report, Continuation(db, images, options, 6), tmp_path / "work2")
     assert same is rec and none == []

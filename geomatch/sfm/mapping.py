@@ -29,19 +29,19 @@ from ..geo.priorba import adjust_to_fixes, with_residuals
 from ..memory import return_freed_memory
 from ..options import (
     GLOBAL_MAPPER_IMAGES,
-    LEFTOVER_MIN_POSE_INLIERS,
     MAPPERS,
     MIN_POSE_INLIERS,
     TILED_MIN_POSE_INLIERS,
 )
 from .colmaplog import colmap_log
-from .modelagree import Agreement, agreement, misplaced
-from .modeljoin import Join, adjust, join_models
-from .pairpose import Placement, place
+from .leftovers import Continuation, place_leftovers, register_leftovers, replace_misplaced
+from .modelagree import Agreement, agreement
+from .modeljoin import Join, join_models
+from .pairpose import Placement
 from .sqlitecopy import snapshot_sqlite
 from .thinmatches import per_image_budget, thin_matches
 from .trackrefine import SURVEY, refine_tracks
-from .viewgraph import ViewGraphReport, filter_database
+from .viewgraph import filter_database
 
 # from this many images on, the incremental mapper's global bundle adjustments are lighter: they
 # leave out the 3D points whose cameras other points already hold (COLMAP's
@@ -145,119 +145,6 @@ def incremental_options(
         opts.ba_global_points_ratio = LARGE_BA_GROWTH
         opts.ba_global_max_refinements = LARGE_BA_REFINEMENTS
     return opts
-
-
-def register_leftovers(
-    model: pycolmap.Reconstruction,
-    database: Path,
-    image_dir: Path,
-    work: Path,
-    options: pycolmap.IncrementalPipelineOptions,
-    n_images: int,
-) -> pycolmap.Reconstruction:
-    """``model`` continued by the incremental mapper at LEFTOVER_MIN_POSE_INLIERS for the images
-    of the project's ``n_images`` it lacks (options.py says why); ``model`` itself when that
-    registers nothing more."""
-    if model.num_reg_images() == 0 or model.num_reg_images() >= n_images:
-        return model
-    start, cont = work / "leftovers_in", work / "leftovers_out"
-    start.mkdir(parents=True, exist_ok=True)
-    cont.mkdir(parents=True, exist_ok=True)
-    model.write_binary(str(start))
-    again = pycolmap.IncrementalPipelineOptions(options.todict())
-    floor = options.mapper.abs_pose_min_num_inliers
-    again.mapper.abs_pose_min_num_inliers = min(LEFTOVER_MIN_POSE_INLIERS, floor)
-    again.multiple_models = False
-    found = pycolmap.incremental_mapping(
-        str(database), str(image_dir), str(cont), again, input_path=str(start)
-    )
-    best = max(found.values(), key=_size, default=None)
-    return best if best is not None and best.num_reg_images() > model.num_reg_images() else model
-
-
-def place_leftovers(
-    model: pycolmap.Reconstruction,
-    database: Path,
-    image_dir: Path,
-    work: Path,
-    options: pycolmap.IncrementalPipelineOptions,
-    n_images: int,
-) -> tuple[pycolmap.Reconstruction, list[Placement]]:
-    """``model`` with the images it lacks placed from their pairs' relative poses where no 3D
-    point reaches them (pairpose.py), one at a time: each placed image's matches are triangulated
-    with the poses held and the mapper carries on from there (:func:`register_leftovers`), which
-    may register others the new points reach; the placements made, for the summary."""
-    placements: list[Placement] = []
-    db = pycolmap.Database.open(str(database))
-    try:
-        names = {im.image_id: im.name for im in db.read_all_images()}
-        pair_ids, geometries = db.read_two_view_geometries()
-        pairs = [
-            (*pycolmap.pair_id_to_image_pair(p), len(g.inlier_matches))
-            for p, g in zip(pair_ids, geometries, strict=True)
-        ]
-    finally:
-        db.close()
-    for step in range(n_images):
-        registered = {i for i, im in model.images.items() if im.has_pose}
-        if model.num_reg_images() == 0 or len(registered) >= n_images:
-            break
-        # the images most tied to the model first: their poses rest on the most inliers
-        mass: dict[int, int] = {}
-        for a, b, n in pairs:
-            for x, y in ((a, b), (b, a)):
-                if x not in registered and y in registered:
-                    mass[x] = mass.get(x, 0) + n
-        trial = pycolmap.Reconstruction(model)
-        placed = None
-        for image_id in sorted(mass, key=lambda i: -mass[i]):
-            placed = place(trial, database, names[image_id])
-            if placed is not None:
-                break
-        if placed is None:
-            break
-        out = work / f"placed_{step}"
-        out.mkdir(parents=True, exist_ok=True)
-        trial = pycolmap.triangulate_points(
-            trial, str(database), str(image_dir), str(out), clear_points=False, options=options
-        )
-        adjust(trial)
-        grown = register_leftovers(trial, database, image_dir, out, options, n_images)
-        placements.append(placed)
-        model = grown
-    return model, placements
-
-
-def replace_misplaced(
-    model: pycolmap.Reconstruction,
-    report: ViewGraphReport,
-    database: Path,
-    image_dir: Path,
-    work: Path,
-    options: pycolmap.IncrementalPipelineOptions,
-    n_images: int,
-) -> tuple[pycolmap.Reconstruction, list[Placement]]:
-    """``model`` with the images it places against their own pairs (modelagree.misplaced) taken
-    out and placed again from those pairs (:func:`place_leftovers`), where the model then agrees
-    with its pairs better; ``model`` itself otherwise."""
-    off = set(misplaced(model, report.kept_rotations, report.kept_inliers))
-    if not off or 2 * len(off) >= model.num_reg_images():
-        return model, []
-    before = agreement(model, report.kept_rotations, report.kept_inliers)
-    trial = pycolmap.Reconstruction(model)
-    for im in list(trial.images.values()):
-        if im.name in off and im.has_pose:
-            trial.deregister_frame(im.frame_id)
-    trial, placed = place_leftovers(trial, database, image_dir, work, options, n_images)
-    if agreement(trial, report.kept_rotations, report.kept_inliers).score <= before.score:
-        return model, []
-    if any(not im.has_pose for im in trial.images.values()):
-        # an image taken out and not placed again stays out, as the mapper's own models leave
-        # out what they do not register (written and read back, a model keeps its posed images)
-        (work / "posed").mkdir(parents=True, exist_ok=True)
-        trial.write_binary(str(work / "posed"))
-        trial = pycolmap.Reconstruction(str(work / "posed"))
-    return trial, placed
 
 
 def reconstruct(
@@ -366,15 +253,12 @@ def reconstruct(
                 found_list, joins = join_models(ordered, mapped, image_dir, into / "joined", options)
                 placements: list[Placement] = []
                 if tiled and found_list:
-                    found_list[0] = register_leftovers(
-                        found_list[0], mapped, image_dir, into, options, n_images
-                    )
-                    found_list[0], placements = place_leftovers(
-                        found_list[0], mapped, image_dir, into / "placed", options, n_images
-                    )
+                    more = Continuation(mapped, image_dir, options, n_images)
+                    found_list[0] = register_leftovers(found_list[0], more, into)
+                    found_list[0], placements = place_leftovers(found_list[0], more, into / "placed")
                     if report is not None:
                         found_list[0], replaced = replace_misplaced(
-                            found_list[0], report, mapped, image_dir, into / "replaced", options, n_images
+                            found_list[0], report, more, into / "replaced"
                         )
                         placements += replaced
                 return found_list, joins, placements

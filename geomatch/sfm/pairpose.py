@@ -10,7 +10,7 @@ pairs themselves still say where the image is: each verified pair with a registe
 the relative rotation and the direction of the baseline, so two or more registered partners that
 agree on the rotation fix the image's orientation and, where their baselines cross, its centre.
 Once placed, its matches are triangulated with every pose held, and COLMAP's mapper carries on
-from the model (mapping.register_leftovers), adjusting the placed image with the rest.
+from the model (leftovers.register_leftovers), adjusting the placed image with the rest.
 """
 
 from __future__ import annotations

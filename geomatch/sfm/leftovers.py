@@ -1,0 +1,131 @@
+"""The images a tiled project's first model lacks or misplaces, after COLMAP's mapper is done.
+
+The incremental mapper leaves out an image that sees too few of the model's 3D points, and now
+and then registers one in a wrong pose on right pairs (docs/pipeline.md, "Mapping"). Three
+passes follow it, each only where it helps: the mapper again at a lower PnP minimum, images
+placed from their pairs' relative poses (pairpose.py), and images the model turns against their
+own pairs (modelagree.py) taken out and placed again.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import pycolmap
+
+from ..options import LEFTOVER_MIN_POSE_INLIERS
+from .modelagree import agreement, misplaced
+from .modeljoin import adjust
+from .pairpose import Placement, place
+from .viewgraph import ViewGraphReport
+
+
+@dataclass(frozen=True)
+class Continuation:
+    """What carrying the mapper on from a model needs: the mapper's database copy, the photos,
+    the mapper's options and the project's image count."""
+
+    database: Path
+    image_dir: Path
+    options: pycolmap.IncrementalPipelineOptions
+    n_images: int
+
+
+def register_leftovers(
+    model: pycolmap.Reconstruction, more: Continuation, work: Path
+) -> pycolmap.Reconstruction:
+    """``model`` continued by the incremental mapper at LEFTOVER_MIN_POSE_INLIERS for the images
+    of the project it lacks (options.py says why); ``model`` itself when that registers nothing
+    more. ``work``: a scratch folder."""
+    database, image_dir, options = more.database, more.image_dir, more.options
+    if model.num_reg_images() == 0 or model.num_reg_images() >= more.n_images:
+        return model
+    start, cont = work / "leftovers_in", work / "leftovers_out"
+    start.mkdir(parents=True, exist_ok=True)
+    cont.mkdir(parents=True, exist_ok=True)
+    model.write_binary(str(start))
+    again = pycolmap.IncrementalPipelineOptions(options.todict())
+    floor = options.mapper.abs_pose_min_num_inliers
+    again.mapper.abs_pose_min_num_inliers = min(LEFTOVER_MIN_POSE_INLIERS, floor)
+    again.multiple_models = False
+    found = pycolmap.incremental_mapping(
+        str(database), str(image_dir), str(cont), again, input_path=str(start)
+    )
+    best = max(found.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), default=None)
+    return best if best is not None and best.num_reg_images() > model.num_reg_images() else model
+
+
+def place_leftovers(
+    model: pycolmap.Reconstruction, more: Continuation, work: Path
+) -> tuple[pycolmap.Reconstruction, list[Placement]]:
+    """``model`` with the images it lacks placed from their pairs' relative poses where no 3D
+    point reaches them (pairpose.py), one at a time: each placed image's matches are triangulated
+    with the poses held and the mapper carries on from there (:func:`register_leftovers`), which
+    may register others the new points reach; the placements made, for the summary."""
+    database, n_images = more.database, more.n_images
+    placements: list[Placement] = []
+    db = pycolmap.Database.open(str(database))
+    try:
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, geometries = db.read_two_view_geometries()
+        pairs = [
+            (*pycolmap.pair_id_to_image_pair(p), len(g.inlier_matches))
+            for p, g in zip(pair_ids, geometries, strict=True)
+        ]
+    finally:
+        db.close()
+    for step in range(n_images):
+        registered = {i for i, im in model.images.items() if im.has_pose}
+        if model.num_reg_images() == 0 or len(registered) >= n_images:
+            break
+        # the images most tied to the model first: their poses rest on the most inliers
+        mass: dict[int, int] = {}
+        for a, b, n in pairs:
+            for x, y in ((a, b), (b, a)):
+                if x not in registered and y in registered:
+                    mass[x] = mass.get(x, 0) + n
+        trial = pycolmap.Reconstruction(model)
+        placed = None
+        for image_id in sorted(mass, key=lambda i: -mass[i]):
+            placed = place(trial, database, names[image_id])
+            if placed is not None:
+                break
+        if placed is None:
+            break
+        out = work / f"placed_{step}"
+        out.mkdir(parents=True, exist_ok=True)
+        trial = pycolmap.triangulate_points(
+            trial, str(database), str(more.image_dir), str(out), clear_points=False, options=more.options
+        )
+        adjust(trial)
+        grown = register_leftovers(trial, more, out)
+        placements.append(placed)
+        model = grown
+    return model, placements
+
+
+def replace_misplaced(
+    model: pycolmap.Reconstruction, report: ViewGraphReport, more: Continuation, work: Path
+) -> tuple[pycolmap.Reconstruction, list[Placement]]:
+    """``model`` with the images it places against their own pairs (modelagree.misplaced) taken
+    out and placed again from those pairs (:func:`place_leftovers`), where the model then agrees
+    with its pairs better; ``model`` itself otherwise."""
+    off = set(misplaced(model, report.kept_rotations, report.kept_inliers))
+    if not off or 2 * len(off) >= model.num_reg_images():
+        return model, []
+    before = agreement(model, report.kept_rotations, report.kept_inliers)
+    trial = pycolmap.Reconstruction(model)
+    for im in list(trial.images.values()):
+        if im.name in off and im.has_pose:
+            trial.deregister_frame(im.frame_id)
+    trial, placed = place_leftovers(trial, more, work)
+    if agreement(trial, report.kept_rotations, report.kept_inliers).score <= before.score:
+        return model, []
+    if any(not im.has_pose for im in trial.images.values()):
+        # an image taken out and not placed again stays out, as the mapper's own models leave
+        # out what they do not register (written and read back, a model keeps its posed images)
+        (work / "posed").mkdir(parents=True, exist_ok=True)
+        trial.write_binary(str(work / "posed"))
+        trial = pycolmap.Reconstruction(str(work / "posed"))
+    return trial, placed
