@@ -79,14 +79,14 @@ def assert_each_pair_once(d: Deployment, c, pid: str, job_id: str, db: Path) -> 
         database.close()
 
 
-def survivors_reaped(d: Deployment, within_s: float = RESUMED_WITHIN_S) -> bool:
+def survivors_reaped(d: Deployment) -> bool:
     """Whether a survivor's reaper returned the dead worker's steps, waiting for its lease to lapse.
 
     The job can succeed before that: the victim may have written its pair and died before the
     acknowledgement, and the rest are quick once the models are loaded. Its unacknowledged step is
     still returned once the lease lapses (30 s), long before the visibility timeout.
     """
-    deadline = time.monotonic() + within_s
+    deadline = time.monotonic() + RESUMED_WITHIN_S
     while "held by dead worker" not in d.logs(tail=10**6):
         if time.monotonic() > deadline:
             return False
