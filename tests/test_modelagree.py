@@ -1,6 +1,7 @@
 """A model held to its pairs' rotations: the true model holds every pair, an image turned away
-from its pairs is found and the model is no longer clean; what decides which mapping attempt a
-tiled project keeps (mapping.py)."""
+from its pairs is found and the model is no longer clean, and a block of images turned as one is
+found though each of its images holds its pairs within the block; what decides which mapping
+attempt a tiled project keeps, and what it takes out to join again (mapping.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from geomatch.sfm.modelagree import agreement, misplaced
+from geomatch.sfm.modelagree import agreement, misplaced, misplaced_blocks
 from geomatch.sfm.viewgraph import filter_database
 
 from .colmap_synthetic import synthetic_database
@@ -46,12 +47,47 @@ def _turned(rec: pycolmap.Reconstruction, image_id: int, deg: float) -> pycolmap
     return out
 
 
+def _block_turned(rec: pycolmap.Reconstruction, image_ids: list[int], deg: float) -> pycolmap.Reconstruction:
+    """The images turned together about the world's origin: pairs within the block keep their
+    relative rotation, pairs with the rest do not."""
+    out = pycolmap.Reconstruction(rec)
+    h = np.radians(deg) / 2
+    world = pycolmap.Rotation3d(np.array([0.0, np.sin(h), 0.0, np.cos(h)]))
+    for i in image_ids:
+        im = out.images[i]
+        pose = im.cam_from_world()
+        out.frames[im.frame_id].set_cam_from_world(
+            im.camera_id, pycolmap.Rigid3d(pose.rotation * world.inverse(), pose.translation)
+        )
+    return out
+
+
 def test_the_true_model_holds_every_pair() -> None:
     rec = _model()
     rots, inl = _pairs(rec)
     a = agreement(rec, rots, inl)
     assert a.contradicted == 0 and a.held == 200 * 15 and a.clean
     assert misplaced(rec, rots, inl) == []
+    assert misplaced_blocks(rec, rots, inl) == []
+
+
+def test_a_block_turned_as_one_is_found_where_each_image_holds_a_pair() -> None:
+    rec = _model()
+    rots, inl = _pairs(rec)
+    bad = _block_turned(rec, [2, 5], 130.0)
+    a = agreement(bad, rots, inl)
+    # the block's own pair holds; its eight pairs with the other four images do not
+    assert a.contradicted == 200 * 8 and a.held == 200 * 7
+    # each block image holds one pair of its five, more than the single-image rule allows
+    assert misplaced(bad, rots, inl) == []
+    assert misplaced_blocks(bad, rots, inl) == [{rec.images[2].name, rec.images[5].name}]
+
+
+def test_a_block_with_too_few_inliers_against_the_rest_is_left_alone() -> None:
+    rec = _model()
+    rots, inl = _pairs(rec)
+    weak = {pair: 10 for pair in inl}
+    assert misplaced_blocks(_block_turned(rec, [2, 5], 130.0), rots, weak) == []
 
 
 def test_an_image_turned_from_its_pairs_is_found() -> None:

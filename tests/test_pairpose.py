@@ -1,6 +1,7 @@
 """An image the mapper left out, placed from its pairs' relative poses: on COLMAP's synthetic
 dataset (exact matches, known poses) the pose comes back, a misplaced partner is outvoted rather
-than followed, one partner alone places nothing, and the mapper's continuation keeps the image."""
+than followed, one partner alone places nothing, and the mapper's continuation keeps the image;
+a block the first model turns is joined again from a second model that holds it."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pycolmap
 import pytest
 
 from geomatch.sfm import pairpose
-from geomatch.sfm.leftovers import Continuation, place_leftovers, replace_misplaced
+from geomatch.sfm.leftovers import Continuation, place_leftovers, rejoin_blocks, replace_misplaced
 from geomatch.sfm.mapping import incremental_options
 from geomatch.sfm.pairrotations import rotation_angle
 from geomatch.sfm.viewgraph import ViewGraphReport
@@ -115,3 +116,47 @@ def test_an_image_the_model_turns_against_its_pairs_is_placed_again(tmp_path: Pa
     # a model that holds its pairs is returned as it is
     same, none = replace_misplaced(rec, report, Continuation(db, images, options, 6), tmp_path / "work2")
     assert same is rec and none == []
+
+
+def _report(rec: pycolmap.Reconstruction) -> ViewGraphReport:
+    """Every pair kept with its true rotation as its one candidate."""
+    ims = sorted(rec.images.values(), key=lambda im: im.name)
+    report = ViewGraphReport()
+    for i, a in enumerate(ims):
+        for b in ims[i + 1 :]:
+            ra, rb = a.cam_from_world().rotation.matrix(), b.cam_from_world().rotation.matrix()
+            report.kept_rotations[(a.name, b.name)] = [rb @ ra.T]
+            report.kept_inliers[(a.name, b.name)] = 300
+    return report
+
+
+def test_a_block_the_first_model_turns_is_joined_again_from_the_second(tmp_path: Path) -> None:
+    rec, db = _dataset(tmp_path)
+    report = _report(rec)
+    # the first model holds every image but turns 4 and 5 together, 130 deg about its origin
+    bad = pycolmap.Reconstruction(rec)
+    h = np.radians(130) / 2
+    world = pycolmap.Rotation3d(np.array([0.0, np.sin(h), 0.0, np.cos(h)]))
+    for i in (4, 5):
+        im = bad.images[i]
+        pose = im.cam_from_world()
+        bad.frames[im.frame_id].set_cam_from_world(
+            im.camera_id, pycolmap.Rigid3d(pose.rotation * world.inverse(), pose.translation)
+        )
+    # the mapper's second model holds them right, with 1 and 2, in its own units and frame
+    second = _without(rec, 3, 6)
+    second.transform(
+        pycolmap.Sim3d(0.4, pycolmap.Rotation3d(np.array([0.3, -0.2, 0.9])), np.array([5.0, -2.0, 1.0]))
+    )
+    images = tmp_path / "images"
+    images.mkdir()
+    more = Continuation(db, images, incremental_options(6, 3, 15, 0, tiled=True), 6)
+    fixed, joins = rejoin_blocks([bad, second], report, more, tmp_path / "work")
+    assert [set(j.images) for j in joins] == [{rec.images[4].name, rec.images[5].name}]
+    assert fixed[0].num_reg_images() == 6
+    for i in (4, 5):
+        deg, _ = _errors(fixed[0].find_image_with_name(rec.images[i].name), rec.images[i])
+        assert deg < 0.5
+    # no second model that holds the block: nothing is taken out
+    alone, none = rejoin_blocks([bad, _without(rec, 4, 5)], report, more, tmp_path / "work2")
+    assert alone[0] is bad and none == []

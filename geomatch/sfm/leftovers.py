@@ -1,10 +1,11 @@
 """The images a tiled project's first model lacks or misplaces, after COLMAP's mapper is done.
 
 The incremental mapper leaves out an image that sees too few of the model's 3D points, and now
-and then registers one in a wrong pose on right pairs (docs/pipeline.md, "Mapping"). Three
-passes follow it, each only where it helps: the mapper again at a lower PnP minimum, images
-placed from their pairs' relative poses (pairpose.py), and images the model turns against their
-own pairs (modelagree.py) taken out and placed again.
+and then registers one in a wrong pose on right pairs (docs/pipeline.md, "Mapping"). Four
+passes follow it, each only where it helps: a block of images the first model turns against
+their pairs taken from it and joined again from the mapper's other model that holds them, the
+mapper again at a lower PnP minimum, images placed from their pairs' relative poses (pairpose.py),
+and images the model turns against their own pairs (modelagree.py) taken out and placed again.
 """
 
 from __future__ import annotations
@@ -15,8 +16,8 @@ from pathlib import Path
 import pycolmap
 
 from ..options import LEFTOVER_MIN_POSE_INLIERS
-from .modelagree import agreement, misplaced
-from .modeljoin import adjust
+from .modelagree import agreement, misplaced, misplaced_blocks
+from .modeljoin import Join, adjust, join_models
 from .pairpose import Placement, place
 from .viewgraph import ViewGraphReport
 
@@ -30,6 +31,47 @@ class Continuation:
     image_dir: Path
     options: pycolmap.IncrementalPipelineOptions
     n_images: int
+
+
+def _posed_only(model: pycolmap.Reconstruction, work: Path) -> pycolmap.Reconstruction:
+    """``model`` without its unposed images (written and read back, a model keeps its posed
+    images), so that a join can add them again."""
+    work.mkdir(parents=True, exist_ok=True)
+    model.write_binary(str(work))
+    return pycolmap.Reconstruction(str(work))
+
+
+def rejoin_blocks(
+    models: list[pycolmap.Reconstruction], report: ViewGraphReport, more: Continuation, work: Path
+) -> tuple[list[pycolmap.Reconstruction], list[Join]]:
+    """``models`` (largest first) with the blocks the first turns against their pairs
+    (modelagree.misplaced_blocks) taken out of it and the later models joined into what is left
+    (modeljoin.join_models), where that gives the blocks back and the first model then agrees with
+    its pairs better; ``models`` as they were otherwise. Why: the mapper's second model often holds
+    the block right (it started from those images, and stopped where the first already had them),
+    and re-registering the block in the first would find the same wrong pose again; the joins, for
+    the summary."""
+    if len(models) < 2:
+        return models, []
+    first = models[0]
+    blocks = misplaced_blocks(first, report.kept_rotations, report.kept_inliers)
+    out = {name for block in blocks for name in block}
+    if not out or 2 * len(out) >= first.num_reg_images():
+        return models, []
+    trimmed = pycolmap.Reconstruction(first)
+    for im in list(trimmed.images.values()):
+        if im.name in out and im.has_pose:
+            trimmed.deregister_frame(im.frame_id)
+    trimmed = _posed_only(trimmed, work / "trimmed")
+    joined, joins = join_models(
+        [trimmed, *models[1:]], more.database, more.image_dir, work / "joined", more.options
+    )
+    back = {im.name for im in joined[0].images.values() if im.has_pose}
+    before = agreement(first, report.kept_rotations, report.kept_inliers)
+    after = agreement(joined[0], report.kept_rotations, report.kept_inliers)
+    if not out <= back or after.score <= before.score:
+        return models, []
+    return joined, joins
 
 
 def register_leftovers(
@@ -124,8 +166,6 @@ def replace_misplaced(
         return model, []
     if any(not im.has_pose for im in trial.images.values()):
         # an image taken out and not placed again stays out, as the mapper's own models leave
-        # out what they do not register (written and read back, a model keeps its posed images)
-        (work / "posed").mkdir(parents=True, exist_ok=True)
-        trial.write_binary(str(work / "posed"))
-        trial = pycolmap.Reconstruction(str(work / "posed"))
+        # out what they do not register
+        trial = _posed_only(trial, work / "posed")
     return trial, placed

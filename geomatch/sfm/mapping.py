@@ -34,7 +34,13 @@ from ..options import (
     TILED_MIN_POSE_INLIERS,
 )
 from .colmaplog import colmap_log
-from .leftovers import Continuation, place_leftovers, register_leftovers, replace_misplaced
+from .leftovers import (
+    Continuation,
+    place_leftovers,
+    register_leftovers,
+    rejoin_blocks,
+    replace_misplaced,
+)
 from .modelagree import Agreement, agreement
 from .modeljoin import Join, join_models
 from .pairpose import Placement
@@ -254,6 +260,9 @@ def reconstruct(
                 placements: list[Placement] = []
                 if tiled and found_list:
                     more = Continuation(mapped, image_dir, options, n_images)
+                    if report is not None:
+                        found_list, rejoined = rejoin_blocks(found_list, report, more, into / "rejoined")
+                        joins = joins + rejoined
                     found_list[0] = register_leftovers(found_list[0], more, into)
                     found_list[0], placements = place_leftovers(found_list[0], more, into / "placed")
                     if report is not None:

@@ -80,6 +80,50 @@ def misplaced(
     )
 
 
+def misplaced_blocks(
+    rec: pycolmap.Reconstruction,
+    rotations: Mapping[tuple[str, str], list[np.ndarray]],
+    inliers: Mapping[tuple[str, str], int],
+) -> list[set[str]]:
+    """Groups of registered images that hold their pairs with each other but contradict every pair
+    with the rest of the model, at least MISPLACED_MIN_INLIERS of them: a block the mapper turned
+    as one, after a wrong PnP pose of one image on a few dozen points that the next images then
+    registered against (one image of such a block holds most of its pairs, so :func:`misplaced`
+    passes it). The rest is the group holding the most inliers; the blocks are the others, largest
+    first. Empty when the model's held pairs tie all its images together."""
+    errors = _pair_errors(rec, rotations)
+    parent: dict[str, str] = {}
+
+    def root(x: str) -> str:
+        while parent.setdefault(x, x) != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for a, b, err in errors:
+        root(a), root(b)
+        if err <= AGREE_DEG:
+            parent[root(a)] = root(b)
+    groups: dict[str, set[str]] = {}
+    held: dict[str, int] = {}
+    for name in parent:
+        groups.setdefault(root(name), set()).add(name)
+    for a, b, err in errors:
+        if err <= AGREE_DEG:
+            held[root(a)] = held.get(root(a), 0) + inliers[(a, b)]
+    if len(groups) < 2:
+        return []
+    main = max(groups, key=lambda g: (held.get(g, 0), len(groups[g]), min(groups[g])))
+    against: dict[str, int] = {}
+    for a, b, err in errors:
+        ra, rb = root(a), root(b)
+        if err > AGREE_DEG and main in (ra, rb) and ra != rb:
+            other = rb if ra == main else ra
+            against[other] = against.get(other, 0) + inliers[(a, b)]
+    blocks = [groups[g] for g, n in against.items() if n >= MISPLACED_MIN_INLIERS]
+    return sorted(blocks, key=lambda b: (-len(b), min(b)))
+
+
 def _pair_errors(
     rec: pycolmap.Reconstruction, rotations: Mapping[tuple[str, str], list[np.ndarray]]
 ) -> list[tuple[str, str, float]]:
