@@ -39,6 +39,18 @@ def _errors(a: pycolmap.Image, b: pycolmap.Image) -> tuple[float, float]:
     return rotation_angle(ra.T @ rb), float(np.linalg.norm(a.projection_center() - b.projection_center()))
 
 
+def _report(rec: pycolmap.Reconstruction) -> ViewGraphReport:
+    """Every pair kept with its true rotation as its one candidate."""
+    ims = sorted(rec.images.values(), key=lambda im: im.name)
+    report = ViewGraphReport()
+    for i, a in enumerate(ims):
+        for b in ims[i + 1 :]:
+            ra, rb = a.cam_from_world().rotation.matrix(), b.cam_from_world().rotation.matrix()
+            report.kept_rotations[(a.name, b.name)] = [rb @ ra.T]
+            report.kept_inliers[(a.name, b.name)] = 300
+    return report
+
+
 def test_an_image_taken_out_is_placed_back_at_its_pose(tmp_path: Path) -> None:
     rec, db = _dataset(tmp_path)
     trial = _without(rec, 3)
@@ -92,13 +104,7 @@ def test_the_mapper_carries_on_from_a_placed_image(tmp_path: Path) -> None:
 
 def test_an_image_the_model_turns_against_its_pairs_is_placed_again(tmp_path: Path) -> None:
     rec, db = _dataset(tmp_path)
-    ims = sorted(rec.images.values(), key=lambda im: im.name)
-    report = ViewGraphReport()
-    for i, a in enumerate(ims):
-        for b in ims[i + 1 :]:
-            ra, rb = a.cam_from_world().rotation.matrix(), b.cam_from_world().rotation.matrix()
-            report.kept_rotations[(a.name, b.name)] = [rb @ ra.T]
-            report.kept_inliers[(a.name, b.name)] = 300
+    report = _report(rec)
     bad = pycolmap.Reconstruction(rec)
     im = bad.images[4]
     pose = im.cam_from_world()
@@ -116,18 +122,6 @@ def test_an_image_the_model_turns_against_its_pairs_is_placed_again(tmp_path: Pa
     # a model that holds its pairs is returned as it is
     same, none = replace_misplaced(rec, report, Continuation(db, images, options, 6), tmp_path / "work2")
     assert same is rec and none == []
-
-
-def _report(rec: pycolmap.Reconstruction) -> ViewGraphReport:
-    """Every pair kept with its true rotation as its one candidate."""
-    ims = sorted(rec.images.values(), key=lambda im: im.name)
-    report = ViewGraphReport()
-    for i, a in enumerate(ims):
-        for b in ims[i + 1 :]:
-            ra, rb = a.cam_from_world().rotation.matrix(), b.cam_from_world().rotation.matrix()
-            report.kept_rotations[(a.name, b.name)] = [rb @ ra.T]
-            report.kept_inliers[(a.name, b.name)] = 300
-    return report
 
 
 def test_a_block_the_first_model_turns_is_joined_again_from_the_second(tmp_path: Path) -> None:

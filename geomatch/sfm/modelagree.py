@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pycolmap
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from .pairrotations import rotation_angle
 
@@ -92,35 +94,30 @@ def misplaced_blocks(
     passes it). The rest is the group holding the most inliers; the blocks are the others, largest
     first. Empty when the model's held pairs tie all its images together."""
     errors = _pair_errors(rec, rotations)
-    parent: dict[str, str] = {}
-
-    def root(x: str) -> str:
-        while parent.setdefault(x, x) != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    for a, b, err in errors:
-        root(a), root(b)
-        if err <= AGREE_DEG:
-            parent[root(a)] = root(b)
-    groups: dict[str, set[str]] = {}
-    held: dict[str, int] = {}
-    for name in parent:
-        groups.setdefault(root(name), set()).add(name)
-    for a, b, err in errors:
-        if err <= AGREE_DEG:
-            held[root(a)] = held.get(root(a), 0) + inliers[(a, b)]
-    if len(groups) < 2:
+    names = sorted({n for a, b, _ in errors for n in (a, b)})
+    index = {n: i for i, n in enumerate(names)}
+    held_edges = [(index[a], index[b]) for a, b, err in errors if err <= AGREE_DEG]
+    rows, cols = (list(x) for x in zip(*held_edges, strict=True)) if held_edges else ([], [])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(names), len(names)))
+    count, label = connected_components(graph, directed=False)
+    if count < 2:
         return []
-    main = max(groups, key=lambda g: (held.get(g, 0), len(groups[g]), min(groups[g])))
-    against: dict[str, int] = {}
+    held = np.zeros(count, np.int64)
     for a, b, err in errors:
-        ra, rb = root(a), root(b)
-        if err > AGREE_DEG and main in (ra, rb) and ra != rb:
-            other = rb if ra == main else ra
-            against[other] = against.get(other, 0) + inliers[(a, b)]
-    blocks = [groups[g] for g, n in against.items() if n >= MISPLACED_MIN_INLIERS]
+        if err <= AGREE_DEG:
+            held[label[index[a]]] += inliers[(a, b)]
+    sizes = np.bincount(label, minlength=count)
+    main = max(range(count), key=lambda g: (held[g], sizes[g], -g))
+    against = np.zeros(count, np.int64)
+    for a, b, err in errors:
+        ga, gb = label[index[a]], label[index[b]]
+        if err > AGREE_DEG and main in (ga, gb) and ga != gb:
+            against[gb if ga == main else ga] += inliers[(a, b)]
+    blocks = [
+        {n for n in names if label[index[n]] == g}
+        for g in range(count)
+        if against[g] >= MISPLACED_MIN_INLIERS
+    ]
     return sorted(blocks, key=lambda b: (-len(b), min(b)))
 
 
