@@ -255,6 +255,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     if args.kind == "flight":
         return _synth_flight(args, t0)
+    if args.kind == "fixedwing":
+        return _synth_fixedwing(args, t0)
     args.ground = 12 if args.ground is None else args.ground
     if args.kind == "indoor":
         from .synth.indoor import write_room
@@ -314,6 +316,27 @@ def _synth_flight(args: argparse.Namespace, t0: float) -> int:
     return 0
 
 
+def _synth_fixedwing(args: argparse.Namespace, t0: float) -> int:
+    from .synth.fixedwing import FixedWingPlan
+    from .synth.flight import FIXEDWING_GPS_NOISE_M, write_fixedwing
+
+    try:
+        plan = FixedWingPlan(
+            args.photos, args.width, args.height, return_ratio=args.return_spacing, missing=args.missing
+        )
+    except ValueError as e:
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    noise = FIXEDWING_GPS_NOISE_M if args.gps_noise is None else args.gps_noise
+    cams = write_fixedwing(args.out, plan, args.seed, noise, nir=not args.colour)
+    seconds = time.perf_counter() - t0
+    print(
+        f"{len(cams)} images (fixed-wing) in {seconds:.1f}s ({seconds / len(cams):.2f}s an image) -> "
+        f"{args.out}/images, ground truth in {args.out}/gt (every trigger: gt/flight.json)"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The library's commands alone (``geomatch_app.cli.build_parser`` is the whole ``geomatch`` command)."""
     parser = argparse.ArgumentParser(prog="geomatch", description="Geometry-aware matching for SfM")
@@ -337,13 +360,30 @@ def register(sub: Any) -> None:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument(
         "--kind",
-        choices=("outdoor", "indoor", "flight"),
+        choices=("outdoor", "indoor", "flight", "fixedwing"),
         default="outdoor",
         help="indoor: one room, --ground views (--aerial ignored), depth/ as .npy; flight: a nadir "
         "survey of --photos photos over an area that grows with them, GPS and DJI XMP on every "
-        "photo (--gps-noise default 1.5), --ground handheld photos of buildings (--aerial ignored)",
+        "photo (--gps-noise default 1.5), --ground handheld photos of buildings (--aerial ignored); "
+        "fixedwing: --photos photos of a fixed-wing circling one field (legs both ways, banked "
+        "turns, near-infrared farmland), EXIF GPS only (--gps-noise default 2.5)",
     )
-    s.add_argument("--photos", type=int, default=100, help="with --kind flight: the survey's photos")
+    s.add_argument(
+        "--photos", type=int, default=100, help="with --kind flight or fixedwing: the survey's photos"
+    )
+    s.add_argument(
+        "--return-spacing",
+        type=float,
+        default=1.75,
+        metavar="RATIO",
+        help="with --kind fixedwing: the return legs' photo spacing over the outbound legs' (wind)",
+    )
+    s.add_argument(
+        "--missing", type=float, default=0.03, help="with --kind fixedwing: a trigger's chance to fail"
+    )
+    s.add_argument(
+        "--colour", action="store_true", help="with --kind fixedwing: a colour camera, not near infrared"
+    )
     s.add_argument("--width", type=int, default=640)
     s.add_argument("--height", type=int, default=480)
     s.add_argument(

@@ -91,17 +91,23 @@ def save_jpeg(
     gps_enu: np.ndarray | None,
     height: float | None = None,
     yaw_error_deg: float = 0.0,
+    model: str | None = None,
 ) -> None:
     """JPEG with the EXIF a camera writes (focal length, GPS at ``gps_enu`` in GPS_ORIGIN's ENU)
     and, for a drone's photo, DJI's XMP: relative altitude ``height``, the gimbal's angles and
-    the flight yaw, the yaws off by the compass's ``yaw_error_deg``."""
-    model = "synth-drone" if cam.aerial else "synth-phone"
-    exif = exif_for("geomatch", model, float(cam.K[0, 0]) / 100.0, 100.0)
+    the flight yaw, the yaws off by the compass's ``yaw_error_deg``. A ``model`` named is a
+    camera of that name with no XMP at all (a compact camera on a fixed-wing: EXIF GPS only)."""
+    exif = exif_for(
+        "geomatch",
+        model or ("synth-drone" if cam.aerial else "synth-phone"),
+        float(cam.K[0, 0]) / 100.0,
+        100.0,
+    )
     if gps_enu is not None:
         lat, lon, alt = GPS_ORIGIN.to_geodetic(np.asarray(gps_enu, np.float64))
         gps_exif(exif, float(lat), float(lon), float(alt))
     xmp = b""
-    if cam.aerial:
+    if cam.aerial and model is None:
         pitch, yaw, roll = gimbal_angles(cam.R)
         yaw = (yaw + yaw_error_deg + 180.0) % 360.0 - 180.0
         h = float(cam.centre[2]) if height is None else height

@@ -64,11 +64,21 @@ class Terrain:
 class World:
     """The terrain, its ground texture and its buildings, made on demand (module docstring)."""
 
-    def __init__(self, seed: int, texel_m: float, cache_mb: float = CACHE_MB) -> None:
+    def __init__(
+        self,
+        seed: int,
+        texel_m: float,
+        cache_mb: float = CACHE_MB,
+        ground: GroundTiles | None = None,
+        building_share: float = BUILDING_SHARE,
+    ) -> None:
+        """``ground``: another ground (synth.farmtex's farmland), else groundtex's photo tiles;
+        ``building_share``: of the lots (a farm has few buildings, a town many)."""
         self.seed = seed
         self.texel = texel_m
         self.terrain = Terrain(seed)
-        self.ground = GroundTiles(seed, texel_m, crops_mb=cache_mb * 0.3, tiles_mb=cache_mb * 0.4)
+        self.ground = ground or GroundTiles(seed, texel_m, crops_mb=cache_mb * 0.3, tiles_mb=cache_mb * 0.4)
+        self.building_share = building_share
         self._faces: ByteLRU[tuple[int, int], list[np.ndarray]] = ByteLRU(
             cache_mb * 0.3, lambda v: sum(int(t.nbytes) for t in v)
         )
@@ -78,7 +88,7 @@ class World:
         """Lot (a, b)'s building, or None: 8-20 m a side, 4-14 m high, set into the terrain at
         its lowest corner, at least 3 m inside its lot (two buildings stand 6 m apart or more)."""
         rng = np.random.default_rng([self.seed, 0xB1D, *seed_key(a, b)])
-        if rng.random() >= BUILDING_SHARE:
+        if rng.random() >= self.building_share:
             return None
         size = rng.uniform(8.0, 20.0, 2)
         free = LOT_M - size - 6.0
