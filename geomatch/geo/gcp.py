@@ -27,10 +27,13 @@ from .similarity import Similarity, umeyama
 MAX_REPROJECTION_PX = 5.0
 # rays closer to parallel than this place a point badly along them
 MIN_RAY_ANGLE_DEG = 1.0
-# the bundle adjustment that holds the control points: a Cauchy loss of this scale (photo pixels) on
-# every observation, so that a control point surveyed metres off (handheld GPS, a height of 0 over
-# dunes) pulls its photos no harder than a wrong tie point, while exact points pull fully
-ADJUST_LOSS_PX = 1.0
+# no survey places a target better than this (RTK on a painted target, and the click on it): however
+# well a handful of points happen to fit, the adjustment never holds them tighter
+MIN_ACCURACY_M = 0.02
+# a control point's prior enters the bundle adjustment through two constant virtual cameras this many
+# sigmas away from it (east and north of it, looking at it): 1 px in them is 1 sigma, and the
+# perspective's bend over a few sigmas of offset is a few parts in a thousand of the prior's weight
+PRIOR_OBSERVER_SIGMAS = 1000.0
 
 
 @dataclass
@@ -62,6 +65,35 @@ class PointResult:
         return out
 
 
+@dataclass(frozen=True)
+class Accuracy:
+    """The control points' standard deviation per axis, metres: what the adjustment weighs them by.
+
+    ``estimated_*``: what their residuals after the similarity say (None where they say nothing:
+    too few points for that component); ``horizontal``/``vertical`` are what was used (the estimate
+    above the floor, or the user's)."""
+
+    horizontal: float
+    vertical: float
+    source: str  # "given" | "estimated"
+    estimated_horizontal: float | None = None
+    estimated_vertical: float | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "horizontal": round(self.horizontal, 4),
+            "vertical": round(self.vertical, 4),
+            "source": self.source,
+        }
+        for key, v in (
+            ("estimated_horizontal", self.estimated_horizontal),
+            ("estimated_vertical", self.estimated_vertical),
+        ):
+            if v is not None:
+                out[key] = round(v, 4)
+        return out
+
+
 @dataclass
 class GcpReport:
     """``similarity``: model -> the file's metric frame minus ``origin`` (the points' mean), kept
@@ -73,6 +105,9 @@ class GcpReport:
     # the check-point RMSE (horizontal, 3D) after the similarity alone, before the adjustment
     similarity_check_rmse: tuple[float, float] | None = None
     adjusted: bool = False
+    # the control points' standard deviation per axis (horizontal, vertical) the adjustment held them
+    # to, and whether it was given by the user or estimated from their residuals
+    accuracy: Accuracy | None = None
 
     def rmse(self, role: str) -> tuple[float, float] | None:
         """(horizontal, 3D) root mean square residual of the points of ``role``, metres."""
@@ -95,6 +130,8 @@ class GcpReport:
             if r is not None:
                 out[f"{role}_rmse_horizontal_m"], out[f"{role}_rmse_3d_m"] = round(r[0], 4), round(r[1], 4)
         out["bundle_adjusted"] = self.adjusted
+        if self.accuracy is not None:
+            out["accuracy_m"] = self.accuracy.as_dict()
         if self.adjusted and self.similarity_check_rmse is not None:
             h, d3 = self.similarity_check_rmse
             out["check_rmse_similarity_only_m"] = {"horizontal": round(h, 4), "3d": round(d3, 4)}
@@ -200,54 +237,164 @@ def georeference(
     return GcpReport(results, sim, origin)
 
 
-def adjust_to_control(rec: pycolmap.Reconstruction, gcps: GcpFile, report: GcpReport) -> None:
-    """Bundle-adjust ``rec`` (already moved by ``report.similarity``) with the control points as
-    fixed 3D points seen in their photos, then judge every point again in the adjusted model.
+def estimate_accuracy(report: GcpReport, gcps: GcpFile) -> Accuracy:
+    """How well the control points were surveyed, horizontal and vertical, from their own residuals
+    after the similarity: the sum of squared residuals over the redundancy of each component (the
+    count of residuals less the share the 7 parameters absorbed, 1 - leverage per residual), as
+    a variance-component estimate does.
+
+    Why: ODM's gcp_list.txt says nothing of its points' accuracy, and files range from RTK
+    centimetres to a handheld fix averaged over minutes with every height 0.0; holding the latter
+    as exact bends the photos' geometry to fit the survey's noise. Horizontal and vertical apart:
+    a height of 0.0 everywhere over dunes is metres off while the same points' eastings and
+    northings are good to a metre. The residuals also hold the model's own error, so over a bent
+    model the points are weighed a little looser than their survey: the adjustment then gives
+    way to the photos, which is the side to err on."""
+    names = [p.name for p in report.points if p.role == "control" and p.residual is not None]
+    v = np.stack([r.residual for r in report.points if r.name in names and r.residual is not None])
+    fitted = np.stack([gcps.points[n].xyz - report.origin for n in names]) + v
+    c = fitted - fitted.mean(axis=0)
+    # d(residual) / d(scale, rotation, translation) at the fit, about the points' centroid
+    J = np.zeros((3 * len(names), 7))
+    for i, ci in enumerate(c):
+        J[3 * i : 3 * i + 3, 0] = ci
+        J[3 * i : 3 * i + 3, 1:4] = -np.array([[0, -ci[2], ci[1]], [ci[2], 0, -ci[0]], [-ci[1], ci[0], 0]])
+        J[3 * i : 3 * i + 3, 4:7] = np.eye(3)
+    leverage = np.einsum("ij,ji->i", J, np.linalg.pinv(J.T @ J) @ J.T)
+    redundancy = np.clip(1.0 - leverage, 0.0, 1.0).reshape(-1, 3)
+    r_h, r_v = float(redundancy[:, :2].sum()), float(redundancy[:, 2].sum())
+    # under half a residual's worth of redundancy the component says nothing (3 points: 2 in all)
+    est_h = float(np.sqrt((v[:, :2] ** 2).sum() / r_h)) if r_h >= 0.5 else None
+    est_v = float(np.sqrt((v[:, 2] ** 2).sum() / r_v)) if r_v >= 0.5 else None
+    h = est_h if est_h is not None else est_v
+    vert = est_v if est_v is not None else h
+    return Accuracy(
+        max(h if h is not None else MIN_ACCURACY_M, MIN_ACCURACY_M),
+        max(vert if vert is not None else MIN_ACCURACY_M, MIN_ACCURACY_M),
+        "estimated",
+        est_h,
+        est_v,
+    )
+
+
+def given_accuracy(metres: float | tuple[float, float]) -> Accuracy:
+    """The user's accuracy (one value for both components, or horizontal and vertical), held as
+    given: a surveyor who states it knows the instrument."""
+    h, v = (metres, metres) if isinstance(metres, float | int) else metres
+    if not (h > 0 and v > 0 and np.isfinite(h) and np.isfinite(v)):
+        raise GcpError(f"a GCP accuracy must be a positive number of metres, not {metres}")
+    return Accuracy(float(h), float(v), "given")
+
+
+def _rotation_looking_along(axis: int) -> np.ndarray:
+    """cam_from_world rotation of a camera looking along -``axis`` (0: x, 1: y) of the world, its
+    image x along the other horizontal axis and its image y along -z (so that x, y and the
+    viewing direction stay right-handed)."""
+    if axis == 0:  # looks west: image x = north, image y = down
+        return np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])
+    return np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # looks south
+
+
+def _add_prior_observers(
+    work: pycolmap.Reconstruction, xyz: np.ndarray, acc: Accuracy, track: pycolmap.Track
+) -> None:
+    """Two constant cameras that see ``xyz`` at their principal point, one east and one north of
+    it, whose pixel is one sigma of the point's prior: together a Gaussian prior on the point's
+    position (horizontal sigma on x and y, vertical on z), in the only residual pycolmap's bundle
+    adjuster takes from Python, the reprojection error. Each sees z, so its vertical focal length
+    is 1/sqrt(2) of one sigma's."""
+    distance = PRIOR_OBSERVER_SIGMAS * max(acc.horizontal, acc.vertical)
+    fx, fy = distance / acc.horizontal, distance / (acc.vertical * np.sqrt(2.0))
+    for axis in (0, 1):
+        # a trivial rig takes the camera's id and a trivial frame the image's: ids free in all
+        cam_id = max([*work.cameras, *work.rigs], default=0) + 1
+        work.add_camera_with_trivial_rig(
+            pycolmap.Camera(
+                camera_id=cam_id, model="PINHOLE", width=1000, height=1000, params=[fx, fy, 500.0, 500.0]
+            )
+        )
+        R = _rotation_looking_along(axis)
+        centre = np.asarray(xyz, np.float64) + distance * np.eye(3)[axis]
+        image_id = max([*work.images, *work.frames], default=0) + 1
+        image = pycolmap.Image(
+            name=f"prior {image_id}",
+            keypoints=np.array([[500.0, 500.0]]),
+            camera_id=cam_id,
+            image_id=image_id,
+        )
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), (-R @ centre).reshape(3, 1))
+        work.add_image_with_trivial_frame(image, pose)
+        track.add_element(image_id, 0)
+
+
+def adjust_to_control(
+    rec: pycolmap.Reconstruction,
+    gcps: GcpFile,
+    report: GcpReport,
+    accuracy: float | tuple[float, float] | None = None,
+) -> None:
+    """Bundle-adjust ``rec`` (already moved by ``report.similarity``) with each control point a
+    3D point seen in its photos and held near its surveyed position by a prior of the points'
+    accuracy (``accuracy`` metres, one value or horizontal and vertical, else estimate_accuracy),
+    then judge every point again in the adjusted model.
 
     Why: a similarity moves the model as a whole, while a model from matching alone bends (a dome
     over a flat site, a drift along a flight line) in ways only points on the ground can correct;
-    survey software (Metashape's markers, OpenSfM's GCPs) adjusts with them for that reason. On a
-    synthetic scene with exact points this cut the check-point RMSE about fourfold. The check
-    points take no part: their observations are not added, and they are triangulated afresh in
-    the adjusted cameras. The observations are added to the model only for the adjustment and
-    removed after it, so the written model holds the run's own keypoints and points only."""
+    survey software (Metashape's markers, OpenSfM's GCPs) adjusts with them for that reason, each
+    weighed by its accuracy. Held as exact, metre-level points (averaged handheld GPS, heights of
+    0.0) bent a model so that the clicks of points outside the fit no longer met (7.7 px on copr);
+    as priors they move the model only as far as the photos allow, and exact points still pull
+    it onto them. The check points take no part: their observations are not added, and they are
+    triangulated afresh in the adjusted cameras. The adjustment runs on a copy that holds the
+    points, their clicks and the prior's cameras, and only the cameras, poses and 3D points come
+    back, so the written model holds the run's own keypoints and points only."""
+    acc = given_accuracy(accuracy) if accuracy is not None else estimate_accuracy(report, gcps)
     control = [p.name for p in report.points if p.role == "control"]
-    by_name = {im.name: im.image_id for im in rec.images.values() if im.has_pose}
-    appended: dict[int, int] = {}
-    added: list[int] = []
+    work = pycolmap.Reconstruction(rec)
+    by_name = {im.name: im.image_id for im in work.images.values() if im.has_pose}
+    real_cameras = {im.camera_id for im in work.images.values() if im.has_pose}
+    first_virtual = max([*work.images, *work.frames], default=0) + 1
     for name in control:
         track = pycolmap.Track()
         for o in gcps.points[name].observations:
             iid = by_name.get(o.image)
             if iid is None:
                 continue
-            pts = rec.images[iid].points2D
+            pts = work.images[iid].points2D
             pts.append(pycolmap.Point2D(np.array([o.pixel[0] + 0.5, o.pixel[1] + 0.5])))
             track.add_element(iid, len(pts) - 1)
-            appended[iid] = appended.get(iid, 0) + 1
-        added.append(rec.add_point3D(gcps.points[name].xyz - report.origin, track))
+        surveyed = gcps.points[name].xyz - report.origin
+        _add_prior_observers(work, surveyed, acc, track)
+        # starts where its clicks meet, not at the survey: the prior, not the start, pulls it there
+        placed, *_ = triangulate(work, gcps.points[name])
+        work.add_point3D(surveyed if placed is None else placed, track)
     config = pycolmap.BundleAdjustmentConfig()
-    for iid in by_name.values():
-        config.add_image(iid)
-    for pid in added:
-        config.add_constant_point(pid)
+    for im in work.images.values():
+        config.add_image(im.image_id)
+        if im.image_id >= first_virtual:
+            config.set_constant_rig_from_world_pose(im.frame_id)
+            config.set_constant_cam_intrinsics(im.camera_id)
     options = pycolmap.BundleAdjustmentOptions()
-    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    options.ceres.loss_function_scale = ADJUST_LOSS_PX
+    # squared residuals: a prior is Gaussian only under a squared loss, and the model's tie points
+    # passed the mapper's reprojection filter already
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.TRIVIAL
     options.print_summary = False
     loglevel = int(pycolmap.logging.minloglevel)
     pycolmap.logging.minloglevel = max(loglevel, 2)  # Ceres' report is not the user's business
     try:
-        pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
+        pycolmap.create_default_bundle_adjuster(options, config, work).solve()
     finally:
         pycolmap.logging.minloglevel = loglevel
-        for pid in added:
-            rec.delete_point3D(pid)
-        for iid, n in appended.items():
-            for _ in range(n):
-                rec.images[iid].points2D.pop()
+    for cid in real_cameras:
+        rec.cameras[cid].params = list(work.cameras[cid].params)
+    for fid, frame in rec.frames.items():
+        if frame.has_pose:
+            frame.rig_from_world = work.frames[fid].rig_from_world
+    for pid, point in rec.points3D.items():
+        point.xyz = work.points3D[pid].xyz
     report.similarity_check_rmse = report.rmse("check")
     report.adjusted = True
+    report.accuracy = acc
     for r in report.points:
         if r.role in ("control", "check"):
             X, _, reproj, why = triangulate(rec, gcps.points[r.name])
@@ -261,11 +408,12 @@ def apply_to_model(
     checkpoints: Sequence[str] | int = 0,
     ply: Path | None = None,
     adjust: bool = True,
+    accuracy: float | tuple[float, float] | None = None,
 ) -> dict[str, Any]:
     """Georeference the model in ``model_dir`` (a run's ``sparse/0``) by ``gcps`` and write it back
     (and its points to ``ply``) moved into the GCPs' metric frame minus the report's ``origin``,
-    bundle-adjusted with the control points held (``adjust``, adjust_to_control); returns the
-    report as a dict.
+    bundle-adjusted with the control points held to ``accuracy`` metres or to what their residuals
+    say (``adjust``, adjust_to_control); returns the report as a dict.
     A model the points cannot georeference is left as it was, and the dict says why (``error``):
     the model is still the run's result, only not in the survey's coordinates."""
     rec = pycolmap.Reconstruction(str(model_dir))
@@ -275,7 +423,7 @@ def apply_to_model(
         return {**gcps.summary(), "error": str(e)}
     rec.transform(report.similarity.to_pycolmap())
     if adjust:
-        adjust_to_control(rec, gcps, report)
+        adjust_to_control(rec, gcps, report, accuracy)
     rec.write_binary(str(model_dir))
     if (model_dir / "cameras.txt").is_file():
         rec.write_text(str(model_dir))
@@ -285,7 +433,11 @@ def apply_to_model(
 
 
 def georeference_summary(
-    summary: dict[str, Any], out: Path, gcps: GcpFile, checkpoints: Sequence[str] | int = 0
+    summary: dict[str, Any],
+    out: Path,
+    gcps: GcpFile,
+    checkpoints: Sequence[str] | int = 0,
+    accuracy: float | tuple[float, float] | None = None,
 ) -> None:
     """Georeference a run's or a reconstruct job's model (``out/sparse/0``) by ``gcps`` and record
     it in its ``summary`` (``gcp``). The GCPs win over GPS: the frame the GPS path put the model in
@@ -294,7 +446,7 @@ def georeference_summary(
     if not (model / "images.bin").is_file():
         summary["gcp"] = {**gcps.summary(), "error": "no model to georeference"}
         return
-    summary["gcp"] = apply_to_model(model, gcps, checkpoints, out / "points.ply")
+    summary["gcp"] = apply_to_model(model, gcps, checkpoints, out / "points.ply", accuracy=accuracy)
     if "error" in summary["gcp"]:
         return
     before = {k: summary.pop(k) for k in ("frame", "origin", "ecef_from_enu", "vertical") if k in summary}
