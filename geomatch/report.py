@@ -102,6 +102,10 @@ def _georeferencing(s: Mapping[str, Any]) -> dict[str, Any]:
                 k = f"{key}_rmse_{dim}_m"
                 if k in gcp:
                     g[k] = gcp[k]
+        # what the adjustment weighed the control points by, and what it did at the check points
+        for k in ("accuracy_m", "check_rmse_similarity_only_m"):
+            if k in gcp:
+                g[k] = gcp[k]
         out["gcp"] = g
     return out
 
@@ -178,6 +182,17 @@ def _gcp_markdown(g: Mapping[str, Any]) -> list[str]:
             lines.append(
                 f"- {label}: {g[f'{key}_rmse_horizontal_m']} m horizontal, {g[f'{key}_rmse_3d_m']} m 3D"
             )
+    sim = g.get("check_rmse_similarity_only_m")
+    if sim:
+        lines.append(
+            f"- check-point RMSE before the adjustment: {sim['horizontal']} m horizontal, {sim['3d']} m 3D"
+        )
+    acc = g.get("accuracy_m")
+    if acc:
+        how = "as given" if acc["source"] == "given" else "estimated from their residuals"
+        lines.append(
+            f"- control points held to {acc['horizontal']} m horizontal, {acc['vertical']} m vertical ({how})"
+        )
     if g.get("points"):
         lines += ["", "| point | role | photos (registered) | dx m | dy m | dz m | 3D m | note |"]
         lines += ["|---|---|---:|---:|---:|---:|---:|---|"]

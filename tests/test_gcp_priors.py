@@ -14,6 +14,7 @@ import pytest
 
 from geomatch.geo.gcp import adjust_to_control, estimate_accuracy, georeference
 from geomatch.geo.gcpfile import read_gcp_file
+from geomatch.report import survey_report, to_markdown
 
 pytestmark = pytest.mark.unit
 
@@ -214,3 +215,18 @@ def test_the_estimate_splits_horizontal_from_vertical_and_keeps_to_the_floor() -
     gcps = read_gcp_file(text, {im.name: (WIDTH, HEIGHT) for im in rec.images.values()})
     acc = estimate_accuracy(georeference(rec, gcps, 3), gcps)
     assert acc.horizontal >= 0.02 and acc.vertical >= 0.02 and acc.horizontal < 0.1, acc
+
+
+def test_the_survey_report_shows_the_accuracy_used_and_the_check_rmse_before_and_after() -> None:
+    g = _adjusted(0, 1.5, zero_heights=True)
+    r = survey_report({"georeferenced": True, "frame": "GCP", "gcp": g})
+    gr = r["georeferencing"]["gcp"]
+    assert gr["accuracy_m"] == g["accuracy_m"] and gr["check_rmse_3d_m"] == g["check_rmse_3d_m"]
+    page = to_markdown(r)
+    acc = g["accuracy_m"]
+    assert (
+        f"- control points held to {acc['horizontal']} m horizontal, {acc['vertical']} m vertical "
+        "(estimated from their residuals)" in page
+    )
+    sim = g["check_rmse_similarity_only_m"]
+    assert f"- check-point RMSE before the adjustment: {sim['horizontal']} m horizontal" in page
