@@ -191,11 +191,15 @@ def test_metre_level_control_with_heights_of_zero_leaves_the_photos_geometry_alo
     assert acc["source"] == "estimated" and 0.5 < acc["horizontal"] < 4.0 and 0.5 < acc["vertical"] < 6.0, acc
 
 
-def test_centimetre_control_is_still_held_to_centimetres() -> None:
-    g = _adjusted(0, 0.02, zero_heights=False)
+@pytest.mark.parametrize("seed", [0, 2])
+def test_centimetre_control_is_still_held_to_centimetres(seed: int) -> None:
+    g = _adjusted(seed, 0.02, zero_heights=False)
+    # 2 cm of survey noise, plus this flexible model's own centimetres to decimetres (vertical)
     acc = g["accuracy_m"]
-    assert acc["horizontal"] < 0.05 and acc["vertical"] < 0.08, acc
-    assert g["control_rmse_3d_m"] < 0.06 and g["check_rmse_3d_m"] < 0.1, g
+    assert acc["horizontal"] < 0.05 and acc["vertical"] < 0.15, acc
+    assert g["control_rmse_horizontal_m"] < 0.05 and g["control_rmse_3d_m"] < 0.1, g
+    # held that tightly, the points pull the model's bend out: the check points come nearer
+    assert g["check_rmse_3d_m"] < g["check_rmse_similarity_only_m"]["3d"], g
     assert all(p["reprojection_px"] < 2.0 for p in g["points"] if p["role"] == "check")
 
 

@@ -34,6 +34,9 @@ MIN_ACCURACY_M = 0.02
 # sigmas away from it (east and north of it, looking at it): 1 px in them is 1 sigma, and the
 # perspective's bend over a few sigmas of offset is a few parts in a thousand of the prior's weight
 PRIOR_OBSERVER_SIGMAS = 1000.0
+# the photos' observations are weighed at the model's own reprojection noise, never below this (a
+# model of exact synthetic pixels would otherwise weigh every prior at nothing)
+MIN_PIXEL_SIGMA = 0.1
 
 
 @dataclass
@@ -288,23 +291,23 @@ def given_accuracy(metres: float | tuple[float, float]) -> Accuracy:
 
 def _rotation_looking_along(axis: int) -> np.ndarray:
     """cam_from_world rotation of a camera looking along -``axis`` (0: x, 1: y) of the world, its
-    image x along the other horizontal axis and its image y along -z (so that x, y and the
-    viewing direction stay right-handed)."""
+    image x along the other horizontal axis and its image y vertical (right-handed)."""
     if axis == 0:  # looks west: image x = north, image y = down
         return np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])
     return np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # looks south
 
 
 def _add_prior_observers(
-    work: pycolmap.Reconstruction, xyz: np.ndarray, acc: Accuracy, track: pycolmap.Track
+    work: pycolmap.Reconstruction, xyz: np.ndarray, acc: Accuracy, pixel_sigma: float, track: pycolmap.Track
 ) -> None:
     """Two constant cameras that see ``xyz`` at their principal point, one east and one north of
-    it, whose pixel is one sigma of the point's prior: together a Gaussian prior on the point's
-    position (horizontal sigma on x and y, vertical on z), in the only residual pycolmap's bundle
-    adjuster takes from Python, the reprojection error. Each sees z, so its vertical focal length
-    is 1/sqrt(2) of one sigma's."""
+    it, in which one sigma of the point's prior is ``pixel_sigma`` pixels (the photos' own noise):
+    together a Gaussian prior on the point's position (horizontal sigma on x and y, vertical on z)
+    weighed against the photos' observations as a weighted adjustment weighs them, in the only
+    residual pycolmap's bundle adjuster takes from Python, the reprojection error. Both see z, so
+    their vertical focal length is 1/sqrt(2) of one sigma's."""
     distance = PRIOR_OBSERVER_SIGMAS * max(acc.horizontal, acc.vertical)
-    fx, fy = distance / acc.horizontal, distance / (acc.vertical * np.sqrt(2.0))
+    fx, fy = distance * pixel_sigma / acc.horizontal, distance * pixel_sigma / (acc.vertical * np.sqrt(2.0))
     for axis in (0, 1):
         # a trivial rig takes the camera's id and a trivial frame the image's: ids free in all
         cam_id = max([*work.cameras, *work.rigs], default=0) + 1
@@ -351,6 +354,8 @@ def adjust_to_control(
     acc = given_accuracy(accuracy) if accuracy is not None else estimate_accuracy(report, gcps)
     control = [p.name for p in report.points if p.role == "control"]
     work = pycolmap.Reconstruction(rec)
+    # the photos' noise per axis: a 2D Gaussian's mean error norm is sqrt(pi / 2) of its sigma
+    pixel_sigma = max(float(rec.compute_mean_reprojection_error()) / np.sqrt(np.pi / 2), MIN_PIXEL_SIGMA)
     by_name = {im.name: im.image_id for im in work.images.values() if im.has_pose}
     real_cameras = {im.camera_id for im in work.images.values() if im.has_pose}
     first_virtual = max([*work.images, *work.frames], default=0) + 1
@@ -364,7 +369,7 @@ def adjust_to_control(
             pts.append(pycolmap.Point2D(np.array([o.pixel[0] + 0.5, o.pixel[1] + 0.5])))
             track.add_element(iid, len(pts) - 1)
         surveyed = gcps.points[name].xyz - report.origin
-        _add_prior_observers(work, surveyed, acc, track)
+        _add_prior_observers(work, surveyed, acc, pixel_sigma, track)
         # starts where its clicks meet, not at the survey: the prior, not the start, pulls it there
         placed, *_ = triangulate(work, gcps.points[name])
         work.add_point3D(surveyed if placed is None else placed, track)
