@@ -46,6 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "real" / "drone"
 SETS = {
     "brighton_beach": ("tuning", "exhaustive"),
+    "brighton_beach_full": ("tuning", "exhaustive"),
     "caliterra": ("test", "spatial"),
     "copr": ("tuning", "exhaustive"),
 }
@@ -143,13 +144,23 @@ def gcp_judge(out: Path, images: Path, gcp_file: Path) -> dict[str, Any]:
 
 def gcp_row(set_name: str, run: str, g: dict[str, Any]) -> str:
     if "error" in g:
-        return f"| {set_name} | {run} | - | - | - | - | {g['error']} |"
+        return f"| {set_name} | {run} | - | - | - | - | - | - | {g['error']} |"
     roles = [p["role"] for p in g["points"]]
     nan = float("nan")
     unused = "; ".join(f"{p['name']}: {p['reason']}" for p in g["points"] if p["role"] == "unused")
+    # a check point counts only where its clicks meet in the model (within 2 px): one that does not
+    # is reported unused, or judged by a point its own photos disagree on
+    judged = ", ".join(
+        f"{p['name']} {p['reprojection_px']:.1f} px"
+        for p in g["points"]
+        if p["name"] in CHECKPOINTS and p.get("reprojection_px") is not None
+    )
+    acc = g.get("accuracy_m")
+    held = f"{acc['horizontal']:.2f} / {acc['vertical']:.2f}" if acc else "exact"
     return (
         f"| {set_name} | {run} | {roles.count('control')} | {roles.count('check')} "
         f"| {g.get('check_rmse_horizontal_m', nan):.2f} / {g.get('check_rmse_3d_m', nan):.2f} "
+        f"| {judged} | {held} "
         f"| {g.get('control_rmse_3d_m', nan):.2f} | {unused} |"
     )
 
@@ -241,9 +252,10 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(
             "| set | run | control | check | check-point RMSE horizontal / 3D m "
+            "| check points' clicks: largest px from their point | control held to h / v m "
             "| control RMSE 3D m | not used |"
         )
-        print("|---|---|---:|---:|---|---:|---|")
+        print("|---|---|---:|---:|---|---|---|---:|---|")
         print("\n".join(gcp_rows))
     return 0
 

@@ -90,6 +90,9 @@ def _georeferencing(s: Mapping[str, Any]) -> dict[str, Any]:
                 key=lambda r: -r["residual_m"],
             ),
         }
+    held = s.get("gps_check")
+    if held:
+        out["gps_check"] = held
     gcp = s.get("gcp")
     if gcp:
         g: dict[str, Any] = {"crs": gcp.get("crs"), "points": gcp.get("points", [])}
@@ -166,11 +169,26 @@ def to_markdown(r: Mapping[str, Any], title: str = "Survey report") -> str:
         for row in gp["largest"]:
             note = "" if row["inlier"] else " (not used: outlier)"
             lines.append(f"  - {row['name']}: {row['residual_m']} m{note}")
+    if "gps_check" in ge:
+        lines += _gps_check_markdown(ge["gps_check"])
     if "gcp" in ge:
         lines += _gcp_markdown(ge["gcp"])
     lines += ["", "## Time per stage (s)", "", "| stage | s |", "|---|---:|"]
     lines += [f"| {k} | {v} |" for k, v in r["timings_s"].items()]
     return "\n".join(lines) + "\n"
+
+
+def _gps_check_markdown(g: Mapping[str, Any]) -> list[str]:
+    """The cameras the mapping found beyond the fixes' fitted noise, and what it did with them."""
+    lines = [
+        f"- cameras held to their GPS fixes: fitted noise {g['sigma_m']} m (horizontal), limit "
+        f"{g['limit_m']} m; {len(g['found'])} camera(s) beyond it"
+    ]
+    lines += [f"  - {o['name']}: placed again, {o['residual_m']} m from its fix" for o in g["placed_again"]]
+    lines += [
+        f"  - {o['name']}: taken out of the model, {o['residual_m']} m from its fix" for o in g["taken_out"]
+    ]
+    return lines
 
 
 def _gcp_markdown(g: Mapping[str, Any]) -> list[str]:

@@ -11,6 +11,7 @@ import pycolmap
 import pytest
 
 from geomatch.eval.homography import apply_h
+from geomatch.imageio import read_gray
 from geomatch.metadata import read_metadata
 from geomatch.sfm.colmapdb import COLMAP_OFFSET, ColmapDatabase
 from geomatch.sfm.trackrefine import SURVEY, TrackRefineOptions, Tracks, references, refine_tracks, tasks
@@ -129,3 +130,27 @@ def test_without_texture_nothing_moves(tmp_path: Path) -> None:
     assert refine_tracks(db_path, tmp_path)["moved"] == 0
     for k, i in ids.items():
         assert np.array_equal(_keypoints(db_path, i), before[k])
+
+
+def test_photos_beyond_the_working_size_are_aligned_at_it_and_answer_in_photo_pixels(tmp_path: Path) -> None:
+    # the 512 px photos aligned at 384 px: each point comes back where it belongs in the photo,
+    # within what half the resolution resolves
+    db_path, truth, ids = _project(tmp_path, noise=1.5)
+    before = {k: np.linalg.norm(_keypoints(db_path, ids[k]) - truth[k], axis=1) for k in ids}
+    refine_tracks(db_path, tmp_path, TrackRefineOptions(radius=8, sigma=0.7, max_side=384))
+    after = {k: np.linalg.norm(_keypoints(db_path, ids[k]) - truth[k], axis=1) for k in ids}
+    for k in ("b.png", "c.png"):
+        assert np.median(after[k]) < min(0.4, np.median(before[k]) / 2), k
+
+
+def test_a_jpeg_is_read_grey_at_the_working_size_as_a_full_decode_and_resize_would(tmp_path: Path) -> None:
+    photo = warped_pair("astronaut", seed=3, strength=0.1).image0
+    big = cv2.resize(photo, (1800, 1200), interpolation=cv2.INTER_CUBIC)
+    cv2.imwrite(str(tmp_path / "p.jpg"), cv2.cvtColor(big, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    gray, scale = read_gray(tmp_path / "p.jpg", 600)
+    assert gray.shape == (400, 600) and scale == (600 / 1800, 400 / 1200)
+    full = cv2.cvtColor(cv2.imread(str(tmp_path / "p.jpg")), cv2.COLOR_BGR2GRAY).astype(np.float32) / 255
+    reference = cv2.resize(full, (600, 400), interpolation=cv2.INTER_AREA)
+    assert np.abs(gray - reference).mean() < 0.01
+    same, one = read_gray(tmp_path / "p.jpg", None)
+    assert same.shape == (1200, 1800) and one == (1.0, 1.0)

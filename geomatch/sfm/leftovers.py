@@ -10,11 +10,15 @@ and images the model turns against their own pairs (modelagree.py) taken out and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 
+from ..geo.gpscheck import GpsCheck, beyond
+from ..geo.similarity import umeyama
 from ..options import LEFTOVER_MIN_POSE_INLIERS
 from .modelagree import agreement, misplaced, misplaced_blocks
 from .modeljoin import Join, adjust, join_models
@@ -169,3 +173,63 @@ def replace_misplaced(
         # out what they do not register
         trial = _posed_only(trial, work / "posed")
     return trial, placed
+
+
+def hold_to_fixes(
+    model: pycolmap.Reconstruction,
+    enu: Mapping[str, np.ndarray],
+    found: GpsCheck,
+    more: Continuation,
+    work: Path,
+) -> tuple[pycolmap.Reconstruction, GpsCheck]:
+    """``model`` (in the fixes' ENU frame) with the cameras ``found`` beyond the fitted GPS limit
+    taken out and the mapper carried on at the leftovers' PnP minimum (:func:`register_leftovers`)
+    for them and for every image the model lacks, then each camera still beyond the limit taken out
+    for good; ``found`` with what was placed again and what was taken out. Why carry on rather than
+    only take out: the wrong pose came from the mapper's order (a photo registered from a wrong
+    pair before its right neighbours were in); with those in, the photo's PnP against the model's
+    points finds its true pose, and the limit judges it again. The images the model never held
+    come along (the ends of flight lines, photos in turns), judged by the same limit."""
+    trial = pycolmap.Reconstruction(model)
+    off = {o.name for o in found.offenders}
+    for im in list(trial.images.values()):
+        if im.name in off and im.has_pose:
+            trial.deregister_frame(im.frame_id)
+    if off:
+        trial = _posed_only(trial, work / "trimmed")
+    grown = register_leftovers(trial, more, work)
+    if grown is not trial:
+        _back_to_fixes(grown, enu, [n for n in found.residuals if n not in off])
+    still = beyond(grown, enu, found.limit_m)
+    if still:
+        out = {o.name for o in still}
+        for im in list(grown.images.values()):
+            if im.name in out and im.has_pose:
+                grown.deregister_frame(im.frame_id)
+    grown = _posed_only(grown, work / "held")
+    posed = {im.name for im in grown.images.values() if im.has_pose}
+    replaced = tuple(
+        replace(o, residual_m=float(np.linalg.norm(c - enu[o.name])))
+        for o in found.offenders
+        if o.name in posed
+        for c in [_centre(grown, o.name)]
+    )
+    return grown, replace(found, replaced=replaced, taken_out=tuple(still))
+
+
+def _back_to_fixes(model: pycolmap.Reconstruction, enu: Mapping[str, np.ndarray], trusted: list[str]) -> None:
+    """``model`` moved back into the fixes' frame after the mapper carried it on (its bundle
+    adjustment lets the frame go and COLMAP normalises the model's scale and centre), by the least
+    squares similarity of the cameras that agreed with their fixes before."""
+    centres = {im.name: im.projection_center() for im in model.images.values() if im.has_pose}
+    names = [n for n in trusted if n in centres]
+    if len(names) < 3:
+        return
+    src = np.stack([np.asarray(centres[n], np.float64) for n in names])
+    dst = np.stack([np.asarray(enu[n], np.float64) for n in names])
+    model.transform(umeyama(src, dst).to_pycolmap())
+
+
+def _centre(model: pycolmap.Reconstruction, name: str) -> np.ndarray:
+    im = model.find_image_with_name(name)
+    return np.asarray(im.projection_center(), np.float64)

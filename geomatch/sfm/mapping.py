@@ -23,7 +23,7 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from ..geo import georef
+from ..geo import georef, gpscheck
 from ..geo.gps import GpsFixes
 from ..geo.priorba import adjust_to_fixes, with_residuals
 from ..memory import return_freed_memory
@@ -36,6 +36,7 @@ from ..options import (
 from .colmaplog import colmap_log
 from .leftovers import (
     Continuation,
+    hold_to_fixes,
     place_leftovers,
     register_leftovers,
     rejoin_blocks,
@@ -315,6 +316,24 @@ def reconstruct(
         if adjusted is not None:
             alignments[0] = with_residuals(ranked[0], gps.enu, alignments[0])
         lap("prior_adjustment")
+    fixed_check: gpscheck.GpsCheck | None = None
+    if gps is not None and ranked and alignments[0] is not None:
+        # a camera far beyond the fixes' fitted noise is a wrong registration: taken out, the
+        # mapper carried on (it and the images still out may find their right poses), and what is
+        # still beyond taken out for good (geo/gpscheck.py, leftovers.hold_to_fixes)
+        fixed_check = gpscheck.check(ranked[0], gps.enu)
+        if fixed_check is not None and (fixed_check.offenders or ranked[0].num_reg_images() < n_images):
+            floor = min_pose_inliers or (TILED_MIN_POSE_INLIERS if tiled else MIN_POSE_INLIERS)
+            more = Continuation(
+                mapped, image_dir, incremental_options(n_images, min_model_size, floor, seed, tiled), n_images
+            )
+            before = _size(ranked[0])
+            with colmap_log(verbose):
+                ranked[0], fixed_check = hold_to_fixes(ranked[0], gps.enu, fixed_check, more, work / "gps")
+            if fixed_check.offenders or _size(ranked[0]) != before:
+                again = georef.align(ranked[0], gps.enu, up_cam=gps.up, heights=gps.heights)
+                alignments[0] = again if again is not None else alignments[0]
+        lap("gps_check")
     sparse = out / "sparse"
     shutil.rmtree(sparse, ignore_errors=True)
     for i, rec in enumerate(ranked):
@@ -334,6 +353,7 @@ def reconstruct(
     summary["thinning"] = thinned
     summary["mapping_seconds"] = stages
     summary["prior_adjustment"] = adjusted.as_dict() if adjusted is not None else None
+    summary["gps_check"] = fixed_check.as_dict() if fixed_check is not None else None
     summary.update(georef.summary_fields(gps, alignments[0] if alignments else None))
     if ranked:
         best = ranked[0]

@@ -37,7 +37,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..features.subpixel import SubpixelOptions, gradient_maps, refine_on_maps
-from ..imageio import read_image
+from ..imageio import read_gray
 from ..lru import ByteLRU
 from . import pair_threads
 from .colmapdb import COLMAP_OFFSET
@@ -61,6 +61,13 @@ class TrackRefineOptions:
     neighbour_radius: float = 100.0  # photo pixels: the scale of the neighbours' weights
     max_track: int = 64  # observations; a larger component is several scene points chained together
     images_mb: float = 512.0  # decoded photos held at once
+    # photos with a longer side beyond this are aligned at this size (photo pixels above are
+    # working pixels then): the matcher finds its points at the network's 640-1024 px, so at 2048
+    # a point is already placed to a fraction of a network pixel, and a 12 MP original costs four
+    # times the decoding, smoothing and memory of its half-size copy for no gain in the cameras
+    # (brighton_beach: the originals and their 2000 px copies give the same GPS residuals;
+    # docs/benchmarks.md, "Drone surveys beside COLMAP SIFT")
+    max_side: int | None = 2048
     workers: int = 0  # pairs aligned at once; 0: sfm.pair_threads()
 
 
@@ -226,16 +233,16 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
         )
         photos_lock = threading.Lock()
 
+        scales: dict[int, torch.Tensor] = {}  # working px per photo px, (x, y), once read
+
         def photo(i: int) -> tuple[torch.Tensor, torch.Tensor | None]:
             """The photo's smoothed luminance and its gradients, (3, H, W), and the same at half size
             for the coarse pass (None without one), prepared once from one read of the photo."""
             with photos_lock:
                 maps = photos.get(i)
                 if maps is None:
-                    raw = (
-                        cv2.cvtColor(read_image(image_dir / names[i]), cv2.COLOR_RGB2GRAY).astype(np.float32)
-                        / 255.0
-                    )
+                    raw, scale = read_gray(image_dir / names[i], opts.max_side)
+                    scales[i] = torch.tensor(scale, dtype=torch.float32)
                     half = None
                     if opts.coarse_sigma > 0:
                         h, w = raw.shape
@@ -248,6 +255,12 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
                     maps = (gradient_maps(torch.from_numpy(gray)), half)
                     photos.put(i, maps)
                 return maps
+
+        def working(p: torch.Tensor, i: int) -> torch.Tensor:
+            return (p + 0.5) * scales[i] - 0.5  # pixel centres at integers on both sizes
+
+        def photo_px(p: torch.Tensor, i: int) -> torch.Tensor:
+            return (p + 0.5) / scales[i] - 0.5
 
         def halved(p: torch.Tensor) -> torch.Tensor:
             return (p + 0.5) / 2 - 0.5  # pixel centres at integers on both sizes
@@ -272,10 +285,10 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
             ends = (0, 1) if ia < ib else (1, 0)
             na = pair_edges[:, ends[0]] - start[ia]
             nb = pair_edges[:, ends[1]] - start[ib]
-            pa = xy[ia][pair_tasks[:, 0] - start[ia]]
-            pb = xy[ib][pair_tasks[:, 1] - start[ib]]
-            around = (xy[ia][na], xy[ib][nb])
             (maps_a, half_a), (maps_b, half_b) = photo(ia), photo(ib)
+            pa = working(xy[ia][pair_tasks[:, 0] - start[ia]], ia)
+            pb = working(xy[ib][pair_tasks[:, 1] - start[ib]], ib)
+            around = (working(xy[ia][na], ia), working(xy[ib][nb], ib))
             if half_a is not None and half_b is not None:
                 near, got = refine_on_maps(
                     half_a[0], half_b, halved(pa), halved(pb), coarse, (halved(around[0]), halved(around[1]))
@@ -283,7 +296,7 @@ def _refine_tracks(database: Path, image_dir: Path, opts: TrackRefineOptions | N
                 # what the coarse pass could not align starts the fine one where it was
                 pb = torch.where(got[:, None], (near + 0.5) * 2 - 0.5, pb)
             out, ok = refine_on_maps(maps_a[0], maps_b, pa, pb, lsm, around)
-            return ib, pair_tasks[:, 1], out, ok
+            return ib, pair_tasks[:, 1], photo_px(out, ib), ok
 
         shifts: list[np.ndarray] = []
         workers = opts.workers or pair_threads()
