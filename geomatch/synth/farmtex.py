@@ -96,7 +96,7 @@ class FarmTiles(GroundTiles):
         keys = ("x", "y", "kind", "level", "dir", "period", "amp", "tram", "border", "phase", "blotch")
         return {k: arr[:, i] for i, k in enumerate(keys)}
 
-    def _grey(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def layout(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per point: the NIR-like brightness, the class (roads: -1) and the distance to its
         field's border (metres)."""
         c0i, c1i = math.floor(x.min() / PARCEL_M) - 1, math.floor(x.max() / PARCEL_M) + 1
@@ -140,7 +140,7 @@ class FarmTiles(GroundTiles):
             return hit
         c = (np.arange(TILE) + 0.5) * self.texel
         x, y = np.meshgrid(i * TILE * self.texel + c, j * TILE * self.texel + c)
-        v, kind, _ = self._grey(x.ravel(), y.ravel())
+        v, kind, _ = self.layout(x.ravel(), y.ravel())
         detail = super().tile(i, j).astype(np.float32).mean(axis=2).ravel()
         still = (kind == WATER) | (kind == -1)  # water and asphalt carry less detail
         v = v + (detail - 128.0) * self.detail * np.where(still, 0.3, 1.0)
