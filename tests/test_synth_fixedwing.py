@@ -88,9 +88,11 @@ def test_return_legs_are_flown_back_with_sparser_photos(fired: tuple[FixedWingPl
 def test_turns_are_banked_and_photographed(fired: tuple[FixedWingPlan, list[Shot]]) -> None:
     _, triggers = fired
     for part in (EAST_TURN, WEST_TURN):
-        rolls = [s.roll_deg for s in triggers if s.part == part]
+        rolls = np.array([s.roll_deg for s in triggers if s.part == part])
         assert len(rolls) >= 4
-        assert 10.0 <= max(rolls) <= 35.0, (part, rolls)
+        assert 10.0 <= rolls.max() <= 35.0, (part, rolls)  # the right-hand circuits
+    # the left-hand ones (every other pass) bank the other way
+    assert min(s.roll_deg for s in triggers if s.part == EAST_TURN) < -10.0
     legs = [abs(s.roll_deg) for s in triggers if s.part in (LEG, RETURN)]
     assert np.median(legs) < 3.0
     # the camera is fixed to the airframe: a right bank of 25 deg tilts the view 25 deg to the left
@@ -107,8 +109,23 @@ def test_some_triggers_fail_and_the_names_count_on(fired: tuple[FixedWingPlan, l
     names = [s.name for s in triggers if s.name is not None]
     assert names == [f"IMG_{k:04d}.JPG" for k in range(1, len(names) + 1)]
     assert [s.index for s in triggers] == list(range(len(triggers)))
-    # the flight circles the field again: more than one pass over the same lines
+    # the flight circles the field again, the other way round: the second pass's outbound
+    # legs run half a spacing beside the first pass's return legs, and the other way about
     assert max(s.loop for s in triggers) >= plan.lines
+    across = {
+        (part, first): {
+            round(float(s.position[:2] @ plan.across) / plan.spacing_m * 2)
+            for s in triggers
+            if s.part == part and (s.loop < plan.lines) == first
+        }
+        for part in (LEG, RETURN)
+        for first in (True, False)
+    }
+    assert across[(LEG, False)] and across[(RETURN, False)]
+    for part, other in ((LEG, RETURN), (RETURN, LEG)):
+        # offsets in half spacings: each strip of the second pass interleaves with the other
+        # leg kind's strip of the first
+        assert {v + d for v in across[(part, False)] for d in (-1, 1)} & across[(other, True)]
 
 
 def test_photos_carry_exif_gps_and_no_xmp(flight: tuple[Path, list[Camera]]) -> None:

@@ -10,12 +10,15 @@ fixed-wing does not, and its photos differ in ways a matcher and a mapper feel:
   ``return_ratio`` (a wind from the outbound direction: ``(v + w) / (v - w)``), and a crosswind
   crabs the airframe (and the camera with it).
 - **Repeated passes.** The field is circled ``lines`` times a pass, each loop's outbound line one
-  ``spacing_m`` to the right of the last, and every new pass re-flies the field with its lines
-  shifted by half a spacing, so a patch of ground is seen from many loops, both ways.
+  ``spacing_m`` to the right of the last; every other pass circles the other way (left turns)
+  half a spacing over, so its outbound legs fly over the return strip and its return legs over
+  the outbound strip (FixedWingPlan.circuit): a patch of ground is seen from many loops, both
+  ways. Between passes the autopilot loiters round with the camera paused.
 - **Banked turns, photographed.** The turns at the line ends are a quarter arc, a straight
-  crossing and a quarter arc of ``turn_radius_m``; the aircraft banks to the roll its ground speed
-  needs (``atan(v^2 / (g r))``, 10-30 deg at the defaults), rolling in and out over RAMP_M of
-  path, and the camera, fixed to the airframe, keeps firing: turn photos are oblique and yawed.
+  crossing and a quarter arc of ``turn_radius_m``; the aircraft banks (right or left with the
+  circuit) to the roll its ground speed needs (``atan(v^2 / (g r))``, 10-30 deg at the
+  defaults), rolling in and out over RAMP_M of path, and the camera, fixed to the airframe, keeps
+  firing: turn photos are oblique and yawed.
 - **An airframe, not a gimbal**: roll, pitch and heading scatter by a degree or two on the legs,
   the height wanders by metres (``ALTITUDE_WANDER_M``).
 - **Missing photos**: each trigger fails with probability ``missing``; the file names are the
@@ -42,6 +45,7 @@ ALTITUDE_WANDER_M = 1.5  # the height's scatter about the planned altitude (slow
 ATTITUDE_NOISE_DEG = 1.5  # roll, pitch and heading scatter of the airframe on a leg
 PATH_STEP_M = 0.5  # the path's sampling, for timing the triggers
 LEG, EAST_TURN, RETURN, WEST_TURN = "outbound", "turn at the far end", "return", "turn at the start"
+TRANSIT = "between passes"  # not photographed
 PARTS = (LEG, EAST_TURN, RETURN, WEST_TURN)
 
 
@@ -101,10 +105,17 @@ class FixedWingPlan:
         w = self.airspeed * (self.return_ratio - 1) / (self.return_ratio + 1)
         return -w * self.along + self.crosswind * self.across
 
-    def line_offset(self, loop: int) -> float:
-        """How far right of the first line loop ``loop``'s outbound line lies."""
+    def circuit(self, loop: int) -> tuple[float, int]:
+        """Loop ``loop``'s outbound line (metres right of the first) and its hand: +1 turning
+        right (its return line one gap to the right), -1 turning left. Even passes turn right;
+        odd passes circle the other way, half a spacing over, so their outbound legs are flown
+        over the even passes' return strip and their return legs over the outbound strip: every
+        patch of the field is photographed both ways."""
         pass_, k = divmod(loop, self.lines)
-        return k * self.spacing_m + (pass_ % 2) * self.spacing_m / 2
+        shift = (pass_ // 2 % 2) * self.spacing_m / 4  # later passes a little off the first ones
+        if pass_ % 2 == 0:
+            return k * self.spacing_m + shift, 1
+        return self.return_gap_m + (k + 0.5) * self.spacing_m + shift, -1
 
 
 @dataclass(frozen=True)
@@ -126,9 +137,9 @@ class Shot:
 def _path(
     plan: FixedWingPlan, loops: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str], np.ndarray]:
-    """The racetrack sampled every PATH_STEP_M: points (N, 2) in the field's (along, right) frame,
-    unit track directions in that frame, signed curvature (right turns positive), the part of
-    the flight and the loop of each sample."""
+    """The racetracks sampled every PATH_STEP_M: points (N, 2) in the field's (along, right)
+    frame, unit track directions in that frame, signed curvature (right turns positive), the part
+    of the flight and the loop of each sample."""
     pts: list[np.ndarray] = []
     dirs: list[np.ndarray] = []
     curv: list[np.ndarray] = []
@@ -146,35 +157,41 @@ def _path(
         parts.extend([part] * n)
         loop_of.append(np.full(n, loop))
 
-    def quarter(p0: np.ndarray, d0: np.ndarray, part: str, loop: int) -> tuple[np.ndarray, np.ndarray]:
-        """A right quarter turn from p0 heading d0; returns its end and direction (in this frame,
-        x along and y right, the right of (d_x, d_y) is (-d_y, d_x))."""
-        right = np.array([-d0[1], d0[0]])
-        centre = p0 + r * right
+    def quarter(
+        p0: np.ndarray, d0: np.ndarray, hand: int, part: str, loop: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """A quarter turn from p0 heading d0, to the right (``hand`` 1) or left (-1); returns its
+        end and direction (in this frame, x along and y right, the right of (d_x, d_y) is
+        (-d_y, d_x))."""
+        side = hand * np.array([-d0[1], d0[0]])
+        centre = p0 + r * side
         n = max(int(math.pi / 2 * r / PATH_STEP_M), 1)
         a = np.arange(n)[:, None] / n * (math.pi / 2)
-        pts.append(centre - r * right * np.cos(a) + r * d0 * np.sin(a))
-        dirs.append(d0 * np.cos(a) + right * np.sin(a))
-        curv.append(np.full(n, 1.0 / r))
+        pts.append(centre - r * side * np.cos(a) + r * d0 * np.sin(a))
+        dirs.append(d0 * np.cos(a) + side * np.sin(a))
+        curv.append(np.full(n, hand / r))
         parts.extend([part] * n)
         loop_of.append(np.full(n, loop))
-        return centre + r * d0, right
+        return centre + r * d0, side
 
     along = np.array([1.0, 0.0])
     for loop in range(loops):
-        a = plan.line_offset(loop)
-        b = a + plan.return_gap_m
-        nxt = plan.line_offset(loop + 1)
+        a, hand = plan.circuit(loop)
+        b = a + hand * plan.return_gap_m
         straight(np.array([0.0, a]), np.array([plan.leg_m, a]), LEG, loop)
-        p, d = quarter(np.array([plan.leg_m, a]), along, EAST_TURN, loop)
-        straight(p, np.array([plan.leg_m + r, b - r]), EAST_TURN, loop)
-        quarter(np.array([plan.leg_m + r, b - r]), d, EAST_TURN, loop)
+        p, d = quarter(np.array([plan.leg_m, a]), along, hand, EAST_TURN, loop)
+        straight(p, np.array([plan.leg_m + r, b - hand * r]), EAST_TURN, loop)
+        quarter(np.array([plan.leg_m + r, b - hand * r]), d, hand, EAST_TURN, loop)
         straight(np.array([plan.leg_m, b]), np.array([0.0, b]), RETURN, loop)
-        p, d = quarter(np.array([0.0, b]), -along, WEST_TURN, loop)
-        # the crossing runs left to the next line: one spacing within a pass (the gap leaves room
-        # for both arcs), back across the field when a pass starts again
-        straight(p, np.array([-r, nxt + r]), WEST_TURN, loop)
-        quarter(np.array([-r, nxt + r]), d, WEST_TURN, loop)
+        nxt, next_hand = plan.circuit(loop + 1)
+        if next_hand != hand or (b - nxt) * hand < 2 * r:
+            # a new pass: the autopilot loiters round to the next line with the camera paused
+            straight(np.array([0.0, b]), np.array([0.0, nxt]), TRANSIT, loop)
+            continue
+        # the crossing to the next line, one spacing on: the gap leaves room for both arcs
+        p, d = quarter(np.array([0.0, b]), -along, hand, WEST_TURN, loop)
+        straight(p, np.array([-r, nxt + hand * r]), WEST_TURN, loop)
+        quarter(np.array([-r, nxt + hand * r]), d, hand, WEST_TURN, loop)
     return (
         np.concatenate(pts),
         np.concatenate(dirs),
@@ -226,12 +243,15 @@ def shots(plan: FixedWingPlan, seed: int) -> list[Shot]:
         xy = basis.T @ p
         east_north = basis.T @ air
         track_w = basis.T @ track[i]
+        k += 1
+        if parts[i] == TRANSIT:
+            continue
         ok = rng.random() >= plan.missing
         name = f"IMG_{written + 1:04d}.JPG" if ok else None
         written += ok
         out.append(
             Shot(
-                k,
+                len(out),
                 name,
                 parts[i],
                 int(loop_of[i]),
@@ -245,7 +265,6 @@ def shots(plan: FixedWingPlan, seed: int) -> list[Shot]:
                 float(speed[i]),
             )
         )
-        k += 1
     return out
 
 
