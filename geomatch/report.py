@@ -208,6 +208,8 @@ def _gcp_markdown(g: Mapping[str, Any]) -> list[str]:
     acc = g.get("accuracy_m")
     if acc:
         how = "as given" if acc["source"] == "given" else "estimated from their residuals"
+        if acc.get("note"):
+            how += f"; {acc['note']}"
         lines.append(
             f"- control points held to {acc['horizontal']} m horizontal, {acc['vertical']} m vertical ({how})"
         )

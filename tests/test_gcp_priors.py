@@ -189,6 +189,7 @@ def test_metre_level_control_with_heights_of_zero_leaves_the_photos_geometry_alo
     # the estimate finds metres, not the floor: 1.5 m per axis, and the dunes' relief in the heights
     acc = g["accuracy_m"]
     assert acc["source"] == "estimated" and 0.5 < acc["horizontal"] < 4.0 and 0.5 < acc["vertical"] < 6.0, acc
+    assert acc["note"] == "every control point's height is 0: not surveyed"
 
 
 @pytest.mark.parametrize("seed", [0, 2])
@@ -230,7 +231,22 @@ def test_the_survey_report_shows_the_accuracy_used_and_the_check_rmse_before_and
     acc = g["accuracy_m"]
     assert (
         f"- control points held to {acc['horizontal']} m horizontal, {acc['vertical']} m vertical "
-        "(estimated from their residuals)" in page
+        "(estimated from their residuals; every control point's height is 0: not surveyed)" in page
     )
     sim = g["check_rmse_similarity_only_m"]
     assert f"- check-point RMSE before the adjustment: {sim['horizontal']} m horizontal" in page
+
+
+def test_one_height_for_every_point_is_weighed_as_no_height_at_all() -> None:
+    """Heights of 0.0 for every point: on a site whose control happens to lie near a plane the
+    similarity tilts the model onto it and leaves little vertical residual to estimate from, so the
+    vertical is held no tighter than a GNSS fix's (1.5 times the horizontal) whatever the residuals
+    say, and the report says why."""
+    rec, text = _model_and_gcps(0, 0.5, zero_heights=True)
+    gcps = read_gcp_file(text, {im.name: (WIDTH, HEIGHT) for im in rec.images.values()})
+    acc = estimate_accuracy(georeference(rec, gcps, 3), gcps)
+    assert acc.note == "every control point's height is 0: not surveyed"
+    assert acc.vertical == pytest.approx(max(acc.estimated_vertical or 0.0, 1.5 * acc.horizontal))
+    rec, text = _model_and_gcps(0, 0.5, zero_heights=False)
+    gcps = read_gcp_file(text, {im.name: (WIDTH, HEIGHT) for im in rec.images.values()})
+    assert estimate_accuracy(georeference(rec, gcps, 3), gcps).note is None

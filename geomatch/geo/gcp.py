@@ -20,6 +20,7 @@ import numpy as np
 import pycolmap
 
 from .gcpfile import MIN_POINTS, ControlPoint, GcpError, GcpFile
+from .georef import GNSS_VERTICAL_FACTOR
 from .similarity import Similarity, umeyama
 
 # observations of one point whose rays miss their intersection by more than this many photo pixels
@@ -30,6 +31,8 @@ MIN_RAY_ANGLE_DEG = 1.0
 # no survey places a target better than this (RTK on a painted target, and the click on it): however
 # well a handful of points happen to fit, the adjustment never holds them tighter
 MIN_ACCURACY_M = 0.02
+# control heights closer together than this are one height written for all of them
+SAME_HEIGHT_M = 0.001
 # a control point's prior enters the bundle adjustment through two constant virtual cameras this many
 # sigmas away from it (east and north of it, looking at it): 1 px in them is 1 sigma, and the
 # perspective's bend over a few sigmas of offset is a few parts in a thousand of the prior's weight
@@ -81,6 +84,7 @@ class Accuracy:
     source: str  # "given" | "estimated"
     estimated_horizontal: float | None = None
     estimated_vertical: float | None = None
+    note: str | None = None  # why the estimate was overruled
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -94,6 +98,8 @@ class Accuracy:
         ):
             if v is not None:
                 out[key] = round(v, 4)
+        if self.note is not None:
+            out["note"] = self.note
         return out
 
 
@@ -271,13 +277,17 @@ def estimate_accuracy(report: GcpReport, gcps: GcpFile) -> Accuracy:
     est_v = float(np.sqrt((v[:, 2] ** 2).sum() / r_v)) if r_v >= 0.5 else None
     h = est_h if est_h is not None else est_v
     vert = est_v if est_v is not None else h
-    return Accuracy(
-        max(h if h is not None else MIN_ACCURACY_M, MIN_ACCURACY_M),
-        max(vert if vert is not None else MIN_ACCURACY_M, MIN_ACCURACY_M),
-        "estimated",
-        est_h,
-        est_v,
-    )
+    horizontal = max(h if h is not None else MIN_ACCURACY_M, MIN_ACCURACY_M)
+    vertical = max(vert if vert is not None else MIN_ACCURACY_M, MIN_ACCURACY_M)
+    heights = [float(gcps.points[n].xyz[2]) for n in names]
+    note = None
+    if max(heights) - min(heights) < SAME_HEIGHT_M:
+        # one height for every point (0.0 in files whose heights nobody surveyed): the similarity
+        # lays the model's plane through them and the residuals say nothing of the vertical, which
+        # is then no better than the horizontal of a GNSS fix
+        vertical = max(vertical, GNSS_VERTICAL_FACTOR * horizontal)
+        note = f"every control point's height is {heights[0]:g}: not surveyed"
+    return Accuracy(horizontal, vertical, "estimated", est_h, est_v, note)
 
 
 def given_accuracy(metres: float | tuple[float, float]) -> Accuracy:
