@@ -385,6 +385,8 @@ def adjust_to_control(
         work.add_point3D(surveyed if placed is None else placed, track)
     config = pycolmap.BundleAdjustmentConfig()
     for im in work.images.values():
+        if not im.has_pose:
+            continue
         config.add_image(im.image_id)
         if im.image_id >= first_virtual:
             config.set_constant_rig_from_world_pose(im.frame_id)
