@@ -35,12 +35,35 @@ def unmatched(db: ColmapDatabase, ids: Mapping[str, int], planned: Sequence[Pair
 TILED_MIN_INLIERS = 60
 
 
+# COLMAP verifies with a 4 photo-pixel RANSAC threshold, made for SIFT found at the photo's own size.
+# Our matches are found at the network's input size and are as precise as its pixel: every set this
+# project was tuned on (photos up to 2000 px at the default 640) met that threshold at up to 3.1 photo
+# pixels per network pixel, i.e. at 1.28 network pixels. On larger photos (a drone's 4000 px
+# originals: 6.25 photo px per network px) 4 photo pixels are 0.64 network pixels and reject right
+# matches wholesale (brighton_beach's originals lost a quarter of their points to it), so from there
+# the threshold follows the network's pixel.
+VERIFY_NETWORK_PX = 1.28
+
+
+def verification_error(resize: int | None, long0: int, long1: int, photo_px: float = 4.0) -> float:
+    """The verification's RANSAC threshold in photo pixels for a pair found at ``resize`` (None:
+    full size) on photos whose longer sides are ``long0`` and ``long1``."""
+    if not resize:
+        return photo_px
+    return max(photo_px, VERIFY_NETWORK_PX * max(long0, long1) / resize)
+
+
 def prepare(
     db: ColmapDatabase, id0: int, id1: int, m: PairMatches, radius: float, resize: int | None
 ) -> PreparedPair:
     """The pair snapped and verified against the database as it is now (no writer lock needed):
     what :func:`commit` writes."""
     options = seeded_verification()
+    # a tiled pair's aerial side was matched by crops of half its size, each at ``resize``
+    found_at = resize * 2 if resize and m.tiled else resize
+    options.ransac.max_error = verification_error(
+        found_at, max(m.sizes[0]), max(m.sizes[1]), options.ransac.max_error
+    )
     if m.tiled:
         options.min_num_inliers = TILED_MIN_INLIERS
     return db.prepare_pair(

@@ -3,16 +3,21 @@ photos keeps COLMAP's own schedule: the ground scenes' table was measured with i
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pycolmap
 import pytest
 
+from geomatch.metadata import ImageMeta
 from geomatch.options import DEFAULTS, GLOBAL_MAPPER_IMAGES, MAPPERS
+from geomatch.sfm.colmapdb import ColmapDatabase
 from geomatch.sfm.mapping import (
     LARGE_BA_GROWTH,
     LARGE_BA_REFINEMENTS,
     LARGE_PROJECT_IMAGES,
     incremental_options,
     pick_mapper,
+    pixel_scale,
 )
 
 pytestmark = pytest.mark.unit
@@ -61,3 +66,20 @@ def test_a_project_with_tiled_pairs_triangulates_what_only_two_images_share() ->
     assert incremental_options(10, 3, 20, 0, tiled=True).triangulation.ignore_two_view_tracks is False
     colmap = pycolmap.IncrementalPipelineOptions().triangulation.ignore_two_view_tracks
     assert incremental_options(10, 3, 30, 0).triangulation.ignore_two_view_tracks == colmap
+
+
+def test_reprojection_thresholds_of_large_photos_are_held_at_the_working_size(tmp_path: Path) -> None:
+    """A drone's 4000 px originals are mapped with the thresholds their 2048 px working copies
+    would get; photos up to that size keep COLMAP's own."""
+    colmap = pycolmap.IncrementalPipelineOptions()
+    for name, (w, h), scale in (("small", (1536, 1024), 1.0), ("original", (4096, 2304), 2.0)):
+        with ColmapDatabase(tmp_path / f"{name}.db") as db:
+            db.add_image("a.jpg", ImageMeta(w, h, "DJI", "FC300S", 0.8 * w))
+        assert pixel_scale(tmp_path / f"{name}.db") == pytest.approx(scale)
+        opts = incremental_options(10, 3, 30, 0, px_scale=scale)
+        assert opts.mapper.filter_max_reproj_error == pytest.approx(
+            scale * colmap.mapper.filter_max_reproj_error
+        )
+        assert opts.triangulation.complete_max_reproj_error == pytest.approx(
+            scale * colmap.triangulation.complete_max_reproj_error
+        )

@@ -47,7 +47,7 @@ from .modeljoin import Join, join_models
 from .pairpose import Placement
 from .sqlitecopy import snapshot_sqlite
 from .thinmatches import per_image_budget, thin_matches
-from .trackrefine import SURVEY, refine_tracks
+from .trackrefine import SURVEY, WORKING_SIDE, refine_tracks
 from .viewgraph import filter_database
 
 # from this many images on, the incremental mapper's global bundle adjustments are lighter: they
@@ -133,8 +133,29 @@ def pick_mapper(mapper: str, n_images: int) -> str:
     return "global" if n_images >= GLOBAL_MAPPER_IMAGES else "incremental"
 
 
+def pixel_scale(database: Path) -> float:
+    """Photo pixels per working pixel of the project's largest photo (1 up to WORKING_SIDE).
+
+    Why: COLMAP's reprojection thresholds are in photo pixels, made for SIFT found at the photo's
+    size. Our points are placed at the network's size and then aligned on the photos at most
+    WORKING_SIDE px wide (trackrefine.py): on larger photos (a drone's 4000 px originals) the
+    thresholds are held at what they are at that size, where every set was tuned, instead of
+    rejecting points for errors below the precision they were found with."""
+    db = pycolmap.Database.open(str(database))
+    try:
+        side = max((max(c.width, c.height) for c in db.read_all_cameras()), default=0)
+    finally:
+        db.close()
+    return max(1.0, side / WORKING_SIDE)
+
+
 def incremental_options(
-    n_images: int, min_model_size: int, min_pose_inliers: int, seed: int, tiled: bool = False
+    n_images: int,
+    min_model_size: int,
+    min_pose_inliers: int,
+    seed: int,
+    tiled: bool = False,
+    px_scale: float = 1.0,
 ) -> pycolmap.IncrementalPipelineOptions:
     """COLMAP's incremental mapper as a project of ``n_images`` gets it (LARGE_PROJECT_IMAGES).
     With ``tiled`` aerial x ground pairs it also triangulates the matches that only two images
@@ -146,6 +167,12 @@ def incremental_options(
     opts.random_seed = seed
     opts.mapper.abs_pose_min_num_inliers = min_pose_inliers
     opts.triangulation.ignore_two_view_tracks = not tiled
+    # photo pixels: held at the working size's (pixel_scale)
+    opts.mapper.init_max_error *= px_scale
+    opts.mapper.abs_pose_max_error *= px_scale
+    opts.mapper.filter_max_reproj_error *= px_scale
+    opts.triangulation.merge_max_reproj_error *= px_scale
+    opts.triangulation.complete_max_reproj_error *= px_scale
     if n_images >= LARGE_PROJECT_IMAGES:
         opts.mapper.ba_global_ignore_redundant_points3D = True
         opts.ba_global_frames_ratio = LARGE_BA_GROWTH
@@ -223,6 +250,7 @@ def reconstruct(
     finally:
         db.close()
     n_images = len(all_names)
+    px_scale = pixel_scale(mapped)
     requested, mapper = mapper, pick_mapper(mapper, n_images)
     # thinned before the refinement, which then aligns only the observations the mapper will see
     thinned = thin_matches(mapped, per_image_budget(n_images)) if mapper == "global" else None
@@ -245,6 +273,7 @@ def reconstruct(
                     min_pose_inliers or (TILED_MIN_POSE_INLIERS if tiled else MIN_POSE_INLIERS),
                     seed + k,
                     tiled,
+                    px_scale,
                 )
                 into = work if k == 0 else work / f"attempt_{k}"
                 into.mkdir(parents=True, exist_ok=True)
@@ -325,7 +354,10 @@ def reconstruct(
         if fixed_check is not None and (fixed_check.offenders or ranked[0].num_reg_images() < n_images):
             floor = min_pose_inliers or (TILED_MIN_POSE_INLIERS if tiled else MIN_POSE_INLIERS)
             more = Continuation(
-                mapped, image_dir, incremental_options(n_images, min_model_size, floor, seed, tiled), n_images
+                mapped,
+                image_dir,
+                incremental_options(n_images, min_model_size, floor, seed, tiled, px_scale),
+                n_images,
             )
             before = _size(ranked[0])
             with colmap_log(verbose):

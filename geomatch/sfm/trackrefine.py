@@ -45,6 +45,11 @@ from .colmapdb import COLMAP_OFFSET
 UNUSABLE = (pycolmap.TwoViewGeometryConfiguration.UNDEFINED, pycolmap.TwoViewGeometryConfiguration.DEGENERATE)
 
 
+# the longer side photos are aligned at, at most (TrackRefineOptions.max_side; mapping.py holds the
+# mapper's reprojection thresholds at this size too)
+WORKING_SIDE = 2048
+
+
 @dataclass(frozen=True)
 class TrackRefineOptions:
     radius: int = 12  # patch half-size in photo pixels
@@ -67,7 +72,7 @@ class TrackRefineOptions:
     # times the decoding, smoothing and memory of its half-size copy for no gain in the cameras
     # (brighton_beach: the originals and their 2000 px copies give the same GPS residuals;
     # docs/benchmarks.md, "Drone surveys beside COLMAP SIFT")
-    max_side: int | None = 2048
+    max_side: int | None = WORKING_SIDE
     workers: int = 0  # pairs aligned at once; 0: sfm.pair_threads()
 
 
