@@ -8,7 +8,7 @@ the answers.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -104,6 +104,7 @@ def judge(
     opts: LocalizeOptions,
     chosen: Sequence[str],
     support: dict[str, int] | None = None,
+    unvouched: Collection[str] = (),
 ) -> Localization:
     """Localized or not, and how confident, from the pose's evidence (thresholds: LocalizeOptions).
 
@@ -112,7 +113,13 @@ def judge(
     (one image's matches, or few inliers): usable, but a user should check it. ``support``: each
     model image's own correspondences that agree with the pose (``Localizer.support_of``); without
     it the merged correspondences' images count, which credit a point seen by several model
-    images to the first only."""
+    images to the first only.
+
+    ``unvouched``: model images whose own pairs do not vouch for their place in the model
+    (modelagree.unvouched): a photo placed against them is placed where they are, right or
+    not, so their support does not count, and a photo that the other images do not place on
+    their own (``min_inliers``) is not localized. A model camera turned 31 deg off its true pose
+    with its neighbour placed two held-back photos 9-10 % of the scene off, confidently."""
     tried = len(corr)
     base: dict[str, Any] = dict(
         name=name,
@@ -149,14 +156,26 @@ def judge(
     support = {n: k for n, k in support.items() if k > 0}
     supporting = sorted(support, key=lambda n: -support[n])
     reason: str | None = None
+    other_scene = ": the photo does not seem to show this scene"
     if inliers < opts.min_inliers:
-        reason = f"only {inliers} of {tried} matches to the model agree on a pose (needs {opts.min_inliers})"
+        reason = (
+            f"only {inliers} of {tried} matches to the model agree on a pose (needs {opts.min_inliers})"
+            + other_scene
+        )
     elif ratio < opts.min_inlier_ratio:
         reason = (
             f"only {100 * ratio:.0f}% of its {tried} matches to the model agree on a pose "
-            f"(needs {100 * opts.min_inlier_ratio:.0f}%)"
+            f"(needs {100 * opts.min_inlier_ratio:.0f}%)" + other_scene
         )
-    strong = [n for n in supporting if support[n] >= opts.min_inliers // 4]
+    vouched = {n: k for n, k in support.items() if n not in unvouched}
+    if reason is None and sum(vouched.values()) < opts.min_inliers and len(vouched) < len(support):
+        doubtful = sorted(n for n in support if n in unvouched)
+        reason = (
+            f"its pose rests on model cameras whose own pairs do not vouch for their place in the "
+            f"model ({', '.join(doubtful)}); the others give it {sum(vouched.values())} inliers "
+            f"(needs {opts.min_inliers}): the model cannot say where this photo is"
+        )
+    strong = [n for n in supporting if vouched.get(n, 0) >= opts.min_inliers // 4]
     if reason is not None:
         confidence = "none"
     elif inliers >= opts.high_min_inliers and len(strong) >= opts.high_min_images:
@@ -165,7 +184,7 @@ def judge(
         confidence = "low"
     return Localization(
         localized=reason is None,
-        reason=None if reason is None else reason + ": the photo does not seem to show this scene",
+        reason=reason,
         inliers=inliers,
         reprojection_error_px=pose.reprojection_error_px,
         confidence=confidence,

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -80,6 +80,13 @@ class Localizer:
                 else [n for n in self.names if self.metas[n].aerial_hint]
             )
         self.aerial = set(aerial) & set(self.names)
+        from ..sfm.upright import image_up
+
+        self.unvouched = (
+            unvouched_cameras(project, self.rec, image_up(self.metas, survey=False))
+            if self.aerial and len(self.aerial) < len(self.names)
+            else frozenset()
+        )
         self.frame = project.frame()
         self._descriptors: list[np.ndarray] | None = None
         self._sparse: Any = None
@@ -211,7 +218,7 @@ class Localizer:
             matched += stage
             pose = self.pose(ev.correspondences, camera, threshold, focal_source == "estimated")
             support = self.support_of(ev, pose, camera, threshold) if pose is not None else None
-            out = judge(photo.name, pose, ev.correspondences, self.options, matched, support)
+            out = judge(photo.name, pose, ev.correspondences, self.options, matched, support, self.unvouched)
         if out is None:  # a model with no image to match
             out = judge(photo.name, None, Correspondences.empty(), self.options, [])
         out.focal_source = focal_source
@@ -248,3 +255,19 @@ class Localizer:
             return None
         xyz = np.array([self.rec.points3D[int(i)].xyz for i in corr.point3D_ids], np.float64)
         return estimate_pose(corr.points2D, xyz, camera, threshold, estimate_focal)
+
+
+def unvouched_cameras(
+    project: Project, rec: Any, up: Mapping[str, np.ndarray] | None = None
+) -> frozenset[str]:
+    """The model's cameras that their own pairs in the project's database do not vouch for
+    (modelagree.unvouched, over the pairs the view-graph checks keep): a photo placed against them
+    alone is not localized (:func:`.answer.judge`). Asked only of projects with aerial images,
+    whose mapping is held to its pairs: an air-to-ground model can hold a block of cameras turned
+    tens of degrees on right pairs, and a photo localized against that block is as far off.
+    ``up``: the photos' up where they know it, as the run's view graph had it (upright.py)."""
+    from ..sfm.modelagree import unvouched
+    from ..sfm.viewgraph import kept_pairs
+
+    report = kept_pairs(str(project.database), up)
+    return frozenset(unvouched(rec, report.kept_rotations, report.kept_inliers))

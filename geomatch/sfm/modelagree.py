@@ -94,31 +94,53 @@ def misplaced_blocks(
     passes it). The rest is the group holding the most inliers; the blocks are the others, largest
     first. Empty when the model's held pairs tie all its images together."""
     errors = _pair_errors(rec, rotations)
+    groups = _held_groups(errors, inliers)
+    if len(groups) < 2:
+        return []
+    against: dict[int, int] = {}
+    where = {n: g for g, group in enumerate(groups) for n in group}
+    for a, b, err in errors:
+        ga, gb = where[a], where[b]
+        if err > AGREE_DEG and 0 in (ga, gb) and ga != gb:
+            other = gb if ga == 0 else ga
+            against[other] = against.get(other, 0) + inliers[(a, b)]
+    blocks = [groups[g] for g in range(1, len(groups)) if against.get(g, 0) >= MISPLACED_MIN_INLIERS]
+    return sorted(blocks, key=lambda b: (-len(b), min(b)))
+
+
+def unvouched(
+    rec: pycolmap.Reconstruction,
+    rotations: Mapping[tuple[str, str], list[np.ndarray]],
+    inliers: Mapping[tuple[str, str], int],
+) -> list[str]:
+    """The registered images whose place the model's own pairs do not vouch for, by name: those
+    :func:`misplaced` finds, and every image outside the group that the held pairs tie to the most
+    inliers (a block held only within itself, however few inliers it contradicts: whether the
+    mapper placed it right no pair says). A user's model should rather lack such a camera than
+    hold it wrong, and a photo localized against it alone is placed wherever it is."""
+    groups = _held_groups(_pair_errors(rec, rotations), inliers)
+    apart = {n for group in groups[1:] for n in group}
+    return sorted(apart | set(misplaced(rec, rotations, inliers)))
+
+
+def _held_groups(
+    errors: list[tuple[str, str, float]], inliers: Mapping[tuple[str, str], int]
+) -> list[set[str]]:
+    """The images of ``errors`` grouped by the pairs the model holds (connected components), the
+    group holding the most inliers first (then the largest), the others in a fixed order."""
     names = sorted({n for a, b, _ in errors for n in (a, b)})
     index = {n: i for i, n in enumerate(names)}
     held_edges = [(index[a], index[b]) for a, b, err in errors if err <= AGREE_DEG]
     rows, cols = (list(x) for x in zip(*held_edges, strict=True)) if held_edges else ([], [])
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(names), len(names)))
     count, label = connected_components(graph, directed=False)
-    if count < 2:
-        return []
     held = np.zeros(count, np.int64)
     for a, b, err in errors:
         if err <= AGREE_DEG:
             held[label[index[a]]] += inliers[(a, b)]
     sizes = np.bincount(label, minlength=count)
-    main = max(range(count), key=lambda g: (held[g], sizes[g], -g))
-    against = np.zeros(count, np.int64)
-    for a, b, err in errors:
-        ga, gb = label[index[a]], label[index[b]]
-        if err > AGREE_DEG and main in (ga, gb) and ga != gb:
-            against[gb if ga == main else ga] += inliers[(a, b)]
-    blocks = [
-        {n for n in names if label[index[n]] == g}
-        for g in range(count)
-        if against[g] >= MISPLACED_MIN_INLIERS
-    ]
-    return sorted(blocks, key=lambda b: (-len(b), min(b)))
+    order = sorted(range(count), key=lambda g: (-held[g], -sizes[g], g))
+    return [{n for n in names if label[index[n]] == g} for g in order]
 
 
 def _pair_errors(

@@ -413,28 +413,54 @@ def filter_database(
     that carry one's up onto the other's (upright.py)."""
     db = pycolmap.Database.open(database)
     try:
-        rotations, inliers = verified_rotations(db, min_inliers)
-        names = {im.image_id: im.name for im in db.read_all_images()}
-        if up:
-            rotations = upright_candidates(rotations, names, up)
-        tree_drop, loop_drop, seen = judge(
-            rotations, inliers, loop_deg, loops, tree, uncalibrated=_uncalibrated_pairs(db)
-        )
-        report = ViewGraphReport(pairs=len(rotations), loops=seen)
-        for (a, b), deg, hops in tree_drop:
+        report, gone = _judged(db, min_inliers, loop_deg, loops, tree, up)
+        for a, b in gone:
             _degenerate(db, a, b)
-            report.tree_dropped.append((names[a], names[b], deg, hops))
-        for (a, b), bad, n in loop_drop:
-            _degenerate(db, a, b)
-            report.dropped.append((names[a], names[b], bad, n))
-        gone = {pair for pair, _, _ in tree_drop} | {pair for pair, _, _ in loop_drop}
-        for (a, b), cands in rotations.items():
-            if (a, b) not in gone:
-                report.kept_rotations[(names[a], names[b])] = cands
-                report.kept_inliers[(names[a], names[b])] = inliers[(a, b)]
     finally:
         db.close()
     return report
+
+
+def kept_pairs(database: str, up: Mapping[str, np.ndarray] | None = None) -> ViewGraphReport:
+    """What :func:`filter_database` would report for ``database``, which is left as it is: the
+    pairs a finished model was held to (modelagree.py), for a reader of a project's database that
+    must not change it (localization)."""
+    db = pycolmap.Database.open(database)
+    try:
+        report, _ = _judged(db, MIN_INLIERS, LOOP_DEG, True, True, up)
+    finally:
+        db.close()
+    return report
+
+
+def _judged(
+    db: pycolmap.Database,
+    min_inliers: int,
+    loop_deg: float,
+    loops: bool,
+    tree: bool,
+    up: Mapping[str, np.ndarray] | None,
+) -> tuple[ViewGraphReport, list[tuple[int, int]]]:
+    """The report of :func:`filter_database` and the image id pairs it drops."""
+    rotations, inliers = verified_rotations(db, min_inliers)
+    names = {im.image_id: im.name for im in db.read_all_images()}
+    if up:
+        rotations = upright_candidates(rotations, names, up)
+    tree_drop, loop_drop, seen = judge(
+        rotations, inliers, loop_deg, loops, tree, uncalibrated=_uncalibrated_pairs(db)
+    )
+    report = ViewGraphReport(pairs=len(rotations), loops=seen)
+    for (a, b), deg, hops in tree_drop:
+        report.tree_dropped.append((names[a], names[b], deg, hops))
+    for (a, b), bad, n in loop_drop:
+        report.dropped.append((names[a], names[b], bad, n))
+    gone = [pair for pair, _, _ in tree_drop] + [pair for pair, _, _ in loop_drop]
+    dropped = set(gone)
+    for (a, b), cands in rotations.items():
+        if (a, b) not in dropped:
+            report.kept_rotations[(names[a], names[b])] = cands
+            report.kept_inliers[(names[a], names[b])] = inliers[(a, b)]
+    return report, gone
 
 
 def _uncalibrated_pairs(db: pycolmap.Database) -> set[tuple[int, int]]:
