@@ -6,8 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
-from .imageio import read_image
+from .imageio import read_image, working_size
 from .lru import ByteLRU
 from .options import IMAGE_SUFFIXES
 
@@ -33,16 +34,34 @@ class Images:
     """Decoded images of a folder, as many as ``budget_mb`` holds (least recently used go first):
     a 12 MP photo decodes to 36 MB, so a count bound would be a gigabyte on real projects."""
 
-    def __init__(self, folder: Path, budget_mb: float = 256.0) -> None:
+    def __init__(self, folder: Path, budget_mb: float = 256.0, max_side: int | None = None) -> None:
+        """``max_side``: photos with a longer side beyond it are kept at it (imageio.WORKING_SIDE):
+        what is matched of them is in working pixels then, which :meth:`to_photo` maps back."""
         self.folder = Path(folder)
+        self.max_side = max_side
         self._cache: ByteLRU[str, np.ndarray] = ByteLRU(budget_mb)
+        self._sizes: dict[str, tuple[int, int]] = {}  # (width, height) as stored, once read
 
     def __getitem__(self, name: str) -> np.ndarray:
         img = self._cache.get(name)
         if img is None:
-            img = read_image(self.folder / name)
+            img = read_image(self.folder / name, self.max_side)
+            if self.max_side and name not in self._sizes:
+                with Image.open(self.folder / name) as im:  # decoded above: a readable image
+                    self._sizes[name] = im.size
             self._cache.put(name, img)
         return img
+
+    def to_photo(self, name: str) -> tuple[float, float, tuple[int, int]] | None:
+        """(x, y scale from working to photo pixels, the photo's (width, height)) of an image read
+        below its stored size; None when it is read as stored."""
+        size = self._sizes.get(name)
+        if size is None:
+            return None
+        w, h = working_size(*size, self.max_side)
+        if (w, h) == size:
+            return None
+        return size[0] / w, size[1] / h, size
 
     def nbytes(self) -> int:
         return self._cache.nbytes()

@@ -64,6 +64,24 @@ class PairMatches:
     def __len__(self) -> int:
         return int(self.keypoints0.shape[0])
 
+    def in_photo_pixels(
+        self,
+        photo0: tuple[float, float, tuple[int, int]] | None,
+        photo1: tuple[float, float, tuple[int, int]] | None,
+    ) -> PairMatches:
+        """The matches of images read at a working size (imagefolder.Images.to_photo: x and y
+        scale to the photo, its size; None: read as stored) in the photos' own pixels, which
+        the database and the mapper speak. The source goes: its F is in working pixels."""
+        if photo0 is None and photo1 is None:
+            return self
+        k0, k1 = self.keypoints0, self.keypoints1
+        sizes = list(self.sizes)
+        if photo0 is not None:
+            k0, sizes[0] = _to_photo(k0, photo0[:2]), photo0[2]
+        if photo1 is not None:
+            k1, sizes[1] = _to_photo(k1, photo1[:2]), photo1[2]
+        return PairMatches(k0, k1, self.scores, (sizes[0], sizes[1]), self.tiled, None, self.crops)
+
     @property
     def F(self) -> np.ndarray:
         """x1^T F x0 = 0 in original pixels: the matcher's (a tiled pair's is fitted over its
@@ -71,6 +89,12 @@ class PairMatches:
         if self.source is None:
             return fundamental_from_matches(self.keypoints0, self.keypoints1)
         return self.source.F
+
+
+def _to_photo(points: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
+    """Working pixels to photo pixels, pixel centres at integers on both."""
+    s = np.asarray(scale, np.float64)
+    return ((np.asarray(points, np.float64) + 0.5) * s - 0.5).astype(points.dtype, copy=False)
 
 
 # how ``geomatch run`` matches a pair (:func:`match`'s signature): matcher, pair, image0, image1,

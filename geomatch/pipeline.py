@@ -29,6 +29,7 @@ from .geo.gcpfile import GcpError, GcpFile, read_gcp_file
 from .imagefolder import Images
 from .imagefolder import PipelineError as PipelineError  # a run's bad input
 from .imagefolder import list_images as list_images
+from .imageio import WORKING_SIDE
 from .matching.matcher import config_from_options
 from .matching.stored import stored
 from .memory import return_freed_memory
@@ -178,7 +179,9 @@ def run(
         **{"cache_features_mb": budget.features_mb, "cache_anchors_mb": budget.anchors_mb, **opts.matcher},
     )
     matcher = stored(config, run_feature_store(out / "features"))
-    images = Images(image_dir, budget.images_mb)
+    # photos beyond the working size are matched at it (imageio.WORKING_SIDE), their matches
+    # written in the photos' own pixels
+    images = Images(image_dir, budget.images_mb, WORKING_SIDE)
     t_plan = time.perf_counter()
     planned = planning.plan(
         image_dir,
@@ -207,6 +210,7 @@ def run(
         for p in bar:
             t0 = time.perf_counter()
             m = match(matcher, p, images[p.name0], images[p.name1], bool(aerial), survey)
+            m = m.in_photo_pixels(images.to_photo(p.name0), images.to_photo(p.name1))
             match_s = time.perf_counter() - t0
             timings["matching"] += match_s
             pair_seconds["tiled" if p.tiled else "plain"].append(match_s)

@@ -69,10 +69,10 @@ def test_a_project_with_tiled_pairs_triangulates_what_only_two_images_share() ->
 
 
 def test_reprojection_thresholds_of_large_photos_are_held_at_the_working_size(tmp_path: Path) -> None:
-    """A drone's 4000 px originals are mapped with the thresholds their 2048 px working copies
+    """A drone's 4000 px originals are mapped with the thresholds their 2000 px working copies
     would get; photos up to that size keep COLMAP's own."""
     colmap = pycolmap.IncrementalPipelineOptions()
-    for name, (w, h), scale in (("small", (1536, 1024), 1.0), ("original", (4096, 2304), 2.0)):
+    for name, (w, h), scale in (("small", (1536, 1024), 1.0), ("original", (4000, 2250), 2.0)):
         with ColmapDatabase(tmp_path / f"{name}.db") as db:
             db.add_image("a.jpg", ImageMeta(w, h, "DJI", "FC300S", 0.8 * w))
         assert pixel_scale(tmp_path / f"{name}.db") == pytest.approx(scale)

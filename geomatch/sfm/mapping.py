@@ -26,6 +26,7 @@ from tqdm import tqdm
 from ..geo import georef, gpscheck
 from ..geo.gps import GpsFixes
 from ..geo.priorba import adjust_to_fixes, with_residuals
+from ..imageio import WORKING_SIDE
 from ..memory import return_freed_memory
 from ..options import (
     GLOBAL_MAPPER_IMAGES,
@@ -47,7 +48,7 @@ from .modeljoin import Join, join_models
 from .pairpose import Placement
 from .sqlitecopy import snapshot_sqlite
 from .thinmatches import per_image_budget, thin_matches
-from .trackrefine import SURVEY, WORKING_SIDE, refine_tracks
+from .trackrefine import SURVEY, refine_tracks
 from .viewgraph import filter_database
 
 # from this many images on, the incremental mapper's global bundle adjustments are lighter: they

@@ -37,17 +37,12 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..features.subpixel import SubpixelOptions, gradient_maps, refine_on_maps
-from ..imageio import read_gray
+from ..imageio import WORKING_SIDE, read_gray
 from ..lru import ByteLRU
 from . import pair_threads
 from .colmapdb import COLMAP_OFFSET
 
 UNUSABLE = (pycolmap.TwoViewGeometryConfiguration.UNDEFINED, pycolmap.TwoViewGeometryConfiguration.DEGENERATE)
-
-
-# the longer side photos are aligned at, at most (TrackRefineOptions.max_side; mapping.py holds the
-# mapper's reprojection thresholds at this size too)
-WORKING_SIDE = 2048
 
 
 @dataclass(frozen=True)
@@ -67,8 +62,8 @@ class TrackRefineOptions:
     max_track: int = 64  # observations; a larger component is several scene points chained together
     images_mb: float = 512.0  # decoded photos held at once
     # photos with a longer side beyond this are aligned at this size (photo pixels above are
-    # working pixels then): the matcher finds its points at the network's 640-1024 px, so at 2048
-    # a point is already placed to a fraction of a network pixel, and a 12 MP original costs four
+    # working pixels then): the matcher finds its points at the network's 640 px, so at 2000 a
+    # point is already placed to a fraction of a network pixel, and a 12 MP original costs four
     # times the decoding, smoothing and memory of its half-size copy for no gain in the cameras
     # (brighton_beach: the originals and their 2000 px copies give the same GPS residuals;
     # docs/benchmarks.md, "Drone surveys beside COLMAP SIFT")
