@@ -182,11 +182,16 @@ def _gps_check_markdown(g: Mapping[str, Any]) -> list[str]:
     """The cameras the mapping found beyond the fixes' fitted noise, and what it did with them."""
     lines = [
         f"- cameras held to their GPS fixes: fitted noise {g['sigma_m']} m (horizontal), limit "
-        f"{g['limit_m']} m; {len(g['found'])} camera(s) beyond it"
+        f"{g['limit_m']} m; {len(g['found']) + len(g.get('kept_fix_off_track', []))} camera(s) beyond it"
     ]
     lines += [f"  - {o['name']}: placed again, {o['residual_m']} m from its fix" for o in g["placed_again"]]
     lines += [
         f"  - {o['name']}: taken out of the model, {o['residual_m']} m from its fix" for o in g["taken_out"]
+    ]
+    lines += [
+        f"  - {o['name']}: kept, {o['residual_m']} m from its fix, which lies off the flight track of the "
+        "photos before and after it while the camera lies on it (a stale or wild fix)"
+        for o in g.get("kept_fix_off_track", [])
     ]
     return lines
 

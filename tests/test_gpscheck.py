@@ -12,7 +12,7 @@ import pycolmap
 import pytest
 
 from geomatch.geo.georef import camera_centres
-from geomatch.geo.gpscheck import check
+from geomatch.geo.gpscheck import check, off_track
 from geomatch.sfm.leftovers import Continuation, hold_to_fixes
 from geomatch.sfm.mapping import incremental_options
 
@@ -94,3 +94,31 @@ def test_a_camera_that_cannot_meet_its_fix_is_taken_out(tmp_path: Path) -> None:
     assert [o.name for o in result.taken_out] == [name] and result.replaced == ()
     assert held.num_reg_images() == FRAMES - 1
     assert name not in {im.name for im in held.images.values() if im.has_pose}
+
+
+def _track(n: int = 9, spacing: float = 30.0) -> dict[str, np.ndarray]:
+    """Fixes along a straight line flown east, one photo every ``spacing`` metres."""
+    return {f"IMG_{i:04d}.JPG": np.array([i * spacing, 0.0, 100.0]) for i in range(n)}
+
+
+def test_a_stale_fix_off_the_flight_track_is_told_from_a_wrong_camera() -> None:
+    fixes = _track()
+    true_centre = fixes["IMG_0004.JPG"].copy()
+    # the fix jumped 120 m north (a stale fix); the camera stays on the track: the fix is wrong
+    fixes["IMG_0004.JPG"] = true_centre + np.array([0.0, 120.0, 0.0])
+    assert off_track("IMG_0004.JPG", true_centre, fixes, 5.0)
+    # an honest fix and a camera the model put 120 m away: the camera is wrong
+    honest = _track()
+    assert not off_track("IMG_0004.JPG", true_centre + np.array([0.0, 120.0, 0.0]), honest, 5.0)
+    # the first and last photos have no track on both sides to be judged by
+    fixes["IMG_0000.JPG"] = fixes["IMG_0000.JPG"] + np.array([0.0, 120.0, 0.0])
+    assert not off_track("IMG_0000.JPG", honest["IMG_0000.JPG"], fixes, 5.0)
+
+
+def test_a_photo_in_a_banked_turn_is_on_its_track() -> None:
+    # a 60 m turn photographed every 50 m: the midpoint of its neighbours is 20 m inside the arc
+    r, step = 60.0, 50.0 / 60.0
+    fixes = {
+        f"IMG_{i:04d}.JPG": np.array([r * np.cos(i * step), r * np.sin(i * step), 100.0]) for i in range(5)
+    }
+    assert not off_track("IMG_0002.JPG", fixes["IMG_0002.JPG"], fixes, 5.0)

@@ -53,6 +53,9 @@ class GpsCheck:
     # what the mapping did with them (sfm/leftovers.py): placed again within the limit, or taken out
     replaced: tuple[Offender, ...] = ()
     taken_out: tuple[Offender, ...] = ()
+    # cameras kept beyond the limit: their fix is off the photos' own flight track and the camera
+    # is on it (a stale or wild fix, not a wrong registration: off_track)
+    wild_fixes: tuple[Offender, ...] = ()
     residuals: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
@@ -63,6 +66,9 @@ class GpsCheck:
             "found": [{"name": o.name, "residual_m": round(o.residual_m, 2)} for o in self.offenders],
             "placed_again": [{"name": o.name, "residual_m": round(o.residual_m, 2)} for o in self.replaced],
             "taken_out": [{"name": o.name, "residual_m": round(o.residual_m, 2)} for o in self.taken_out],
+            "kept_fix_off_track": [
+                {"name": o.name, "residual_m": round(o.residual_m, 2)} for o in self.wild_fixes
+            ],
         }
 
 
@@ -93,14 +99,36 @@ def check(
     # the limit is in normalised metres; a camera's 3D residual is what a user reads
     limit = max(limit_sigmas * sigma, min_limit_m)
     dist = np.linalg.norm(diff, axis=1)
-    offenders = tuple(Offender(n, float(r)) for n, r, qi in zip(names, dist, q, strict=True) if qi > limit)
+    beyond_limit = [Offender(n, float(r)) for n, r, qi in zip(names, dist, q, strict=True) if qi > limit]
+    wild = [o for o in beyond_limit if off_track(o.name, centres[o.name], enu, limit)]
+    offenders = [o for o in beyond_limit if o not in wild]
     return GpsCheck(
         cameras=len(names),
         sigma_m=sigma,
         limit_m=limit,
         offenders=tuple(sorted(offenders, key=lambda o: -o.residual_m)),
         residuals={n: float(r) for n, r in zip(names, dist, strict=True)},
+        wild_fixes=tuple(sorted(wild, key=lambda o: -o.residual_m)),
     )
+
+
+def off_track(name: str, centre: np.ndarray, enu: Mapping[str, np.ndarray], limit_m: float) -> bool:
+    """Whether the photo's fix is what is wrong: it lies off the flight track its neighbours in
+    capture order draw (file names are a camera's counter) while the camera lies on it. Why: a
+    stale fix after take-off or a multipath jump breaks the track, a wrong registration does not
+    (its fix is as honest as its neighbours'); the images cannot tell the two apart, the track can.
+    The track between the photos before and after is taken as their midpoint, within the limit
+    plus half their distance (a turn bends it by less)."""
+    ordered = sorted(n for n, e in enu.items() if np.isfinite(e).all())
+    i = ordered.index(name) if name in ordered else -1
+    if i <= 0 or i >= len(ordered) - 1:
+        return False
+    before, after = (np.asarray(enu[ordered[j]], np.float64) for j in (i - 1, i + 1))
+    middle = (before + after) / 2
+    slack = limit_m + 0.5 * float(np.linalg.norm(after[:2] - before[:2]))
+    fix_off = normalised(np.asarray(enu[name], np.float64) - middle)[0] > slack
+    camera_on = normalised(np.asarray(centre, np.float64) - middle)[0] <= slack
+    return bool(fix_off and camera_on)
 
 
 def beyond(rec: pycolmap.Reconstruction, enu: Mapping[str, np.ndarray], limit_m: float) -> list[Offender]:

@@ -198,9 +198,10 @@ def hold_to_fixes(
     if off:
         trial = _posed_only(trial, work / "trimmed")
     grown = register_leftovers(trial, more, work)
+    wild = {o.name for o in found.wild_fixes}  # kept where they are: their fixes are off the track
     if grown is not trial:
-        _back_to_fixes(grown, enu, [n for n in found.residuals if n not in off])
-    still = beyond(grown, enu, found.limit_m)
+        _back_to_fixes(grown, enu, [n for n in found.residuals if n not in off and n not in wild])
+    still = [o for o in beyond(grown, enu, found.limit_m) if o.name not in wild]
     if still:
         out = {o.name for o in still}
         for im in list(grown.images.values()):
