@@ -216,9 +216,14 @@ def image_turns(
         if hint is not None:
             h = hint(known, images[known], n, images[n])
             log.debug("turn hint %s -> %s: %s", known, n, h)
-            if h.inliers < HINT_MIN_INLIERS:
+            if h.inliers >= HINT_MIN_INLIERS:
+                first = (turns[known] + h.turn) % 4
+            elif abs(rank[known] - rank[n]) != 1:
                 continue  # the two share nothing: four turned copies would score noise
-            first = (turns[known] + h.turn) % 4
+            # photos taken one after the other overlap on a survey whatever SIFT finds: over
+            # low-texture fields (a near-infrared camera over crops) its similarity fits a handful
+            # where the network's seed fits a thousand, and skipping them left a fixed-wing
+            # flight's turns undecided (each pair then probed its own, four turns each)
         probed[n] = probed.get(n, 0) + 1
         # scored in the frame: the partner as it will be matched (its features are reused), the
         # image first at the hinted turn or else the partner's, then the half turn of a line flown
