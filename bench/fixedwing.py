@@ -20,12 +20,13 @@ run's own georeferenced frame (what a user measures) and (b) after a robust simi
 truth (RANSAC at 3x the noise: the model's own shape). ``correct`` is geomatch eval's rule (3 deg,
 5 % of the flight's extent). Each wrong or left-out photo is listed with where in the flight it
 was taken (outbound, return, the turns; the loop), from the flight's ``gt/flight.json``, and
-drawn on a map of the flight (``geomatch.png``, ``colmap.png`` in the flight's folder).
+drawn on a map of the flight (``geomatch.png``, ``peer.png`` in the flight's folder).
 
     .venv/bin/python bench/fixedwing.py --seeds 1              # one tuning flight, both runs
     .venv/bin/python bench/fixedwing.py --split test
     .venv/bin/python bench/fixedwing.py --seeds 1 --runs peer  # one run only
     .venv/bin/python bench/fixedwing.py --seeds 1,2 --report   # the saved rows again
+    .venv/bin/python bench/fixedwing.py --seeds 1 --judge      # judge run folders as they are
 """
 
 from __future__ import annotations
@@ -156,7 +157,12 @@ def placement(out: Path, scene: Path, own_georef: bool) -> dict[str, Any]:
     }
 
 
-def run_one(seed: int, photos: int, which: str, rendered: dict[str, Any]) -> dict[str, Any]:
+def run_one(
+    seed: int, photos: int, which: str, rendered: dict[str, Any], judge_only: bool = False
+) -> dict[str, Any]:
+    """One run as a child process, judged; ``judge_only``: the run's folder as it is (a run
+    finished elsewhere, or one that outlived this script), judged without its wall time and
+    peak memory (the summary's own total stands for the time)."""
     scene = scene_dir(seed, photos)
     images = scene / "images"
     if which == "geomatch":
@@ -167,13 +173,17 @@ def run_one(seed: int, photos: int, which: str, rendered: dict[str, Any]) -> dic
         out = scene / "colmap"
         cmd = [sys.executable, "bench/peer_colmap.py", str(images), str(out), "--matcher", "spatial"]
         label = "COLMAP SIFT (spatial, incremental)"
-    if which == "geomatch":
-        import shutil
+    if judge_only:
+        total = json.loads((out / "summary.json").read_text())["timings"]["total"]
+        wall, rss = float(total), None
+    else:
+        if which == "geomatch":
+            import shutil
 
-        shutil.rmtree(out, ignore_errors=True)
-    wall, rss, rc = timed(cmd, scene / f"{which}.log")
-    if rc:
-        sys.exit(f"{label} failed on seed {seed} (log: {scene / f'{which}.log'})")
+            shutil.rmtree(out, ignore_errors=True)
+        wall, rss, rc = timed(cmd, scene / f"{which}.log")
+        if rc:
+            sys.exit(f"{label} failed on seed {seed} (log: {scene / f'{which}.log'})")
     row: dict[str, Any] = {
         "seed": seed,
         "split": split_of(seed),
@@ -260,6 +270,7 @@ def main() -> int:
     ap.add_argument("--runs", default="geomatch,peer", help="geomatch, peer: comma-separated")
     ap.add_argument("--report", action="store_true", help="print the saved rows (and redraw), run nothing")
     ap.add_argument("--render-only", action="store_true", help="render (and cache) the flights")
+    ap.add_argument("--judge", action="store_true", help="judge the runs' folders as they are, run nothing")
     args = ap.parse_args()
     seeds = [int(x) for x in args.seeds.split(",") if x] or list(SPLITS[args.split])
     runs = [r.strip() for r in args.runs.split(",") if r.strip()]
@@ -281,7 +292,7 @@ def main() -> int:
         if args.render_only:
             continue
         for which in runs:
-            rows.append(run_one(seed, args.photos, which, rendered))
+            rows.append(run_one(seed, args.photos, which, rendered, args.judge))
             print(
                 f"seed {seed} {which}: {rows[-1]['registered']} registered, "
                 f"{rows[-1]['wrong_georef_n']} misplaced",
