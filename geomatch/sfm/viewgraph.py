@@ -25,14 +25,17 @@ The relative rotations judged are each verified pair's candidates (pairrotations
 
 from __future__ import annotations
 
+import tempfile
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Set
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 from .pairrotations import rotation_angle, verified_rotations
+from .sqlitecopy import snapshot_sqlite
 from .upright import upright_candidates
 
 # a loop holds when the composed rotation is within this angle of the identity; three noisy
@@ -425,11 +428,16 @@ def kept_pairs(database: str, up: Mapping[str, np.ndarray] | None = None) -> Vie
     """What :func:`filter_database` would report for ``database``, which is left as it is: the
     pairs a finished model was held to (modelagree.py), for a reader of a project's database that
     must not change it (localization)."""
-    db = pycolmap.Database.open(database)
-    try:
-        report, _ = _judged(db, MIN_INLIERS, LOOP_DEG, True, True, up)
-    finally:
-        db.close()
+    # read from a snapshot: COLMAP opens a database read-write, and closing it checkpoints and
+    # removes the -wal and -shm files of a project the reader must leave as it found it
+    with tempfile.TemporaryDirectory() as tmp:
+        copy = Path(tmp) / "database.db"
+        snapshot_sqlite(database, copy)
+        db = pycolmap.Database.open(str(copy))
+        try:
+            report, _ = _judged(db, MIN_INLIERS, LOOP_DEG, True, True, up)
+        finally:
+            db.close()
     return report
 
 
