@@ -50,6 +50,8 @@ def test_every_image_is_registered(run_dir, scene) -> None:
     agree = s["pair_agreement"]
     assert agree["held"] > 0 and agree["contradicted"] <= 0.1 * (agree["held"] + agree["contradicted"]), agree
     assert 1 <= s["mapping_attempts"] <= 4 and isinstance(s["placed_from_pairs"], list)
+    # every camera of the right model is held by its pairs to the rest: none left out for that
+    assert s["unvouched_left_out"] == []
 
 
 @pytest.mark.pipeline

@@ -7,18 +7,76 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 import pytest
 
 from geomatch.localize import LocalizeOptions, Project, judge
 from geomatch.localize.localizer import unvouched_cameras
 from geomatch.sfm.absolute import Correspondences, estimate_pose
-from geomatch.sfm.modelagree import agreement, unvouched
+from geomatch.sfm.leftovers import leave_out_unvouched
+from geomatch.sfm.modelagree import agreement, misplaced, outvoted, unvouched
+from geomatch.sfm.viewgraph import ViewGraphReport
 
 from .colmap_synthetic import synthetic_database
-from .test_absolute import _scene
-from .test_modelagree import _block_turned, _model, _pairs
 
 pytestmark = pytest.mark.unit
+
+
+# the model and pairs of tests/test_modelagree.py, and the photo of tests/test_absolute.py
+def _model() -> pycolmap.Reconstruction:
+    opts = pycolmap.SyntheticDatasetOptions()
+    opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig, opts.num_points3D = 1, 1, 6, 60
+    return pycolmap.synthesize_dataset(opts)
+
+
+def _pairs(rec: pycolmap.Reconstruction) -> tuple[dict, dict]:
+    """Every pair's true rotation (x_b ~ R x_a) as its one candidate, 200 inliers each."""
+    ims = sorted(rec.images.values(), key=lambda im: im.name)
+    rots, inl = {}, {}
+    for i, a in enumerate(ims):
+        for b in ims[i + 1 :]:
+            ra, rb = a.cam_from_world().rotation.matrix(), b.cam_from_world().rotation.matrix()
+            rots[(a.name, b.name)] = [rb @ ra.T]
+            inl[(a.name, b.name)] = 200
+    return rots, inl
+
+
+def _turned(rec: pycolmap.Reconstruction, image_id: int, deg: float) -> pycolmap.Reconstruction:
+    out = pycolmap.Reconstruction(rec)
+    im = out.images[image_id]
+    pose = im.cam_from_world()
+    h = np.radians(deg) / 2
+    turn = pycolmap.Rotation3d(np.array([np.sin(h), 0.0, 0.0, np.cos(h)]))
+    out.frames[im.frame_id].set_cam_from_world(
+        im.camera_id, pycolmap.Rigid3d(turn * pose.rotation, pose.translation)
+    )
+    return out
+
+
+def _block_turned(rec: pycolmap.Reconstruction, image_ids: list[int], deg: float) -> pycolmap.Reconstruction:
+    """The images turned together about the world's origin: pairs within the block keep their
+    relative rotation, pairs with the rest do not."""
+    out = pycolmap.Reconstruction(rec)
+    h = np.radians(deg) / 2
+    world = pycolmap.Rotation3d(np.array([0.0, np.sin(h), 0.0, np.cos(h)]))
+    for i in image_ids:
+        im = out.images[i]
+        pose = im.cam_from_world()
+        out.frames[im.frame_id].set_cam_from_world(
+            im.camera_id, pycolmap.Rigid3d(pose.rotation * world.inverse(), pose.translation)
+        )
+    return out
+
+
+def _scene(n: int = 200, seed: int = 0) -> tuple[pycolmap.Camera, pycolmap.Rigid3d, np.ndarray, np.ndarray]:
+    """A camera, its pose, 3D points in front of it and their projections (our convention)."""
+    rng = np.random.default_rng(seed)
+    camera = pycolmap.Camera.create_from_model_name(0, "SIMPLE_RADIAL", 600.0, 640, 480)
+    pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.05, -0.1, 0.02, 1.0]) / 1.0063), [0.3, -0.2, 1.0])
+    cam_pts = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(4, 9, n)])
+    world = (cam_pts - np.asarray(pose.translation).reshape(3)) @ pose.rotation.matrix()
+    xy = np.asarray(camera.img_from_cam(cam_pts)) - 0.5
+    return camera, pose, world, xy
 
 
 def test_the_true_model_vouches_for_every_camera() -> None:
@@ -39,6 +97,24 @@ def test_a_block_held_only_within_itself_is_not_vouched_for_though_it_contradict
     assert unvouched(bad, rots, weak) == sorted(names)
     # right, the same ties hold it
     assert unvouched(rec, rots, weak) == []
+
+
+def test_an_image_held_by_one_pairs_other_rotation_is_outvoted() -> None:
+    """A near-flat pair admits a homography's other decomposition; the model holds the image's
+    pair with one neighbour through it and contradicts its other pairs, which the true rotation
+    would all hold."""
+    rec = _model()
+    rots, inl = _pairs(rec)
+    bad = _turned(rec, 2, 48.0)
+    a, b = rec.images[2].name, rec.images[3].name
+    key = (a, b) if (a, b) in rots else (b, a)
+    pa, pb = (bad.find_image_with_name(n).cam_from_world().rotation.matrix() for n in key)
+    rots[key] = [*rots[key], pb @ pa.T]  # the other decomposition: what the turned model holds
+    inl = {p: 300 if p == key else 30 if a in p else n for p, n in inl.items()}
+    # it holds 300 of its 420 inliers: more than a tenth, and the model is clean
+    assert misplaced(bad, rots, inl) == [] and agreement(bad, rots, inl).clean
+    assert outvoted(bad, rots, inl) == [a] and unvouched(bad, rots, inl) == [a]
+    assert outvoted(rec, rots, inl) == []
 
 
 def test_localize_reads_which_cameras_the_projects_pairs_vouch_for(tmp_path: Path) -> None:
@@ -65,3 +141,19 @@ def test_a_photo_placed_against_unvouched_cameras_alone_is_not_localized() -> No
     # a vouched camera with too few inliers of its own does not carry it
     few = Correspondences(xy, np.arange(400), ["a"] * 20 + ["b"] * 380)
     assert not judge("p.png", pose, few, opts, ["a", "b"], unvouched={"b"}).localized
+
+
+def test_the_mapping_leaves_out_what_its_pairs_do_not_vouch_for(tmp_path: Path) -> None:
+    rec = _model()
+    rots, inl = _pairs(rec)
+    block = [2, 5]
+    names = sorted(rec.images[i].name for i in block)
+    weak = {p: (10 if (p[0] in names) != (p[1] in names) else n) for p, n in inl.items()}
+    report = ViewGraphReport(kept_rotations=rots, kept_inliers=weak)
+    kept, out = leave_out_unvouched(_block_turned(rec, block, 31.0), report, tmp_path)
+    assert out == names
+    assert sorted(im.name for im in kept.images.values() if im.has_pose) == sorted(
+        im.name for im in rec.images.values() if im.name not in names
+    )
+    same, none = leave_out_unvouched(rec, report, tmp_path / "right")
+    assert none == [] and same.num_reg_images() == rec.num_reg_images()

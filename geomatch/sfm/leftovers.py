@@ -6,6 +6,7 @@ passes follow it, each only where it helps: a block of images the first model tu
 their pairs taken from it and joined again from the mapper's other model that holds them, the
 mapper again at a lower PnP minimum, images placed from their pairs' relative poses (pairpose.py),
 and images the model turns against their own pairs (modelagree.py) taken out and placed again.
+What the pairs still do not vouch for at the end is left out of the model (:func:`leave_out_unvouched`).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import pycolmap
 from ..geo.gpscheck import GpsCheck, beyond
 from ..geo.similarity import umeyama
 from ..options import LEFTOVER_MIN_POSE_INLIERS
-from .modelagree import agreement, misplaced, misplaced_blocks
+from .modelagree import agreement, misplaced, misplaced_blocks, unvouched
 from .modeljoin import Join, adjust, join_models
 from .pairpose import Placement, place
 from .viewgraph import ViewGraphReport
@@ -173,6 +174,25 @@ def replace_misplaced(
         # out what they do not register
         trial = _posed_only(trial, work / "posed")
     return trial, placed
+
+
+def leave_out_unvouched(
+    model: pycolmap.Reconstruction, report: ViewGraphReport, work: Path
+) -> tuple[pycolmap.Reconstruction, list[str]]:
+    """``model`` without the cameras its own pairs do not vouch for (modelagree.unvouched), and
+    their names; ``model`` itself when there are none or they would be half of it or more (then
+    which side is right is no longer clear, and the attempts' agreement decided). Why: the passes
+    above and the mapping attempts keep what holds its pairs best, and a camera still held by no
+    pair with the rest of the model is one whose place nothing checks; a user cannot tell it from
+    the right ones, and a photo localized against it lands wherever it is."""
+    out = set(unvouched(model, report.kept_rotations, report.kept_inliers))
+    if not out or 2 * len(out) >= model.num_reg_images():
+        return model, []
+    trimmed = pycolmap.Reconstruction(model)
+    for im in list(trimmed.images.values()):
+        if im.name in out and im.has_pose:
+            trimmed.deregister_frame(im.frame_id)
+    return _posed_only(trimmed, work / "vouched"), sorted(out)
 
 
 def hold_to_fixes(

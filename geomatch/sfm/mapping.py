@@ -38,6 +38,7 @@ from .colmaplog import colmap_log
 from .leftovers import (
     Continuation,
     hold_to_fixes,
+    leave_out_unvouched,
     place_leftovers,
     register_leftovers,
     rejoin_blocks,
@@ -262,6 +263,7 @@ def reconstruct(
     joins: list[Join] = []
     placements: list[Placement] = []
     agreed: Agreement | None = None
+    left_out: list[str] = []
     attempts = 1
     bar = tqdm(total=n_images, desc=f"mapping ({mapper})", unit="image", disable=not progress)
     with bar, colmap_log(verbose):
@@ -301,6 +303,9 @@ def reconstruct(
                             found_list[0], report, more, into / "replaced"
                         )
                         placements += replaced
+                        found_list[0], doubted[k] = leave_out_unvouched(
+                            found_list[0], report, into / "vouched"
+                        )
                 return found_list, joins, placements
 
             # a tiled project's model is held to its pairs' rotations (modelagree.py): one that
@@ -308,6 +313,7 @@ def reconstruct(
             # attempt whose model agrees best is kept
             tries = MAPPING_ATTEMPTS if tiled and report is not None else 1
             best_score = None
+            doubted: dict[int, list[str]] = {}  # per attempt, cameras left out (leftovers.py)
             for k in range(tries):
                 found_list_k, joins_k, placements_k = attempt(k)
                 held = (
@@ -319,6 +325,7 @@ def reconstruct(
                 if best_score is None or score > best_score:
                     best_score, agreed = score, held
                     found_list, joins, placements = found_list_k, joins_k, placements_k
+                    left_out = doubted.get(k, [])
                 attempts = k + 1
                 if held is not None and held.clean and found_list_k[0].num_reg_images() >= n_images:
                     break
@@ -382,6 +389,7 @@ def reconstruct(
     summary["placed_from_pairs"] = [p.as_dict() for p in placements]
     summary["mapping_attempts"] = attempts
     summary["pair_agreement"] = agreed.as_dict() if agreed is not None else None
+    summary["unvouched_left_out"] = left_out
     summary["track_refinement"] = refined
     summary["thinning"] = thinned
     summary["mapping_seconds"] = stages
