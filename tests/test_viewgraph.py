@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from contextlib import closing
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -281,3 +284,36 @@ def test_pairs_colmap_left_uncalibrated_come_last_in_the_tree() -> None:
     assert (4, 5) in fooled, "the scene no longer shows the trap"
     dropped = [e for e, _, _ in tree_inconsistent_pairs(edges, support, uncalibrated={(1, 5), (3, 5)})]
     assert len(dropped) == 1 and set(dropped) <= {(1, 5), (3, 5)}
+
+
+def test_reading_the_kept_pairs_leaves_a_finished_projects_files_as_they_were(tmp_path: Path) -> None:
+    """A localize reads the pairs a model was held to from the project's database: a finished
+    run's WAL files (left beside it, as a run leaves them) keep their bytes and times."""
+    import shutil
+    import sqlite3
+    import time
+
+    from geomatch.sfm.viewgraph import kept_pairs
+
+    from .colmap_synthetic import synthetic_database
+
+    live, project = tmp_path / "live", tmp_path / "project"
+    live.mkdir()
+    project.mkdir()
+    synthetic_database(live / "database.db", 6, 100)
+    with closing(sqlite3.connect(live / "database.db")) as c:
+        c.execute("PRAGMA journal_mode=WAL")
+        c.execute("CREATE TABLE IF NOT EXISTS x(a)")
+        c.commit()
+        c.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        for p in live.iterdir():  # the files as a run that ended leaves them, no connection open
+            shutil.copy2(p, project / p.name)
+
+    def listing() -> list[tuple[str, int, int]]:
+        return sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in project.iterdir())
+
+    before = listing()
+    assert {n for n, _, _ in before} == {"database.db", "database.db-shm", "database.db-wal"}
+    time.sleep(0.02)
+    assert len(kept_pairs(str(project / "database.db")).kept_inliers) == 15
+    assert listing() == before

@@ -429,10 +429,11 @@ def kept_pairs(database: str, up: Mapping[str, np.ndarray] | None = None) -> Vie
     pairs a finished model was held to (modelagree.py), for a reader of a project's database that
     must not change it (localization)."""
     # read from a snapshot: COLMAP opens a database read-write, and closing it checkpoints and
-    # removes the -wal and -shm files of a project the reader must leave as it found it
+    # removes the -wal and -shm files of a project the reader must leave as it found it (and a
+    # read-only connection still writes the -shm index: sqlitecopy's ``untouched``)
     with tempfile.TemporaryDirectory() as tmp:
         copy = Path(tmp) / "database.db"
-        snapshot_sqlite(database, copy)
+        snapshot_sqlite(database, copy, untouched=True)
         db = pycolmap.Database.open(str(copy))
         try:
             report, _ = _judged(db, MIN_INLIERS, LOOP_DEG, True, True, up)
