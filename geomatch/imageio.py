@@ -81,6 +81,12 @@ def read_image(source: str | os.PathLike[str] | bytes, max_side: int | None = No
     return arr
 
 
+def working_scale(long_side: int) -> float:
+    """Photo pixels per working pixel for a photo whose longer side is ``long_side`` (1 up to
+    WORKING_SIDE): what COLMAP's pixel thresholds are scaled by for such a photo."""
+    return max(1.0, long_side / WORKING_SIDE)
+
+
 def working_size(width: int, height: int, max_side: int | None) -> tuple[int, int]:
     """(width, height) of a photo read at ``max_side`` (None: as stored)."""
     if not max_side or max(width, height) <= max_side:

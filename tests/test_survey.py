@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -128,6 +129,18 @@ def _two_lines(tmp_path: Path, n: int = 12) -> tuple[list[str], dict[str, np.nda
     return names, enu, true_turn
 
 
+def _line_mates_score(scored: list[tuple[int, int, int]]) -> Callable[[np.ndarray, np.ndarray], int]:
+    """A seed score that is high only for photos taken one after the other, both in the frame;
+    every scored (photo, partner, partner's turn) is appended to ``scored``."""
+
+    def score(fixed: np.ndarray, moving: np.ndarray) -> int:
+        (i, ti), (j, tj) = _read(fixed), _read(moving)
+        scored.append((i, j, tj))
+        return 500 if abs(i - j) == 1 and ti == 0 and tj == 0 else 15
+
+    return score
+
+
 @pytest.mark.parametrize("hint_right", [True, False])
 def test_a_turn_hint_skips_pairs_that_share_nothing_and_orders_the_turns_but_the_score_decides(
     tmp_path: Path, hint_right: bool
@@ -138,11 +151,7 @@ def test_a_turn_hint_skips_pairs_that_share_nothing_and_orders_the_turns_but_the
     costs more copies, not a wrong turn."""
     names, enu, true_turn = _two_lines(tmp_path)
     scored: list[tuple[int, int, int]] = []
-
-    def score(fixed: np.ndarray, moving: np.ndarray) -> int:
-        (i, ti), (j, tj) = _read(fixed), _read(moving)
-        scored.append((i, j, tj))
-        return 500 if abs(i - j) == 1 and ti == 0 and tj == 0 else 15
+    score = _line_mates_score(scored)
 
     def hint(name0: str, image0: np.ndarray, name1: str, image1: np.ndarray) -> TurnHint:
         (i, ti), (j, tj) = _read(image0), _read(image1)
@@ -166,11 +175,7 @@ def test_photos_taken_one_after_the_other_are_scored_though_the_hint_finds_nothi
     against the one taken before or after it, so every turn is decided, and no other pair is."""
     names, enu, true_turn = _two_lines(tmp_path)
     scored: list[tuple[int, int, int]] = []
-
-    def score(fixed: np.ndarray, moving: np.ndarray) -> int:
-        (i, ti), (j, tj) = _read(fixed), _read(moving)
-        scored.append((i, j, tj))
-        return 500 if abs(i - j) == 1 and ti == 0 and tj == 0 else 15
+    score = _line_mates_score(scored)
 
     def blind(name0: str, image0: np.ndarray, name1: str, image1: np.ndarray) -> TurnHint:
         return TurnHint(0, 3)

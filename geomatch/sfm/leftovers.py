@@ -38,6 +38,13 @@ class Continuation:
     n_images: int
 
 
+def _deregister(model: pycolmap.Reconstruction, names: set[str]) -> None:
+    """The posed images of ``model`` named in ``names`` taken out of it (in place)."""
+    for im in list(model.images.values()):
+        if im.name in names and im.has_pose:
+            model.deregister_frame(im.frame_id)
+
+
 def _posed_only(model: pycolmap.Reconstruction, work: Path) -> pycolmap.Reconstruction:
     """``model`` without its unposed images (written and read back, a model keeps its posed
     images), so that a join can add them again."""
@@ -64,9 +71,7 @@ def rejoin_blocks(
     if not out or 2 * len(out) >= first.num_reg_images():
         return models, []
     trimmed = pycolmap.Reconstruction(first)
-    for im in list(trimmed.images.values()):
-        if im.name in out and im.has_pose:
-            trimmed.deregister_frame(im.frame_id)
+    _deregister(trimmed, out)
     trimmed = _posed_only(trimmed, work / "trimmed")
     joined, joins = join_models(
         [trimmed, *models[1:]], more.database, more.image_dir, work / "joined", more.options
@@ -163,9 +168,7 @@ def replace_misplaced(
         return model, []
     before = agreement(model, report.kept_rotations, report.kept_inliers)
     trial = pycolmap.Reconstruction(model)
-    for im in list(trial.images.values()):
-        if im.name in off and im.has_pose:
-            trial.deregister_frame(im.frame_id)
+    _deregister(trial, off)
     trial, placed = place_leftovers(trial, more, work)
     if agreement(trial, report.kept_rotations, report.kept_inliers).score <= before.score:
         return model, []
@@ -189,9 +192,7 @@ def leave_out_unvouched(
     if not out or 2 * len(out) >= model.num_reg_images():
         return model, []
     trimmed = pycolmap.Reconstruction(model)
-    for im in list(trimmed.images.values()):
-        if im.name in out and im.has_pose:
-            trimmed.deregister_frame(im.frame_id)
+    _deregister(trimmed, out)
     return _posed_only(trimmed, work / "vouched"), sorted(out)
 
 
@@ -212,9 +213,7 @@ def hold_to_fixes(
     come along (the ends of flight lines, photos in turns), judged by the same limit."""
     trial = pycolmap.Reconstruction(model)
     off = {o.name for o in found.offenders}
-    for im in list(trial.images.values()):
-        if im.name in off and im.has_pose:
-            trial.deregister_frame(im.frame_id)
+    _deregister(trial, off)
     if off:
         trial = _posed_only(trial, work / "trimmed")
     grown = register_leftovers(trial, more, work)
@@ -224,9 +223,7 @@ def hold_to_fixes(
     still = [o for o in beyond(grown, enu, found.limit_m) if o.name not in wild]
     if still:
         out = {o.name for o in still}
-        for im in list(grown.images.values()):
-            if im.name in out and im.has_pose:
-                grown.deregister_frame(im.frame_id)
+        _deregister(grown, out)
     grown = _posed_only(grown, work / "held")
     posed = {im.name for im in grown.images.values() if im.has_pose}
     replaced = tuple(

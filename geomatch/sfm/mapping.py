@@ -26,7 +26,7 @@ from tqdm import tqdm
 from ..geo import georef, gpscheck
 from ..geo.gps import GpsFixes
 from ..geo.priorba import adjust_to_fixes, with_residuals
-from ..imageio import WORKING_SIDE
+from ..imageio import working_scale
 from ..memory import return_freed_memory
 from ..options import (
     GLOBAL_MAPPER_IMAGES,
@@ -148,7 +148,7 @@ def pixel_scale(database: Path) -> float:
         side = max((max(c.width, c.height) for c in db.read_all_cameras()), default=0)
     finally:
         db.close()
-    return max(1.0, side / WORKING_SIDE)
+    return working_scale(side)
 
 
 def incremental_options(

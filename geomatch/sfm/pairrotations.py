@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from ..imageio import WORKING_SIDE
+from ..imageio import working_scale
 from . import pair_threads
 
 
@@ -44,7 +44,7 @@ def candidate_rotations(
     # pixel is a fraction of the points' precision, and a RANSAC that finds few inliers at it runs
     # all its iterations (the view graph took 8 s of brighton's originals instead of 2 s)
     side = max(cam0.width, cam0.height, cam1.width, cam1.height)
-    focal /= max(1.0, side / WORKING_SIDE)
+    focal /= working_scale(side)
     out: list[np.ndarray] = []
     E, mask = cv2.findEssentialMat(n0, n1, np.eye(3), cv2.RANSAC, 0.999, 1.0 / focal)
     if E is not None and E.shape == (3, 3):
