@@ -89,6 +89,9 @@ def plan(
     without one: see pairs.gps_neighbours), by look point, and by shared ground where ``metas``
     give both images a footprint (gps.plan_points, gps.footprints); ``auto`` is exhaustive or
     ``gps:K`` by the project's size and fixes (pairs.auto_pairs)."""
+    # not ``images or ...``: an Images with nothing decoded yet has length 0, and a fresh
+    # Images(image_dir) would read the photos at their stored size, not at the caller's working size
+    folder = images if images is not None else Images(image_dir)
     gps_enu: Mapping[str, np.ndarray] = {}
     footprints: Mapping[str, np.ndarray] | None = None
     if fixes is not None:
@@ -110,7 +113,7 @@ def plan(
             gps_enu,
             footprints,
             matcher,
-            images or Images(image_dir),
+            folder,
             progress,
         )
         for kind, k in parts:
@@ -125,7 +128,7 @@ def plan(
         turns = image_turns(
             planned,
             partial(turn_score, probe),
-            images or Images(image_dir),
+            folder,
             gps_enu,
             progress,
             sure=TURN_SURE_SEED if guided else TURN_SURE,

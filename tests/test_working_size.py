@@ -58,3 +58,27 @@ def test_matches_in_working_pixels_land_on_the_same_spot_of_the_photo() -> None:
     np.testing.assert_array_equal(back.keypoints1, m.keypoints1)
     assert back.sizes == ((1600, 900), (640, 360)) and back.source is None
     assert m.in_photo_pixels(None, None) is m
+
+
+def test_the_plan_reads_the_photos_through_the_callers_folder_even_before_it_decoded_any(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An Images that has decoded nothing yet has length 0: a plan that took it for absent read the
+    photos again at their stored size, so a survey's turn probes hashed other pixels than its
+    matching and every photo's features were extracted twice."""
+    from geomatch import planning
+
+    _jpeg(tmp_path / "a.jpg", 1600, 900)
+    _jpeg(tmp_path / "b.jpg", 1600, 900)
+    images = Images(tmp_path, 64.0, max_side=800)
+    assert len(images) == 0
+    seen: list[Images] = []
+
+    def probe(p: planning.PlanInputs, k: int) -> list[tuple[str, str]]:
+        seen.append(p.images)
+        return [("a.jpg", "b.jpg")]
+
+    monkeypatch.setitem(planning.PLANNERS, "exhaustive", probe)
+    planning.plan(tmp_path, ["a.jpg", "b.jpg"], set(), "exhaustive", images=images)
+    assert seen and seen[0] is images
+    assert seen[0]["a.jpg"].shape == (450, 800, 3)

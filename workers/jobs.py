@@ -371,6 +371,8 @@ def _georeference_by_gcps(ctx: Context, job: Job, out: Path, summary: dict[str, 
         text = ctx.storage.gcp_path(pid).read_text(encoding="utf-8")
     except FileNotFoundError:
         return
+    # the model keeps the file it was georeferenced by: its exports place the points by it
+    (out / "gcp_list.txt").write_text(text, encoding="utf-8")
     with ctx.store.session() as s:
         rows = s.execute(select(Image.name, Image.width, Image.height).where(Image.project_id == pid))
         sizes = {name: (int(w), int(h)) for name, w, h in rows}
