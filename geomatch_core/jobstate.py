@@ -7,6 +7,7 @@ counted once, and exactly one caller sees a job complete.
 
 from __future__ import annotations
 
+import math
 from typing import Any, cast
 
 from sqlalchemy import CursorResult, Update, select, update
@@ -122,6 +123,7 @@ def set_progress(store: MetadataStore, job_id: str, done: int) -> bool:
 
 
 def finish_if_complete(store: MetadataStore, job_id: str, result: dict[str, Any] | None = None) -> bool:
+    result = finite(result)
     with store.session() as s:
         return bool(
             _changed(
@@ -133,7 +135,23 @@ def finish_if_complete(store: MetadataStore, job_id: str, result: dict[str, Any]
         )
 
 
+def finite(value: Any) -> Any:
+    """``value`` (a result: dicts, lists, numbers, text) with every NaN or infinite number as None.
+
+    JSON has no NaN: PostgreSQL's json type refuses the whole result (the job then failed after its
+    work was done) and SQLite stores text no JSON reader takes. A number a step could not measure
+    is unknown, which is what null says."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite(v) for v in value]
+    return value
+
+
 def succeed(store: MetadataStore, job_id: str, result: dict[str, Any] | None = None) -> bool:
+    result = finite(result)
     with store.session() as s:
         return bool(
             _changed(

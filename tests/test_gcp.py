@@ -89,7 +89,7 @@ def test_earth_centred_coordinates_are_refused_and_degrees_out_of_range_named() 
     with pytest.raises(GcpError, match=r"line 1: .*not a map projection"):
         read_gcp_file("EPSG:4978\n" + _line(4e6, 1e6, 4.8e6, 10, 10, "a.jpg", "g1"), SIZES)
     lines = [
-        _line(-117.2 + k * 1e-4, 32.8, 0.0, 10 + k, 10, im, f"g{k}")
+        _line(-117.2 + k * 1e-4, 32.8 + (k == 2) * 1e-4, 0.0, 10 + k, 10, im, f"g{k}")
         for k in range(3)
         for im in ("a.jpg", "b.jpg")
     ]

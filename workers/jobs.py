@@ -339,12 +339,15 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         _georeference_by_gcps(ctx, job, out, summary)
         summary["timings"] = {"mapping": round(time.perf_counter() - t0, 3)}
         summary["job_id"] = job_id
+        summary = jobstate.finite(summary)  # summary.json and the stored result: JSON, no NaN
         summary["report"] = survey_report(summary)
         rundir.write_outputs(out, summary, archive=True)
-        if not jobstate.is_active(ctx.store, job_id):
+        # the result is stored first and the model swapped in only once it is: a result the store
+        # refuses (a number it cannot hold) once failed the job after its model had replaced the
+        # good one; and the conditional update that stores it is also what tells a cancel apart
+        if not jobstate.succeed(ctx.store, job_id, summary):
             return "cancelled"
         ctx.storage.replace_dir(out, ctx.storage.model_dir(pid))
-    jobstate.succeed(ctx.store, job_id, summary)
     log.info(
         "reconstructed: %s/%s images registered, %s points",
         summary.get("registered"),
@@ -377,15 +380,16 @@ def _georeference_by_gcps(ctx: Context, job: Job, out: Path, summary: dict[str, 
         rows = s.execute(select(Image.name, Image.width, Image.height).where(Image.project_id == pid))
         sizes = {name: (int(w), int(h)) for name, w, h in rows}
     checkpoints = job.options.get("checkpoints") or 0
+    gcps = None
     try:
         gcps = read_gcp_file(text, sizes)
         gcpgeo.georeference_summary(summary, out, gcps, checkpoints)
     except GcpError as e:
-        summary["gcp"] = {"error": f"the project's GCP file: {e}"}
-    except Exception as e:  # numbers the fit cannot take (an infinite coordinate): the model stays
+        summary["gcp"] = gcpgeo.failed(gcps, f"the project's GCP file: {e}")
+    except Exception as e:  # numbers the fit cannot take: the model stays as mapped
         log.warning("GCP georeferencing failed: %r", e, extra={"job_id": job.id, "project_id": pid})
-        why = redact.without_paths(str(e), ctx.storage.root, ctx.storage.project_dir(pid))
-        summary["gcp"] = {"error": f"the GCP georeferencing failed ({type(e).__name__}: {why})"}
+        why = redact.client_message(e, ctx.storage.root, ctx.storage.project_dir(pid))
+        summary["gcp"] = gcpgeo.failed(gcps, f"the GCP georeferencing failed ({why})")
     g = summary.get("gcp", {})
     fit = f"RMSE 3D control {g.get('control_rmse_3d_m')} m, check {g.get('check_rmse_3d_m')} m"
     log.info("GCPs: %s", g.get("error") or fit, extra={"job_id": job.id, "project_id": pid})
@@ -509,9 +513,9 @@ def on_failure(ctx: Context, step: str, args: tuple[Any, ...], exc: BaseExceptio
         return
     job_id = str(args[0])
     where = f"pair {args[1]}" if step == MATCH_PAIR and len(args) > 1 else step.split(".")[-1]
-    reason = str(exc) if isinstance(exc, PermanentError) else f"{type(exc).__name__}: {exc}"
-    # the one place a job's error is written from a worker: clients read it, so no server paths
-    reason = redact.without_paths(reason, ctx.storage.root, _project_dir(ctx, job_id))
+    # the one place a job's error is written from a worker: clients read it, so no server paths,
+    # no SQL and no driver's text (redact.client_message)
+    reason = redact.client_message(exc, ctx.storage.root, _project_dir(ctx, job_id))
     if jobstate.fail(ctx.store, job_id, f"{where}: {reason}"):
         log.error("job failed in %s: %s", where, exc, extra={"job_id": job_id})
         jobstate.release_followers(ctx.store, ctx.queue, job_id)

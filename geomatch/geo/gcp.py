@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pycolmap
 
-from .gcpfile import MIN_POINTS, ControlPoint, GcpError, GcpFile
+from .gcpfile import MIN_POINTS, ControlPoint, GcpError, GcpFile, degenerate
 from .georef import GNSS_VERTICAL_FACTOR
 from .similarity import Similarity, umeyama
 
@@ -40,6 +40,10 @@ PRIOR_OBSERVER_SIGMAS = 1000.0
 # the photos' observations are weighed at the model's own reprojection noise, never below this (a
 # model of exact synthetic pixels would otherwise weigh every prior at nothing)
 MIN_PIXEL_SIGMA = 0.1
+# a fit whose control points miss by more than this share of their own spread explains nothing:
+# the clicks and the survey describe different places (names swapped over the whole file, a wrong
+# coordinate system), and writing the model in that frame would call a wrong model georeferenced
+MAX_CONTROL_RMSE_SHARE = 0.5
 
 
 @dataclass
@@ -147,6 +151,34 @@ class GcpReport:
         return out
 
 
+class GeoreferenceError(GcpError):
+    """The points cannot georeference the model; ``points`` says what became of each."""
+
+    def __init__(self, message: str, points: Sequence[PointResult]) -> None:
+        super().__init__(message)
+        self.points = list(points)
+
+
+def failed(gcps: GcpFile | None, error: str, points: Sequence[PointResult] | None = None) -> dict[str, Any]:
+    """The summary's ``gcp`` when the points did not georeference the model: the file's summary,
+    ``error``, and ``points`` in the shape of a georeferenced one (a dict per point, with its role
+    and why it was not used), so that every reader (the reports, the console) reads one shape."""
+    if points is None:
+        points = []
+        if gcps is not None:
+            points = [
+                PointResult(
+                    name, "unused", len(p.observations), 0, "not placed: the model was not georeferenced"
+                )
+                for name, p in sorted(gcps.points.items())
+            ] + [PointResult(name, "unused", 1, 0, why) for name, why in sorted(gcps.unusable.items())]
+    for p in points:
+        if p.reason is None:
+            p.reason = "not used: the points did not georeference the model"
+    base = gcps.summary() if gcps is not None else {}
+    return {**base, "points": [p.as_dict() for p in points], "error": error}
+
+
 def triangulate(
     rec: pycolmap.Reconstruction, point: ControlPoint
 ) -> tuple[np.ndarray | None, int, float | None, str | None]:
@@ -211,7 +243,9 @@ def choose_checkpoints(names: Sequence[str], spec: Sequence[str] | int) -> set[s
         return {ordered[i] for i in idx}
     unknown = sorted(set(spec) - set(names))
     if unknown:
-        raise GcpError(f"check points not among the usable GCPs: {', '.join(unknown)}")
+        shown = ", ".join(n if len(n) <= 40 else n[:37] + "..." for n in unknown[:10])
+        more = f" and {len(unknown) - 10} more" if len(unknown) > 10 else ""
+        raise GcpError(f"check points not among the usable GCPs: {shown}{more}")
     return set(spec)
 
 
@@ -231,19 +265,44 @@ def georeference(
     check = choose_checkpoints(list(placed), checkpoints) if checkpoints else set()
     control = sorted(set(placed) - check)
     if len(control) < MIN_POINTS:
-        raise GcpError(
+        raise GeoreferenceError(
             f"{len(control)} control points placed in the model, and georeferencing needs {MIN_POINTS}: "
-            + "; ".join(f"{r.name}: {r.reason}" for r in results if r.reason)
+            + "; ".join(f"{r.name}: {r.reason}" for r in results if r.reason),
+            results,
         )
+    surveyed = np.stack([gcps.points[n].xyz for n in control])
+    in_model = np.stack([placed[n] for n in control])
+    why = degenerate(surveyed)
+    if why is not None:
+        raise GeoreferenceError(f"the {len(control)} control points cannot fix the model: {why}", results)
+    why = degenerate(in_model, min_spread=0.0)
+    if why is not None:
+        raise GeoreferenceError(f"the control points as the photos place them: {why}", results)
     origin = np.mean([gcps.points[n].xyz for n in placed], axis=0)
-    sim = umeyama(
-        np.stack([placed[n] for n in control]), np.stack([gcps.points[n].xyz - origin for n in control])
-    )
+    sim = umeyama(in_model, surveyed - origin)
+    finite = np.isfinite(sim.R).all() and np.isfinite(sim.t).all()
+    if not (finite and np.isfinite(sim.scale) and sim.scale > 0):
+        raise GeoreferenceError(
+            f"the similarity to the control points has no finite scale ({sim.scale})", results
+        )
     for r in results:
         if r.name in placed:
             r.role = "check" if r.name in check else "control"
             r.residual = sim.apply(placed[r.name][None])[0] - (gcps.points[r.name].xyz - origin)
-    return GcpReport(results, sim, origin)
+    report = GcpReport(results, sim, origin)
+    spread = float(np.sqrt(np.mean(np.sum((surveyed - surveyed.mean(axis=0)) ** 2, axis=1))))
+    rmse = report.rmse("control")
+    if rmse is None or not np.isfinite(rmse[1]) or rmse[1] > MAX_CONTROL_RMSE_SHARE * spread:
+        for r in results:
+            r.role, r.residual = "unused", None
+            r.reason = r.reason or "not used: the control points do not fit the model"
+        shown = "not finite" if rmse is None or not np.isfinite(rmse[1]) else f"{rmse[1]:.3g} m"
+        raise GeoreferenceError(
+            f"the control points do not fit the model: their RMSE is {shown} over a spread of {spread:.3g} m "
+            "(names or coordinates that do not belong to the clicks?)",
+            results,
+        )
+    return report
 
 
 def estimate_accuracy(report: GcpReport, gcps: GcpFile) -> Accuracy:
@@ -436,17 +495,45 @@ def apply_to_model(
     rec = pycolmap.Reconstruction(str(model_dir))
     try:
         report = georeference(rec, gcps, checkpoints)
+    except GeoreferenceError as e:
+        return failed(gcps, str(e), e.points)
     except GcpError as e:
-        return {**gcps.summary(), "error": str(e)}
+        return failed(gcps, str(e))
     rec.transform(report.similarity.to_pycolmap())
     if adjust:
         adjust_to_control(rec, gcps, report, accuracy)
+    why = _not_finite(rec, report)
+    if why is not None:  # nothing written: the model on disk stays in the mapping's frame
+        for r in report.points:
+            r.role, r.residual = "unused", None
+        return failed(
+            gcps, f"the georeferenced model is not finite ({why}): it was left as mapped", report.points
+        )
     rec.write_binary(str(model_dir))
     if (model_dir / "cameras.txt").is_file():
         rec.write_text(str(model_dir))
     if ply is not None:
         rec.export_PLY(str(ply))
     return {**report.as_dict(gcps), "frame_of_model": "the GCPs' frame minus origin"}
+
+
+def _not_finite(rec: pycolmap.Reconstruction, report: GcpReport) -> str | None:
+    """What of a moved model is NaN or infinite, None when every number is finite: checked before
+    it is written, since a model of NaN cameras called georeferenced is worse than none."""
+    for r in report.points:
+        if r.residual is not None and not np.isfinite(r.residual).all():
+            return f"the residual of {r.name}"
+    for frame in rec.frames.values():
+        if frame.has_pose and not np.isfinite(np.asarray(frame.rig_from_world.matrix())).all():
+            return "a camera pose"
+    for cam in rec.cameras.values():
+        if not np.isfinite(np.asarray(cam.params, np.float64)).all():
+            return "a camera's intrinsics"
+    if rec.points3D:
+        xyz = np.stack([np.asarray(p.xyz, np.float64) for p in rec.points3D.values()])
+        if not np.isfinite(xyz).all():
+            return "the 3D points"
+    return None
 
 
 def georeference_summary(
@@ -461,7 +548,7 @@ def georeference_summary(
     moves to ``gps_frame_before_gcp``, and the GPS residuals stay in the summary as measured."""
     model = out / "sparse" / "0"
     if not (model / "images.bin").is_file():
-        summary["gcp"] = {**gcps.summary(), "error": "no model to georeference"}
+        summary["gcp"] = failed(gcps, "no model to georeference")
         return
     summary["gcp"] = apply_to_model(model, gcps, checkpoints, out / "points.ply", accuracy=accuracy)
     if "error" in summary["gcp"]:

@@ -10,20 +10,61 @@ coordinates are one point, as OpenDroneMap groups them.
 
 Real files have flaws, so reading one never fails on a single bad line: every problem is reported
 with its line or point and the rest goes on. Only a file that cannot be used at all (no coordinate
-system pyproj knows, fewer than 3 usable points) is refused, with the reason.
+system pyproj knows, fewer than 3 usable points, points that coincide or lie on one line) is refused,
+with the reason.
+
+The coordinate system is text a client sends, and PROJ reads files and URLs named in it (``+init=``,
+``+nadgrids=``, a WKT's ``PARAMETERFILE``): a server took ``+init=/etc/shadow:x`` and opened the
+file, and ``+init=`` on a FIFO or /dev/kmsg blocked a thread holding the GIL for good. So the line
+is held to an allow-list before PROJ sees it (``WGS84``, an EPSG or ESRI code, a PROJ string of
+plain parameters, WKT without files or extensions), the parsed object is checked again, PROJ's
+network access is off, and every PROJ error is a refusal naming line 1.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 import pyproj
-from pyproj.exceptions import CRSError
+import pyproj.network
+from pyproj.exceptions import CRSError, ProjError
 
 MIN_POINTS = 3  # a similarity (7 unknowns) needs three points
+
+# grids and definitions come from the server's own PROJ data, never from the network (a coordinate
+# system is request text: a URL in it would make the server fetch it)
+# (pyproj.network re-exports it from its compiled module without __all__)
+pyproj.network.set_network_enabled(False)  # type: ignore[attr-defined]
+
+MAX_CRS_CHARS = 8000  # a projected CRS's WKT2 is 1-3 kB
+_AUTHORITY = re.compile(r"(?:EPSG|ESRI):\d{1,6}(?:\+\d{1,6})?", re.IGNORECASE)  # EPSG:4326+5773: compound
+# one parameter of a PROJ string: +key or +key=value, the value numbers, names and commas only
+# (no "/", ":", "@" or "~": nothing that names a file, a URL or PROJ's grid prefixes)
+_PROJ_PARAM = re.compile(r"\+?([a-z_][a-z0-9_]*)(?:=([A-Za-z0-9_.,+-]*))?")
+# parameters whose value PROJ opens as a file (init files, grids, deformation models, catalogs)
+_FILE_PARAMS = frozenset({"init", "nadgrids", "geoidgrids", "grids", "file", "model", "catalog"})
+_WKT_START = re.compile(
+    r"(PROJCS|GEOGCS|GEOCCS|COMPD_CS|PROJCRS|PROJECTEDCRS|GEOGCRS|GEOGRAPHICCRS|GEODCRS|GEODETICCRS"
+    r"|COMPOUNDCRS|BOUNDCRS)\s*[\[(]",
+    re.IGNORECASE,
+)
+# WKT that names a file (a grid of a bound CRS's transformation) or carries a PROJ string
+_WKT_FILES = re.compile(r"PARAMETERFILE|PARAMETER_FILE|EXTENSION\s*[\[(]|\+init|grids\s*=", re.IGNORECASE)
+# the Earth's semi-major axis is 6378.137 km; a sphere of radius 1 m or another planet's is not a
+# survey's frame (PROJ then fails inside a transformation, or places points anywhere)
+EARTH_SEMI_MAJOR_M = (6.3e6, 6.4e6)
+# coordinates past these in the metric frame are no place on the Earth, and a similarity over them
+# loses every digit of the survey (x + 1e300 is 1e300): the same heights the photos' metadata takes
+MAX_EASTING_NORTHING_M = 1e8
+HEIGHT_RANGE_M = (-11_000.0, 100_000.0)
+# a control set must span something: points within this of their centroid are one point, and a set
+# whose second extent is under this share of its first lies on a line (the rotation about it is free)
+MIN_SPREAD_M = 0.1
+MIN_SPREAD_RATIO = 0.01
 
 
 class GcpError(ValueError):
@@ -66,14 +107,69 @@ class GcpFile:
         }
 
 
+CRS_FORMS = (
+    "give WGS84, an EPSG or ESRI code (EPSG:32632), a PROJ string of parameters "
+    "(+proj=utm +zone=32 +datum=WGS84) or WKT"
+)
+
+
+def _allowed_crs_text(spec: str) -> str | None:
+    """Why ``spec`` may not reach PROJ, None when it may: the allow-list, before any parsing."""
+    if len(spec) > MAX_CRS_CHARS:
+        return f"a coordinate system of {len(spec)} characters (at most {MAX_CRS_CHARS})"
+    if not spec.isprintable():
+        return "a coordinate system with control characters"
+    if _AUTHORITY.fullmatch(spec):
+        return None
+    if _WKT_START.match(spec):
+        if _WKT_FILES.search(spec):
+            return "a WKT coordinate system may not name files or carry extensions (PARAMETERFILE, EXTENSION)"
+        return None
+    if spec.startswith("+") or spec.lower().startswith("proj="):
+        for token in spec.split():
+            key = token.lstrip("+").partition("=")[0].lower()
+            if key in _FILE_PARAMS or key.endswith(("grids", "_file")):
+                return f"the PROJ parameter +{key[:40]} names a file, which a coordinate system here may not"
+            if _PROJ_PARAM.fullmatch(token) is None:
+                return f"the PROJ parameter {token[:40]!r} is not a plain +key=value (no paths or URLs)"
+        return None
+    return "a coordinate system in none of the accepted forms"
+
+
+def _earth_frame(crs: pyproj.CRS) -> str | None:
+    """Why the parsed ``crs`` is no frame for a survey on the Earth, None when it is one: its
+    definition names no file (checked again on what PROJ made of the text) and its ellipsoid is
+    the Earth's."""
+    try:
+        wkt = crs.to_wkt("WKT2_2019") or ""
+    except ProjError as e:
+        return f"PROJ cannot write it out ({e})"
+    if _WKT_FILES.search(wkt):
+        return "it names a grid or definition file, which a coordinate system here may not"
+    ellipsoid = crs.ellipsoid
+    if ellipsoid is None:
+        return "it has no ellipsoid"
+    a = float(ellipsoid.semi_major_metre)
+    if not EARTH_SEMI_MAJOR_M[0] <= a <= EARTH_SEMI_MAJOR_M[1]:
+        return f"its ellipsoid ({ellipsoid.name}, semi-major axis {a:g} m) is not the Earth's"
+    return None
+
+
 def parse_crs(text: str) -> pyproj.CRS:
     spec = text.strip()
     if spec.upper() == "WGS84":
         spec = "EPSG:4326"
+    shown = spec if len(spec) <= 80 else spec[:77] + "..."
+    why = _allowed_crs_text(spec)
+    if why is not None:
+        raise GcpError(f"line 1: unknown coordinate system {shown!r}: {why}; {CRS_FORMS}")
     try:
         crs = pyproj.CRS.from_user_input(spec)
-    except CRSError as e:
-        raise GcpError(f"line 1: unknown coordinate system {text.strip()!r} ({e})") from None
+    except (CRSError, ProjError) as e:
+        raise GcpError(f"line 1: unknown coordinate system {shown!r} ({_short(e)})") from None
+    why = _earth_frame(crs)
+    if why is not None:
+        raise GcpError(f"line 1: unusable coordinate system {shown!r}: {why}")
     if not (crs.is_projected or crs.is_geographic):
         # a geocentric (Earth-centred XYZ) or engineering system: its x and y are neither
         # longitude/latitude nor map metres, and reading them as either places points anywhere
@@ -82,6 +178,29 @@ def parse_crs(text: str) -> pyproj.CRS:
             " projected system (e.g. their UTM zone's EPSG code) or in WGS84"
         )
     return crs
+
+
+def _short(e: Exception, limit: int = 200) -> str:
+    text = " ".join(str(e).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def degenerate(xyz: np.ndarray, min_spread: float = MIN_SPREAD_M) -> str | None:
+    """Why the points ``xyz`` (N, 3) cannot fix a similarity, None when they can: they must spread
+    over more than ``min_spread`` (metres in a survey's frame) and not lie on one line (their
+    second principal extent at least MIN_SPREAD_RATIO of their first)."""
+    pts = np.asarray(xyz, np.float64)
+    if not np.isfinite(pts).all():
+        return "a point's coordinates are not finite"
+    if len(pts) < MIN_POINTS:
+        return f"{len(pts)} points: a similarity needs {MIN_POINTS}"
+    centred = pts - pts.mean(axis=0)
+    extents = np.linalg.svd(centred, compute_uv=False) / np.sqrt(len(pts))
+    if not extents[0] > min_spread:
+        return f"the points lie within {extents[0]:.3g} of one another: they are one point"
+    if not extents[1] > MIN_SPREAD_RATIO * extents[0]:
+        return "the points lie on one line: the turn about it is not fixed"
+    return None
 
 
 def metric_frame(crs: pyproj.CRS, lon_lat: tuple[float, float] | None) -> pyproj.CRS:
@@ -137,16 +256,28 @@ def read_gcp_file(text: str, image_sizes: Mapping[str, tuple[int, int]]) -> GcpF
     if raw and not crs.is_projected:
         lon_lat = (float(raw[0][1][0]), float(raw[0][1][1]))
     frame = metric_frame(crs, lon_lat)
-    to_frame = pyproj.Transformer.from_crs(crs, frame, always_xy=True)
+    try:
+        to_frame = pyproj.Transformer.from_crs(crs, frame, always_xy=True)
+    except (CRSError, ProjError) as e:  # a datum PROJ cannot take to the points' UTM zone
+        raise GcpError(f"line 1: PROJ cannot take {crs.name} to {frame.name} ({_short(e)})") from None
     scale = float(frame.axis_info[0].unit_conversion_factor) if frame.axis_info else 1.0
 
     points: dict[str, ControlPoint] = {}
     for name, xyz, obs in raw:
-        if crs.is_projected:
-            metric = xyz * scale
-        else:
-            e, n = to_frame.transform(xyz[0], xyz[1])
-            metric = np.array([e, n, xyz[2]], np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):
+            if crs.is_projected:
+                metric = xyz * scale
+            else:
+                try:
+                    east, north = to_frame.transform(xyz[0], xyz[1], errcheck=True)
+                except ProjError as err:
+                    problems.append(f"line {obs.line}: {name}: PROJ cannot place it ({_short(err, 80)})")
+                    continue
+                metric = np.array([east, north, xyz[2]], np.float64)
+        why = _off_the_earth(metric)
+        if why is not None:
+            problems.append(f"line {obs.line}: {name}: {why}")
+            continue
         p = points.get(name)
         if p is None:
             points[name] = ControlPoint(name, metric, [obs])
@@ -175,4 +306,19 @@ def read_gcp_file(text: str, image_sizes: Mapping[str, tuple[int, int]]) -> GcpF
             f"the GCP file leaves {found}, and georeferencing needs {MIN_POINTS}"
             + (f" ({detail})" if detail else "")
         )
+    why = degenerate(np.stack([p.xyz for p in points.values()]))
+    if why is not None:
+        raise GcpError(f"the GCP file's {len(points)} usable points cannot georeference a model: {why}")
     return GcpFile(crs, frame, points, problems, unusable)
+
+
+def _off_the_earth(metric: np.ndarray) -> str | None:
+    """Why a point's metric coordinates are no place on the Earth, None when they are one."""
+    if not np.isfinite(metric).all():
+        return "its coordinates are not finite in the metric frame (past the range of numbers)"
+    if max(abs(float(metric[0])), abs(float(metric[1]))) > MAX_EASTING_NORTHING_M:
+        where = f"({metric[0]:.6g}, {metric[1]:.6g}) m"
+        return f"{where} is past {MAX_EASTING_NORTHING_M:g} m: no place on the Earth"
+    if not HEIGHT_RANGE_M[0] <= float(metric[2]) <= HEIGHT_RANGE_M[1]:
+        return f"height {metric[2]:.6g} m is outside [{HEIGHT_RANGE_M[0]:g}, {HEIGHT_RANGE_M[1]:g}] m"
+    return None

@@ -13,18 +13,30 @@ An image's size is its row's: the width and height the upload check read from th
 ``geomatch.metadata.read_metadata`` reads for ``geomatch run --gcp``).
 
 The library's GCP reader (numpy, pyproj) is imported inside the calls: importing the API loads
-none of it.
+none of it. It runs on a thread of its own with a deadline (``read_gcps``): the coordinate system is
+held to an allow-list before PROJ sees it (``geomatch.geo.gcpfile.parse_crs``), so nothing a file
+says opens a file or reaches the network, and the deadline is the bound behind that: a call that
+still blocked would cost one thread of a few, never the caller's thread or the health checks.
 """
 
 from __future__ import annotations
 
 import errno
+import queue
+import threading
 from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from geomatch_core.errors import BadFile, InsufficientStorage, InvalidRequest, NotFound, TooLarge
+from geomatch_core.errors import (
+    BadFile,
+    InsufficientStorage,
+    InvalidRequest,
+    NotFound,
+    Overloaded,
+    TooLarge,
+)
 from geomatch_core.models import Image
 from geomatch_core.storage import Storage
 
@@ -35,6 +47,9 @@ MiB = 1024 * 1024
 MAX_GCP_BYTES = MiB  # a survey's file is a few kB: thousands of observations fit in 1 MiB
 MAX_CHECKPOINTS = 10_000  # names in a reconstruct request, or their count
 MAX_CHECKPOINT_NAME = 1000  # characters of one name
+GCP_READ_TIMEOUT_S = 10.0  # a 1 MiB file of 20,000 observations reads in well under a second
+GCP_READERS = 8  # files read at once in one API process; a reader past its deadline keeps its place
+_readers = threading.BoundedSemaphore(GCP_READERS)
 NO_FILE = "send OpenDroneMap's gcp_list.txt as the request body (text/plain) or as the multipart field 'file'"
 
 
@@ -61,14 +76,41 @@ def gcp_text(data: bytes) -> str:
     return text
 
 
-def read_gcps(text: str, sizes: dict[str, tuple[int, int]]) -> Any:
-    """``geomatch.geo.gcpfile.read_gcp_file``; a file the project cannot use is InvalidRequest."""
+def read_gcps(text: str, sizes: dict[str, tuple[int, int]], timeout_s: float = GCP_READ_TIMEOUT_S) -> Any:
+    """``geomatch.geo.gcpfile.read_gcp_file`` on a daemon thread of its own, within ``timeout_s``;
+    a file the project cannot use, a PROJ error, or a read past the deadline is InvalidRequest.
+    With GCP_READERS reads running (past their deadline ones included) it is 429: no read waits."""
+    from pyproj.exceptions import ProjError
+
     from geomatch.geo.gcpfile import GcpError, read_gcp_file
 
+    if not _readers.acquire(blocking=False):
+        raise Overloaded(f"{GCP_READERS} GCP files are being read: retry in a second")
+    answer: queue.Queue[tuple[Any, BaseException | None]] = queue.Queue(maxsize=1)
+
+    def read() -> None:
+        try:
+            answer.put((read_gcp_file(text, sizes), None))
+        except BaseException as e:  # handed to the caller, which raises it
+            answer.put((None, e))
+        finally:
+            _readers.release()
+
+    threading.Thread(target=read, name="gcp-read", daemon=True).start()
     try:
-        return read_gcp_file(text, sizes)
-    except GcpError as e:
-        raise InvalidRequest(str(e)) from None
+        gcps, error = answer.get(timeout=timeout_s)
+    except queue.Empty:
+        raise InvalidRequest(
+            f"line 1: the GCP file could not be read within {timeout_s:g} s: give its coordinate "
+            "system as an EPSG code, WGS84, a PROJ string or WKT"
+        ) from None
+    if isinstance(error, GcpError):
+        raise InvalidRequest(str(error)) from None
+    if isinstance(error, ProjError):  # CRSError too: every PROJ error is about line 1
+        raise InvalidRequest(f"line 1: PROJ cannot use the coordinate system ({str(error)[:200]})") from None
+    if error is not None:
+        raise error
+    return gcps
 
 
 def _view(summary: dict[str, Any], size: int, error: str | None = None) -> GcpView:

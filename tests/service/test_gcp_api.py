@@ -22,6 +22,8 @@ import pytest
 from geomatch.synth.aerial import Scene
 from geomatch.synth.gcps import scene_gcps
 
+from ..fswatch import watched
+from ..test_gcp_hostile import hostile, make_targets
 from .conftest import SCENE_SEED
 from .grpc_harness import GrpcDeployment, error_of, running_grpc
 from .harness import upload, wait_job
@@ -140,6 +142,39 @@ def test_rest_refuses_a_bad_file_with_the_reason_and_keeps_the_earlier(
     c.delete(f"/v1/projects/{pid}/gcp")
     r = c.put(f"/v1/projects/{pid}/gcp", content=bad[0][0])
     assert r.status_code == 422 and stored(dep, pid) is None
+
+
+def test_hostile_coordinate_systems_are_refused_open_nothing_and_leave_health_answering(
+    dep: GrpcDeployment, key: str, scene: Path, gcp_list: str, tmp_path: Path
+) -> None:
+    """Line 1 naming files (a secret, /etc/shadow, a FIFO, /dev/kmsg), grids, URLs, another planet:
+    422 / INVALID_ARGUMENT naming line 1 over REST and gRPC, the earlier file kept, no file under
+    the watched folder opened by the server, and /healthz and gRPC health answering after each."""
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    c = dep.client(key)
+    pid = project(c, scene, "gcp-hostile")
+    assert c.put(f"/v1/projects/{pid}/gcp", content=gcp_list).status_code == 200
+    targets = make_targets(tmp_path / "targets")
+    points = gcp_list.split("\n", 1)[1]
+    with (
+        watched(tmp_path / "targets") as seen,
+        dep.grpc_client(key, timeout=30) as g,
+        grpc.insecure_channel(dep.target) as ch,
+    ):
+        health = health_pb2_grpc.HealthStub(ch)
+        for crs in hostile(targets):
+            body = f"{crs}\n{points}"
+            r = c.put(f"/v1/projects/{pid}/gcp", content=body, headers={"content-type": "text/plain"})
+            assert r.status_code == 422 and r.json()["detail"].startswith("line 1: "), (crs[:80], r.text)
+            code, message = error_of(lambda body=body: g.put_gcp(pid, body))
+            assert code == grpc.StatusCode.INVALID_ARGUMENT and message.startswith("line 1: "), message
+            assert httpx.get(f"{dep.url}/healthz", timeout=2).status_code == 200
+            answer = health.Check(health_pb2.HealthCheckRequest(service=""), timeout=2)
+            assert answer.status == health_pb2.HealthCheckResponse.SERVING
+    assert seen == [], seen
+    assert stored(dep, pid) == gcp_list.encode()
+    assert c.get(f"/v1/projects/{pid}/gcp").json()["crs"] == "EPSG:32632"
 
 
 def test_grpc_put_get_delete(dep: GrpcDeployment, key: str, scene: Path, gcp_list: str) -> None:
