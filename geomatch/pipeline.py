@@ -245,8 +245,10 @@ def run(
         survey=survey,
     )
     summary["pose_priors"] = priors
-    if gcps is not None:
+    if gcps is not None and opts.gcp:
         gcpgeo.georeference_summary(summary, out, gcps, opts.checkpoints)
+        # kept beside summary.json: the exports place the points by it (export/gcpjson.py)
+        (out / "gcp_list.txt").write_text(Path(opts.gcp).read_text())
     timings["mapping"] = time.perf_counter() - t_map
     timings["total"] = time.perf_counter() - t_start
     timings.update(pair_timing_summary(pair_seconds))

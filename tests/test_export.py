@@ -306,6 +306,7 @@ def test_exports_import_no_torch() -> None:
     """The service's API process builds the exports it serves, and it never loads torch."""
     exports = (
         "geomatch.export, geomatch.export.nerfstudio, geomatch.export.colmap_text, "
-        "geomatch.export.ply, geomatch.export.hloc, geomatch.export.openmvs"
+        "geomatch.export.ply, geomatch.export.hloc, geomatch.export.openmvs, geomatch.export.odm, "
+        "geomatch.export.laz"
     )
     assert loaded_after(exports, ("torch", "cv2")) == []

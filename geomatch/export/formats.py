@@ -85,6 +85,24 @@ FORMATS: dict[str, ExportFormat] = {
             "undistorted COLMAP folder for OpenMVS's InterfaceCOLMAP",
             7,
         ),
+        # the photos are read when present (make, model, capture time), not needed
+        ExportFormat(
+            "odm",
+            "geomatch.export.odm:write",
+            frozenset(),
+            _ZIP,
+            "OpenDroneMap's layout: georeferenced LAZ, shots.geojson, cameras.json, images.json, "
+            "stats.json, report PDF, GCP GeoJSON",
+            8,
+        ),
+        ExportFormat(
+            "laz",
+            "geomatch.export.laz:write",
+            frozenset(),
+            _ZIP,
+            "the georeferenced point cloud (LAZ, projected CRS, colours)",
+            9,
+        ),
     )
 }
 
