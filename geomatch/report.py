@@ -7,10 +7,16 @@ check-point RMSE, pairs the view-graph checks dropped, time per stage) into one 
 summary's ``report``, also a job's result) and one Markdown page (``geomatch report OUT``), as
 OpenDroneMap's quality report does for a task. It reads a summary only: a report of an older run
 is built the same way from its summary.json.
+
+Names in a report are the clients' (project, image and point names, a GCP file's coordinate system
+and its problems), and a Markdown page is rendered by whatever reads it: every such text goes into
+the page through ``escape_markdown``, so ``<script>``, ``[c](javascript:...)`` or a ``|`` in a
+name shows as those characters instead of markup, HTML or a broken table.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from typing import Any
 
@@ -18,6 +24,20 @@ from typing import Any
 # team looks at first (a photo taken during take-off, a fix from before the lock)
 GPS_OUTLIER_FACTOR = 3.0
 MIN_GPS_OUTLIER_M = 1.0
+
+
+# what opens markup inside a line: HTML and autolinks (<, >, &), links and images ([, ], !), code,
+# emphasis and strikethrough (*, ~, and _ at a word's edge: inside a word it opens nothing, and
+# IMG_0001.JPG stays readable), table cells (|), and the escape itself
+_MARKUP = re.compile(r"[\\`*\[\]<>|~&!]|(?<![0-9A-Za-z])_|_(?![0-9A-Za-z])")
+
+
+def escape_markdown(value: Any) -> str:
+    """``value`` as text that renders as itself in Markdown (CommonMark, GitHub's tables) and
+    holds no HTML: one line (line breaks and other control characters become spaces), every
+    character that could open markup escaped with a backslash."""
+    text = "".join(ch if ch.isprintable() else " " for ch in str(value))
+    return _MARKUP.sub(lambda m: "\\" + m.group(0), text)
 
 
 def survey_report(summary: Mapping[str, Any]) -> dict[str, Any]:
@@ -95,7 +115,7 @@ def _georeferencing(s: Mapping[str, Any]) -> dict[str, Any]:
         out["gps_check"] = held
     gcp = s.get("gcp")
     if gcp:
-        g: dict[str, Any] = {"crs": gcp.get("crs"), "points": gcp.get("points", [])}
+        g: dict[str, Any] = {"crs": gcp.get("crs"), "points": [_gcp_point(p) for p in gcp.get("points", [])]}
         if "error" in gcp:
             g["error"] = gcp["error"]
             g["problems"] = gcp.get("problems", [])
@@ -113,6 +133,21 @@ def _georeferencing(s: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _gcp_point(p: Any) -> dict[str, Any]:
+    """A point of the summary's ``gcp`` as every report reads it: a dict with its role. A summary
+    written before the points had one shape in every outcome holds bare names where the GCPs did
+    not georeference the model."""
+    if isinstance(p, Mapping):
+        return dict(p)
+    return {
+        "name": str(p),
+        "role": "unused",
+        "observations": None,
+        "observations_registered": None,
+        "reason": "not placed: the GCPs did not georeference the model",
+    }
+
+
 def _timings(s: Mapping[str, Any]) -> dict[str, float]:
     t = dict(s.get("timings", {}))
     stages = {k: t[k] for k in ("plan", "matching", "writing", "mapping", "total") if k in t}
@@ -126,9 +161,11 @@ def _round(v: Any, nd: int) -> float | None:
 
 
 def to_markdown(r: Mapping[str, Any], title: str = "Survey report") -> str:
-    """The report as a page a survey team reads (and pastes into a delivery note)."""
+    """The report as a page a survey team reads (and pastes into a delivery note); every text that
+    came from a client goes through ``escape_markdown``."""
+    e = escape_markdown
     ph, mo, pa, ge = r["photos"], r["model"], r["pairs"], r["georeferencing"]
-    lines = [f"# {title}", ""]
+    lines = [f"# {e(title)}", ""]
     lines += ["## Photos", ""]
     lines += [
         f"- registered: {ph['registered']} of {ph['images']}"
@@ -136,7 +173,7 @@ def to_markdown(r: Mapping[str, Any], title: str = "Survey report") -> str:
         f"- with GPS: {ph['with_gps'] if ph.get('with_gps') is not None else 'none'}",
     ]
     if ph["unregistered"]:
-        lines.append(f"- not registered: {', '.join(ph['unregistered'])}")
+        lines.append(f"- not registered: {', '.join(e(n) for n in ph['unregistered'])}")
     lines += ["", "## Model", ""]
     lines += [
         f"- models: {mo['models']} (the largest is reported)",
@@ -145,20 +182,23 @@ def to_markdown(r: Mapping[str, Any], title: str = "Survey report") -> str:
         f"{mo['mean_reprojection_error_px']} px",
     ]
     if mo["track_lengths"]:
-        lines += ["", "| track length | " + " | ".join(mo["track_lengths"]) + " |"]
+        lines += ["", "| track length | " + " | ".join(e(k) for k in mo["track_lengths"]) + " |"]
         lines += ["|---|" + "---:|" * len(mo["track_lengths"])]
-        lines += ["| points | " + " | ".join(str(v) for v in mo["track_lengths"].values()) + " |"]
+        lines += ["| points | " + " | ".join(e(v) for v in mo["track_lengths"].values()) + " |"]
     lines += ["", "## Pairs", ""]
     lines += [
-        f"- planned: {pa['planned']} ({pa['plan']})" + (f", tiled: {pa['tiled']}" if pa.get("tiled") else ""),
+        f"- planned: {pa['planned']} ({e(pa['plan'])})"
+        + (f", tiled: {pa['tiled']}" if pa.get("tiled") else ""),
         f"- verified: {pa['verified']}",
         f"- dropped by the view-graph checks: {len(pa['dropped_by_view_graph'])}",
     ]
-    lines += [f"  - {' x '.join(d['pair'])}: {d['why']}" for d in pa["dropped_by_view_graph"]]
+    lines += [
+        f"  - {' x '.join(e(n) for n in d['pair'])}: {e(d['why'])}" for d in pa["dropped_by_view_graph"]
+    ]
     lines += ["", "## Georeferencing", ""]
     frame = {"ENU": "ENU metres around the photos' GPS", "GCP": "the GCPs' coordinate system"}
     lines.append(
-        f"- frame: {frame.get(ge['frame'], ge['frame'])}" if ge["georeferenced"] else "- not georeferenced"
+        f"- frame: {e(frame.get(ge['frame'], ge['frame']))}" if ge["georeferenced"] else "- not georeferenced"
     )
     if "gps" in ge:
         gp = ge["gps"]
@@ -168,28 +208,32 @@ def to_markdown(r: Mapping[str, Any], title: str = "Survey report") -> str:
         )
         for row in gp["largest"]:
             note = "" if row["inlier"] else " (not used: outlier)"
-            lines.append(f"  - {row['name']}: {row['residual_m']} m{note}")
+            lines.append(f"  - {e(row['name'])}: {row['residual_m']} m{note}")
     if "gps_check" in ge:
         lines += _gps_check_markdown(ge["gps_check"])
     if "gcp" in ge:
         lines += _gcp_markdown(ge["gcp"])
     lines += ["", "## Time per stage (s)", "", "| stage | s |", "|---|---:|"]
-    lines += [f"| {k} | {v} |" for k, v in r["timings_s"].items()]
+    lines += [f"| {e(k)} | {v} |" for k, v in r["timings_s"].items()]
     return "\n".join(lines) + "\n"
 
 
 def _gps_check_markdown(g: Mapping[str, Any]) -> list[str]:
     """The cameras the mapping found beyond the fixes' fitted noise, and what it did with them."""
+    e = escape_markdown
     lines = [
         f"- cameras held to their GPS fixes: fitted noise {g['sigma_m']} m (horizontal), limit "
         f"{g['limit_m']} m; {len(g['found']) + len(g.get('kept_fix_off_track', []))} camera(s) beyond it"
     ]
-    lines += [f"  - {o['name']}: placed again, {o['residual_m']} m from its fix" for o in g["placed_again"]]
     lines += [
-        f"  - {o['name']}: taken out of the model, {o['residual_m']} m from its fix" for o in g["taken_out"]
+        f"  - {e(o['name'])}: placed again, {o['residual_m']} m from its fix" for o in g["placed_again"]
     ]
     lines += [
-        f"  - {o['name']}: kept, {o['residual_m']} m from its fix, which lies off the flight track of the "
+        f"  - {e(o['name'])}: taken out of the model, {o['residual_m']} m from its fix"
+        for o in g["taken_out"]
+    ]
+    lines += [
+        f"  - {e(o['name'])}: kept, {o['residual_m']} m from its fix, which lies off the flight track of the "
         "photos before and after it while the camera lies on it (a stale or wild fix)"
         for o in g.get("kept_fix_off_track", [])
     ]
@@ -197,9 +241,14 @@ def _gps_check_markdown(g: Mapping[str, Any]) -> list[str]:
 
 
 def _gcp_markdown(g: Mapping[str, Any]) -> list[str]:
-    lines = ["", "### Ground control points", "", f"- coordinate system: {g.get('crs')}"]
-    if "error" in g:
-        lines.append(f"- not georeferenced by the GCPs: {g['error']}")
+    """The GCP section in every outcome: georeferenced (the RMSEs, the accuracy, a row per point) or
+    not (why, and a row per point with why it was not used)."""
+    e = escape_markdown
+    lines = ["", "### Ground control points", ""]
+    if g.get("crs"):
+        lines.append(f"- coordinate system: {e(g['crs'])}")
+    if g.get("error"):
+        lines.append(f"- not georeferenced by the GCPs: {e(g['error'])}")
     for key, label in (("check", "check-point RMSE"), ("control", "control-point RMSE")):
         if f"{key}_rmse_horizontal_m" in g:
             lines.append(
@@ -216,23 +265,27 @@ def _gcp_markdown(g: Mapping[str, Any]) -> list[str]:
         if acc.get("note"):
             how += f"; {acc['note']}"
         lines.append(
-            f"- control points held to {acc['horizontal']} m horizontal, {acc['vertical']} m vertical ({how})"
+            f"- control points held to {acc['horizontal']} m horizontal, {acc['vertical']} m vertical "
+            f"({e(how)})"
         )
-    if g.get("points"):
+    points = [_gcp_point(p) for p in g.get("points") or []]
+    if points:
         lines += ["", "| point | role | photos (registered) | dx m | dy m | dz m | 3D m | note |"]
         lines += ["|---|---|---:|---:|---:|---:|---:|---|"]
-        for p in g["points"]:
+        for p in points:
             cells = [_cell(p.get(k)) for k in ("dx_m", "dy_m", "dz_m", "3d_m")]
             note = p.get("reason") or (
                 f"reprojection {p['reprojection_px']} px" if p.get("reprojection_px") is not None else ""
             )
+            seen = p.get("observations")
+            photos = "" if seen is None else f"{seen} ({p.get('observations_registered') or 0})"
             lines.append(
-                f"| {p['name']} | {p['role']} | {p['observations']} ({p['observations_registered']}) | "
+                f"| {e(p.get('name'))} | {e(p.get('role'))} | {photos} | "
                 + " | ".join(cells)
-                + f" | {note} |"
+                + f" | {e(note)} |"
             )
     return lines
 
 
 def _cell(v: Any) -> str:
-    return "" if v is None else f"{v:.3f}"
+    return "" if not isinstance(v, int | float) else f"{v:.3f}"

@@ -4,6 +4,7 @@ checks first: photos left out, GPS fixes far from the model, unused GCPs, the ch
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -132,3 +133,91 @@ def test_geomatch_report_prints_a_runs_report_and_refuses_what_is_not_a_summary(
     (tmp_path / "other.json").write_text("[1, 2]")
     assert main(["report", str(tmp_path / "other.json")]) != 0
     assert "not the summary" in capsys.readouterr().err
+
+
+FAILED_GCP_POINTS = [
+    {
+        "name": "gcp01",
+        "role": "unused",
+        "observations": 2,
+        "observations_registered": 2,
+        "reason": "its observations do not meet: 41.0 px from the point they place (> 5)",
+        "reprojection_px": 41.0,
+    },
+    {
+        "name": "gcp02",
+        "role": "unused",
+        "observations": 1,
+        "observations_registered": 0,
+        "reason": "seen in one",
+    },
+]
+
+
+@pytest.mark.parametrize(
+    "gcp",
+    [
+        # the documented case: clicks that do not meet leave fewer than 3 control points
+        {"crs": "EPSG:32632", "points": FAILED_GCP_POINTS, "error": "1 control points placed in the model"},
+        # a summary from before the points had one shape: bare names where the GCPs failed
+        {"crs": "EPSG:32632", "points": ["gcp01", "gcp02"], "error": "1 control points placed in the model"},
+        # the file no longer fits the project's images: no point at all
+        {"error": "the project's GCP file: the GCP file leaves 0 usable points"},
+        {"crs": "EPSG:32632", "points": [], "error": "no model to georeference"},
+    ],
+)
+def test_every_gcp_outcome_renders_as_json_and_markdown(gcp: dict[str, Any]) -> None:
+    r = survey_report({"registered": 3, "images": 3, "georeferenced": True, "frame": "ENU", "gcp": gcp})
+    g = r["georeferencing"]["gcp"]
+    assert g["error"] == gcp["error"]
+    assert all(isinstance(p, dict) and p["role"] == "unused" and p["reason"] for p in g["points"]), g
+    json.dumps(r, allow_nan=False)
+    md = to_markdown(r)
+    assert f"- not georeferenced by the GCPs: {gcp['error']}" in md
+    rows = [line for line in md.splitlines() if line.startswith("| gcp")]
+    assert len(rows) == len(gcp.get("points", [])), md
+    assert all(row.count(" | ") == 7 for row in rows), rows  # eight cells, none broken
+    section = md[md.index("### Ground control points") :]
+    assert "None" not in section and "null" not in section, section
+
+
+def test_names_from_clients_render_as_text_in_the_markdown() -> None:
+    """Project, image and point names and a coordinate system as a client may send them: no HTML, no
+    link, no broken table in the page, and each shows as its own characters once rendered."""
+    hostile = [
+        "<script>alert(1)</script>",
+        "<img src=x onerror=alert(1)>.jpg",
+        "[c](javascript:alert(1))",
+        "a|b",
+    ]
+    summary = {
+        "registered": 1,
+        "images": 5,
+        "unregistered_names": hostile,
+        "georeferenced": False,
+        "gcp": {
+            "crs": "<b>EPSG:32632</b>",
+            "error": "check points not among the usable GCPs: <i>x</i>",
+            "points": [
+                {
+                    "name": n,
+                    "role": "unused",
+                    "observations": 2,
+                    "observations_registered": 0,
+                    "reason": f"r {n}",
+                }
+                for n in hostile
+            ],
+        },
+    }
+    md = to_markdown(survey_report(summary), title=f"Survey report: {hostile[0]}")
+    assert not re.search(r"(?<!\\)[<>\[\]]", md), md  # every bracket escaped: no tag, no link
+    assert "a|b" not in md
+    rows = [line for line in md.splitlines() if line.startswith("| \\<") or line.startswith("| \\[")]
+    rows += [line for line in md.splitlines() if line.startswith("| a\\|b")]
+    assert len(rows) == len(hostile), md
+    for row in rows:  # eight cells: the escaped pipes are not cell borders
+        assert len([c for c in row.replace("\\|", "").split("|")]) == 10, row
+    assert md.startswith("# Survey report: \\<script\\>alert(1)\\</script\\>\n"), md
+    # once the escapes are read back (as a Markdown renderer does), the names are as sent
+    assert f"- not registered: {', '.join(hostile)}" in md.replace("\\", "")

@@ -94,7 +94,8 @@ export function showReport(report) {
         { dataset: { point: p.name, role: p.role } },
         node("td", {}, p.name),
         node("td", {}, p.role),
-        node("td", { className: "num" }, `${p.observations} (${p.observations_registered})`),
+        // a report built from an older summary may not know a point's photos: an empty cell, not "null"
+        node("td", { className: "num" }, p.observations === null || p.observations === undefined ? "" : `${p.observations} (${p.observations_registered ?? 0})`),
         ...["dx_m", "dy_m", "dz_m", "3d_m"].map((k) => node("td", { className: "num" }, metres(p[k]))),
         node("td", {}, p.reason || (p.reprojection_px === null || p.reprojection_px === undefined ? "" : `reprojection ${p.reprojection_px} px`)),
       ),
