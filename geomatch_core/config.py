@@ -62,6 +62,10 @@ class Settings:
     # GEOMATCH_MAX_QUEUED_PAIRS: pairs one tenant's unfinished match jobs may hold in all (0: no
     # limit): a match past it is 429 / RESOURCE_EXHAUSTED until some of that work is done
     max_queued_pairs: int = 50_000
+    # GEOMATCH_MAX_OPEN_JOBS: unfinished localize and reconstruct jobs one tenant may have (0: no
+    # limit): each is minutes of a worker's time, and a flood of them queued every other tenant's
+    # work behind it; past it a request is 429 / RESOURCE_EXHAUSTED until some have ended
+    max_open_jobs: int = 8
     # GEOMATCH_PAIRS_IN_FLIGHT: pair steps one match job keeps queued or running at once; the next
     # is queued as one ends, so other jobs' steps interleave with a long job's. 0: the runner's
     # own slots (embedded: its threads; Celery: two per live worker, the one it runs and the one
@@ -117,6 +121,7 @@ class Settings:
             grpc_first_message_s=max(0.1, _float("GEOMATCH_GRPC_FIRST_MESSAGE_S", 10.0)),
             max_pairs_per_job=max(0, _int("GEOMATCH_MAX_PAIRS_PER_JOB", 20_000)),
             max_queued_pairs=max(0, _int("GEOMATCH_MAX_QUEUED_PAIRS", 50_000)),
+            max_open_jobs=max(0, _int("GEOMATCH_MAX_OPEN_JOBS", 8)),
             pairs_in_flight=max(0, _int("GEOMATCH_PAIRS_IN_FLIGHT", 0)),
             head_timeout_s=max(0.1, _float("GEOMATCH_HEAD_TIMEOUT_S", 10.0)),
             max_request_bytes=max(1, _int("GEOMATCH_MAX_REQUEST_MB", 1024)) * 1024 * 1024,

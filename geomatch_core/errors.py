@@ -75,6 +75,11 @@ class WorkQueued(RateLimited):
     some have finished, or cancel one. REST 429 with Retry-After, gRPC RESOURCE_EXHAUSTED."""
 
 
+class JobsOpen(RateLimited):
+    """The tenant has as many unfinished localize and reconstruct jobs as it may: retry once one
+    has ended, or cancel one. REST 429 with Retry-After, gRPC RESOURCE_EXHAUSTED."""
+
+
 class QuotaExceeded(DomainError):
     """The call would take the tenant past a quota (projects, images, stored bytes): nothing was
     kept; deleting what the tenant no longer needs makes room."""

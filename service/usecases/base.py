@@ -11,14 +11,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from geomatch.options import PROJECT_OPTIONS, defaults
 from geomatch_core.config import Settings
-from geomatch_core.errors import Conflict, InvalidRequest, NotFound, TooLarge
+from geomatch_core.errors import Conflict, InvalidRequest, JobsOpen, NotFound, TooLarge
 from geomatch_core.locks import LockFactory
-from geomatch_core.models import Project
+from geomatch_core.models import Job, Project
 from geomatch_core.queue import JobQueue
 from geomatch_core.storage import Storage
 from geomatch_core.store import MetadataStore
@@ -87,6 +88,38 @@ class Context:
         # the work the API does itself, in the caller's thread (pictures it waits for, exports,
         # snapshots): bounded, so that one tenant's calls cannot hold every thread of the server
         self.heavy = FairSlots("heavy calls", settings.heavy_slots, settings.heavy_tenant_slots)
+
+
+OPEN = ("queued", "running")
+HEAVY_JOBS = ("localize", "reconstruct")  # minutes of a worker each: GEOMATCH_MAX_OPEN_JOBS counts them
+
+
+def staged_bytes(s: Session, tenant_id: str) -> int:
+    """Bytes of the photos the tenant's unfinished localize jobs hold staged (not added to a
+    project): they are on the server's disk as long as the job runs, and count against the stored
+    bytes quota as images do. Read off the jobs' options (bounded by GEOMATCH_MAX_OPEN_JOBS)."""
+    rows = s.scalars(
+        select(Job.options).where(Job.tenant_id == tenant_id, Job.kind == "localize", Job.state.in_(OPEN))
+    )
+    return sum(int(o.get("staged_bytes") or 0) for o in rows if isinstance(o, dict))
+
+
+def check_open_jobs(s: Session, settings: Settings, tenant_id: str, adding: int = 1) -> None:
+    """JobsOpen (429, Retry-After) when ``adding`` more localize or reconstruct jobs would take the
+    tenant past ``Settings.max_open_jobs`` unfinished ones: 15 localize requests of one tenant had
+    another tenant's match wait 10-17 s behind them."""
+    limit = settings.max_open_jobs
+    if not limit:
+        return
+    rows = s.scalars(
+        select(Job.id).where(Job.tenant_id == tenant_id, Job.kind.in_(HEAVY_JOBS), Job.state.in_(OPEN))
+    ).all()
+    if len(rows) + adding > limit:
+        raise JobsOpen(
+            f"this key's tenant has {len(rows)} unfinished localize and reconstruct jobs, and may have "
+            f"{limit} at once (GEOMATCH_MAX_OPEN_JOBS): retry when one has ended, or cancel one",
+            retry_after_s=10,
+        )
 
 
 class UseCases:

@@ -26,7 +26,7 @@ from geomatch_core.models import Image, Project
 from ..ids import known_name
 from ..paging import IMAGES, Page, page_of
 from ..validation import check_name
-from .base import Staged, UseCases, choice
+from .base import Staged, UseCases, choice, staged_bytes
 from .views import ImageView, Upload, image_view
 
 # how a stored image is served back (the validated format, never the client's claim)
@@ -200,10 +200,12 @@ class ImageUseCases(UseCases):
                 "pass it (delete a project to make room)"
             )
         added = sum(st.size for st in new)
+        size += staged_bytes(s, tenant_id) if bytes_quota else 0
         if bytes_quota and size + added > bytes_quota:
             raise QuotaExceeded(
-                f"this key's tenant stores {size} bytes of images, its quota is {bytes_quota}: "
-                f"these {added} would pass it (delete a project to make room)"
+                f"this key's tenant stores {size} bytes of images (photos staged for localizing "
+                f"included), its quota is {bytes_quota}: these {added} would pass it (delete a project "
+                "to make room)"
             )
 
     def image_file(self, tenant_id: str, project_id: str, name: str) -> tuple[Path, str]:

@@ -19,7 +19,7 @@ from geomatch_core.queue import ENTRY_STEP
 from ..ids import known_id
 from ..paging import JOBS, Page, page_of
 from ..validation import check_option, check_pair_list
-from .base import DEFAULTS, UseCases, check_config, choice
+from .base import DEFAULTS, UseCases, check_config, check_open_jobs, choice
 from .gcp import check_checkpoints
 from .views import JobView, MatchRequest, job_view
 
@@ -43,7 +43,10 @@ class JobUseCases(UseCases):
             job = Job(project_id=project_id, tenant_id=tenant_id, kind="match", options=opts)
             s.add(job)
             s.flush()
-            follower = _reconstruct_job(s, project_id, tenant_id, mapper, job.id) if req.reconstruct else None
+            follower = None
+            if req.reconstruct:
+                check_open_jobs(s, self.ctx.settings, tenant_id)
+                follower = _reconstruct_job(s, project_id, tenant_id, mapper, job.id)
             views = job_view(job), job_view(follower) if follower else None
         self.enqueue(views[0])
         return views
@@ -102,6 +105,7 @@ class JobUseCases(UseCases):
                     "nothing to reconstruct yet: no match job of this project has succeeded "
                     '(POST .../match first, or with "reconstruct": true to chain both)'
                 )
+            check_open_jobs(s, self.ctx.settings, tenant_id)
             held_out = check_checkpoints(s, self.ctx.storage, project_id, checkpoints)
             view = job_view(_reconstruct_job(s, project_id, tenant_id, mapper, checkpoints=held_out))
         self.enqueue(view)

@@ -20,14 +20,15 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from geomatch.options import CAPTURES, PROJECT_OPTIONS
-from geomatch_core.errors import BadFile, Conflict, InvalidRequest, NotFound, Overloaded
-from geomatch_core.models import Job, new_id
+from geomatch_core.errors import BadFile, Conflict, InvalidRequest, NotFound, Overloaded, QuotaExceeded
+from geomatch_core.models import Image, Job, Project, new_id
 
 from ..validation import check_name
-from .base import DEFAULTS, Context, Staged, UseCases, check_config, choice
+from .base import DEFAULTS, Context, Staged, UseCases, check_config, check_open_jobs, choice, staged_bytes
 from .images import ImageUseCases
 from .jobs import JobUseCases
 from .views import JobView, Upload, job_view
@@ -62,17 +63,21 @@ class LocalizeUseCases(UseCases):
         with self._unless_deleted(tenant_id, project_id):
             with self.ctx.store.session() as s:
                 config = dict(self._project(s, tenant_id, project_id).config)
+                check_open_jobs(s, self.ctx.settings, tenant_id)  # before a byte is kept
             self._model_ready(project_id)
             job_id = new_id()
+            staged = 0
             if add:
                 views = self.images.upload_images(tenant_id, project_id, uploads, capture)
                 photos = [(v.name, v.capture) for v in views]
             else:
-                photos = self._stage_photos(project_id, job_id, uploads, capture)
+                photos, staged = self._stage_photos(project_id, job_id, uploads, capture)
             try:
                 with self.ctx.store.session() as s:
                     self._project(s, tenant_id, project_id)
-                    job = self._localize_job(s, job_id, project_id, tenant_id, config, photos, add)
+                    check_open_jobs(s, self.ctx.settings, tenant_id)
+                    self._within_quota(s, tenant_id, staged)
+                    job = self._localize_job(s, job_id, project_id, tenant_id, config, photos, add, staged)
                     view = job_view(job)
             except BaseException:
                 shutil.rmtree(self.ctx.storage.localize_dir(project_id, job_id), ignore_errors=True)
@@ -106,13 +111,36 @@ class LocalizeUseCases(UseCases):
                 "localize against (add images and reconstruct again)"
             )
 
+    def _within_quota(self, s: Session, tenant_id: str, staged: int) -> None:
+        """QuotaExceeded when ``staged`` more bytes would take the tenant's stored images and the
+        photos its unfinished localize jobs hold past ``quota_bytes``: a staged photo is on the
+        server's disk for as long as its job runs (15 requests once staged 86 MB under a 20 MB
+        quota while an image upload was refused)."""
+        quota = self.ctx.settings.quota_bytes
+        if not quota or not staged:
+            return
+        stored = s.scalar(
+            select(func.coalesce(func.sum(Image.size_bytes), 0))
+            .join(Project, Project.id == Image.project_id)
+            .where(Project.tenant_id == tenant_id)
+        )
+        held = int(stored or 0) + staged_bytes(s, tenant_id)
+        if held + staged > quota:
+            raise QuotaExceeded(
+                f"this key's tenant stores {held} bytes of images and photos staged for localizing, its "
+                f"quota is {quota}: these {staged} would pass it (wait for its localize jobs to end, or "
+                "delete a project to make room)"
+            )
+
     def _stage_photos(
         self, project_id: str, job_id: str, uploads: Iterable[Upload], capture: str
-    ) -> list[tuple[str, str]]:
+    ) -> tuple[list[tuple[str, str]], int]:
         """Every photo checked as an upload is and put in the job's folder, or none (the folder is
-        removed on any error); with its capture (the file's own, else the request's)."""
+        removed on any error); with its capture (the file's own, else the request's); and their
+        bytes in all."""
         folder = self.ctx.storage.localize_dir(project_id, job_id)
         photos: list[tuple[str, str]] = []
+        size = 0
         try:
             for up in uploads:
                 name = check_name(up.name)
@@ -126,12 +154,13 @@ class LocalizeUseCases(UseCases):
                 finally:
                     staged.path.unlink(missing_ok=True)
                 photos.append((name, taken))
+                size += staged.size
             if not photos:
                 raise InvalidRequest("no photos: send one or more multipart fields named 'files'")
         except BaseException:
             shutil.rmtree(folder, ignore_errors=True)
             raise
-        return photos
+        return photos, size
 
     def _localize_job(
         self,
@@ -142,6 +171,7 @@ class LocalizeUseCases(UseCases):
         config: dict[str, Any],
         photos: list[tuple[str, str]],
         add: bool,
+        staged: int = 0,
     ) -> Job:
         opts = {**DEFAULTS, **check_config(config)}
         # the project's matcher and its options; the mapper and a match job's pairs do not apply
@@ -156,6 +186,7 @@ class LocalizeUseCases(UseCases):
                 "add": add,
                 "photos": [n for n, _ in photos],
                 "captures": [c for _, c in photos],
+                "staged_bytes": staged,
             },
             total=len(photos),
         )
