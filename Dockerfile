@@ -88,8 +88,9 @@ WORKDIR /home/geomatch
 # weight file loading, a real match with the default networks, the generated gRPC code, the commands.
 RUN python /opt/geomatch/selfcheck.py "${TORCH_VARIANT}"
 
-# REST (serve --port) and gRPC (serve --grpc-port, grpc-serve --port): the CLI's defaults.
-EXPOSE 8000 50051
+# REST (serve --port), gRPC (serve --grpc-port, grpc-serve --port) and the NodeODM node
+# (serve --node-port, where WebODM and PyODM look for a processing node): the CLI's defaults.
+EXPOSE 8000 50051 3000
 # Role-aware: /healthz (+ gRPC health) for serve, gRPC health for grpc-serve, a Celery ping to the
 # worker's own node for worker (docker/healthcheck.py says why). Every 2 s while starting (Docker
 # Engine 25+; older engines use the interval), so that what waits for the API starts soon after it.
@@ -97,4 +98,4 @@ HEALTHCHECK --interval=30s --timeout=15s --start-period=60s --start-interval=2s 
     CMD ["python", "/opt/geomatch/healthcheck.py"]
 ENTRYPOINT ["geomatch"]
 # Alone (no REDIS_URL) this is the embedded default: SQLite and jobs in-process under /data.
-CMD ["serve", "--host", "0.0.0.0", "--port", "8000", "--grpc-port", "50051"]
+CMD ["serve", "--host", "0.0.0.0", "--port", "8000", "--grpc-port", "50051", "--node-port", "3000"]

@@ -20,6 +20,7 @@ from geomatch import cli as library
 from geomatch.options import EXIT_BAD_INPUT
 from service import cli as client
 from service.grpcapi import cli as grpc_options
+from service.nodeodm import cli as node_options
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,6 +40,7 @@ def register(sub: Any) -> None:
     s.add_argument("--host", default="127.0.0.1")
     s.add_argument("--port", type=int, default=8000)
     grpc_options.add_serve_options(s)
+    node_options.add_serve_options(s)
     s.set_defaults(func=cmd_serve)
 
     g = sub.add_parser(
@@ -99,6 +101,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except SystemExit:
         close_service(service)
         raise
+    try:
+        node = node_options.start_beside_http(service, args)  # the NodeODM node: same Service again
+    except SystemExit:
+        if grpc_server is not None:
+            grpc_server.stop()
+        close_service(service)
+        raise
     base = f"http://{args.host}:{args.port}"
     announce(
         service,
@@ -121,6 +130,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     try:
         server.run()
     finally:
+        if node is not None:
+            node.stop()
         if grpc_server is not None:
             grpc_server.stop()
         close_service(service)

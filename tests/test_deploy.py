@@ -476,21 +476,24 @@ def test_container_commands_exist_in_the_cli() -> None:
 
 @pytest.mark.unit
 def test_ports_agree_with_the_cli_and_the_image() -> None:
+    from service.nodeodm.cli import DEFAULT_PORT as node_default
+
     serve_defaults = parse(["serve"])
     grpc_default = parse(["grpc-serve"]).port
     exposed = {int(p) for r in instructions("EXPOSE") for p in r.split()}
-    assert exposed == {serve_defaults.port, grpc_default}, "EXPOSE is the CLI's default ports"
+    assert exposed == {serve_defaults.port, grpc_default, node_default}, "EXPOSE is the CLI's default ports"
     image_cmd = parse(exec_form(instructions("CMD")[-1]))
     assert image_cmd.host == "0.0.0.0", "inside a container the API must listen on every interface"
-    assert {image_cmd.port, image_cmd.grpc_port} == exposed
+    assert {image_cmd.port, image_cmd.grpc_port, image_cmd.node_port} == exposed
     for combo, files in COMBOS.items():
         config = effective(files)
         api = config["services"]["api"]
         args = parse(api["command"])
         assert args.host == "0.0.0.0" and args.grpc_host in (None, "0.0.0.0") and not args.no_grpc
         assert args.grpc_port is not None, "an explicit --grpc-port fails loudly instead of serving HTTP only"
+        assert args.node_port is not None and not args.no_node, "an explicit --node-port fails loudly"
         published = {int(p.rsplit(":", 1)[1]) for p in api["ports"]}
-        assert published == {args.port, args.grpc_port} == exposed, combo
+        assert published == {args.port, args.grpc_port, args.node_port} == exposed, combo
         assert "ports" not in config["services"]["worker"], "workers accept no connections"
         if MULTIHOST in files:
             assert {p.rsplit(":", 1)[1] for p in config["services"]["redis"]["ports"]} == {"6379"}

@@ -95,9 +95,24 @@ async def answer(send: Send, status: int, detail: str, headers: dict[str, str] |
 
 
 class BodyLimits:
+    """The REST API's limits; the NodeODM node (service/nodeodm/limits.py) is this class with its
+    own paths, its key in the query and its errors in NodeODM's shape."""
+
     def __init__(self, app: ASGIApp, service: Service) -> None:
         self.app = app
         self.service = service
+
+    def authenticates(self, path: str) -> bool:
+        """Whether a request with a body to ``path`` is authenticated before its body is read."""
+        return path.startswith("/v1/")
+
+    def key(self, scope: Scope, headers: Headers) -> str | None:
+        return bearer(headers)
+
+    async def reply(
+        self, send: Send, status: int, detail: str, headers: dict[str, str] | None = None
+    ) -> None:
+        await answer(send, status, detail, headers)
 
     def limits(self, scope: Scope, headers: Headers) -> tuple[int, PartSizes | None, str]:
         """The body's limit, the per-part counter of an upload, and what the 413 says."""
@@ -120,11 +135,11 @@ class BodyLimits:
         if not chunked and (length_text is None or length_text.strip() == "0"):
             await self.app(scope, receive, send)  # no body: nothing to protect
             return
-        if scope["path"].startswith("/v1/"):
+        if self.authenticates(scope["path"]):
             try:
-                tenant = await run_in_threadpool(self.service.authenticate, bearer(headers))
+                tenant = await run_in_threadpool(self.service.authenticate, self.key(scope, headers))
             except Unauthenticated as e:
-                await answer(send, 401, e.message, {"WWW-Authenticate": "Bearer"})
+                await self.reply(send, 401, e.message, {"WWW-Authenticate": "Bearer"})
                 return
             except DomainError as e:  # the tenant's rate (429): the route would say the same
                 await self.refuse(send, e)
@@ -132,12 +147,12 @@ class BodyLimits:
             scope.setdefault("state", {})["tenant_id"] = tenant
         limit, parts, what = self.limits(scope, headers)
         if length_text is not None and length_text.strip().isdigit() and int(length_text) > limit:
-            await answer(send, 413, f"{what}: send fewer or smaller files")
+            await self.reply(send, 413, f"{what}: send fewer or smaller files")
             return
         await self.counted(scope, receive, send, limit, parts, what)
 
     async def refuse(self, send: Send, e: DomainError) -> None:
-        await answer(send, status_of(e), e.message, error_headers(e))
+        await self.reply(send, status_of(e), e.message, error_headers(e))
 
     async def counted(
         self, scope: Scope, receive: Receive, send: Send, limit: int, parts: PartSizes | None, what: str
@@ -168,7 +183,7 @@ class BodyLimits:
             if over is not None:  # the app's answer to the broken-off body: ours instead
                 if not started:
                     started = True
-                    await answer(send, 413, over)
+                    await self.reply(send, 413, over)
                 return
             started = started or message["type"] == "http.response.start"
             await send(message)
@@ -181,4 +196,4 @@ class BodyLimits:
             if over is None:
                 raise
         if over is not None and not started:
-            await answer(send, 413, over)
+            await self.reply(send, 413, over)

@@ -46,7 +46,8 @@ class JobUseCases(UseCases):
             follower = None
             if req.reconstruct:
                 check_open_jobs(s, self.ctx.settings, tenant_id)
-                follower = _reconstruct_job(s, project_id, tenant_id, mapper, job.id)
+                held_out = check_checkpoints(s, self.ctx.storage, project_id, req.checkpoints)
+                follower = _reconstruct_job(s, project_id, tenant_id, mapper, job.id, checkpoints=held_out)
             views = job_view(job), job_view(follower) if follower else None
         self.enqueue(views[0])
         return views

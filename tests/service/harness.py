@@ -73,6 +73,7 @@ class Deployment:
         self.server: subprocess.Popen[bytes] | None = None
         self.workers: list[subprocess.Popen[bytes]] = []
         self.url = ""
+        self.node_port = 0
         self.server_out = ""  # what `geomatch serve` printed before it was ready
 
     # -- processes ---------------------------------------------------------------------------
@@ -91,9 +92,13 @@ class Deployment:
         """How this deployment runs `geomatch` (ImageDeployment: inside the built image)."""
         return GEOMATCH
 
-    def start_server(self, timeout: float = 120.0) -> str:
+    def start_server(self, timeout: float = 120.0, node: bool = False) -> str:
+        """``node``: with the NodeODM node on a port of its own (``node_port``); without, none, so
+        that deployments never race for its default port."""
         port = free_port()
-        self.server = self.spawn(["serve", "--host", "127.0.0.1", "--port", str(port)], "server.log")
+        self.node_port = free_port() if node else 0
+        extra = ["--node-port", str(self.node_port)] if node else ["--no-node"]
+        self.server = self.spawn(["serve", "--host", "127.0.0.1", "--port", str(port), *extra], "server.log")
         self.url = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
