@@ -197,4 +197,5 @@ def test_odm_export_of_the_gps_run_puts_points_and_photos_where_gps_does(
         lon, lat, h = f["geometry"]["coordinates"]
         fix = enu.from_geodetic(meta.latitude, meta.longitude, meta.altitude_m)
         at = enu.from_geodetic(lat, lon, h)
-        assert abs(float(np.linalg.norm(at - fix)) - residual[name]) < 0.01, (name, residual[name])
+        # the fit's residual, as the model stands (5 cm for the refinements after the fit)
+        assert float(np.linalg.norm(at - fix)) < residual[name] + 0.05, (name, residual[name])
