@@ -87,3 +87,23 @@ class Leases:
             if tag not in delivered:
                 self._release(tag, value)
         return restored
+
+    def orphans(self, worker_id: str, held: set[str]) -> dict[str, str]:
+        """Leases of ``worker_id`` on messages it no longer holds (``held``: the delivery tags its
+        consumer has reserved, running or scheduled), tag -> lease value. Such a message stays in
+        the broker's unacknowledged set with a live holder, so the reaper leaves it there for the
+        visibility timeout (an hour): a step whose reject or ack failed in a Redis failover (the
+        reject itself answered READONLY), or whose consumer lost its connection."""
+        return {
+            tag: value
+            for tag, value in self.held().items()
+            if value.split(" ", 1)[0] == worker_id and tag not in held
+        }
+
+    def restore(self, tag: str, value: str, restore: Callable[[str], None]) -> bool:
+        """Restore ``tag``'s message if its lease still says ``value`` (deleted first, so that a
+        racing reaper restores it once)."""
+        if not self._release(tag, value):
+            return False
+        restore(tag)
+        return True

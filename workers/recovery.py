@@ -21,19 +21,28 @@ from geomatch_core.store import MetadataStore
 log = logging.getLogger("geomatch.workers")
 
 
-def requeue_unfinished(store: MetadataStore, queue: JobQueue) -> int:
-    """Queue the entry step of running jobs and of queued jobs not waiting for another one."""
+def unfinished(store: MetadataStore) -> list[tuple[str, str]]:
+    """(id, kind) of the running jobs and of the queued jobs not waiting for another one: the jobs
+    that must have a step in the queue or in a worker's hands."""
     with store.session() as s:
         rows = s.execute(
             select(Job.id, Job.kind, Job.state, Job.after_job_id).where(Job.state.in_(("queued", "running")))
         ).all()
         after = {r.after_job_id for r in rows if r.after_job_id}
         ended = dict(s.execute(select(Job.id, Job.state).where(Job.id.in_(after))).all()) if after else {}
+    return [
+        (r.id, r.kind)
+        for r in rows
+        # a queued job waiting for its predecessor is released, or cancelled, when that one ends
+        if not (r.state == "queued" and r.after_job_id and ended.get(r.after_job_id) != "succeeded")
+    ]
+
+
+def requeue_unfinished(store: MetadataStore, queue: JobQueue) -> int:
+    """Queue the entry step of every unfinished job (``unfinished``)."""
     n = 0
-    for r in rows:
-        if r.state == "queued" and r.after_job_id and ended.get(r.after_job_id) != "succeeded":
-            continue  # waits for its predecessor (released, or cancelled, when that one ends)
-        queue.enqueue(ENTRY_STEP[r.kind], r.id)
+    for job_id, kind in unfinished(store):
+        queue.enqueue(ENTRY_STEP[kind], job_id)
         n += 1
     if n:
         log.info("requeued the entry step of %d unfinished job(s)", n)

@@ -23,6 +23,7 @@ from geomatch_core.store import MetadataStore
 
 from . import jobs, lifeline, recovery
 from .celery_queue import CeleryQueue
+from .celery_transport import FAILOVER_ERRORS
 from .context import Context, PermanentError, is_permanent
 from .steps import ANSWERED, ONE_SHOT, STEPS
 
@@ -39,9 +40,10 @@ def context(app: Celery) -> Context:
             settings.redis_url,
             socket_timeout=10,
             socket_connect_timeout=5,
-            # a Redis restart of a few seconds: lock calls wait for it rather than fail the step
+            # a Redis restart or failover of a few seconds: lock calls wait for it rather than fail
+            # the step (a replica answers writes READONLY, a starting Redis LOADING)
             retry=Retry(ExponentialBackoff(cap=2.0, base=0.1), 10),
-            retry_on_error=[redis.ConnectionError, redis.TimeoutError],
+            retry_on_error=[redis.ConnectionError, redis.TimeoutError, *FAILOVER_ERRORS],
         )
         locks = RedisLocks(client, settings.redis_prefix, settings.lock_timeout_s)
         _context = (
@@ -85,7 +87,7 @@ def register(app: Celery) -> None:
         app.task(name=name, base=StepTask, bind=True, ignore_result=name not in ANSWERED)(run)
 
     app.steps["consumer"].add(_recovery_step(app))
-    lifeline.install(app, Settings.from_env())
+    lifeline.install(app, Settings.from_env(), lambda: context(app))
 
 
 def _recovery_step(app: Celery) -> type:
