@@ -150,6 +150,20 @@ def finite(value: Any) -> Any:
     return value
 
 
+def store_result(store: MetadataStore, job_id: str, result: dict[str, Any]) -> bool:
+    """Store a running job's result without ending it; False when it no longer runs. A step whose
+    outputs replace earlier ones (a reconstruct's model) stores first and swaps after, so a result
+    the store refuses leaves the earlier outputs in place, and succeeds last, so that no client
+    reads the job succeeded before its outputs are there."""
+    with store.session() as s:
+        return bool(
+            _changed(
+                s,
+                update(Job).where(Job.id == job_id, Job.state == "running").values(result=finite(result)),
+            )
+        )
+
+
 def succeed(store: MetadataStore, job_id: str, result: dict[str, Any] | None = None) -> bool:
     result = finite(result)
     with store.session() as s:

@@ -343,11 +343,12 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         summary["report"] = survey_report(summary)
         rundir.write_outputs(out, summary, archive=True)
         # the result is stored first and the model swapped in only once it is: a result the store
-        # refuses (a number it cannot hold) once failed the job after its model had replaced the
-        # good one; and the conditional update that stores it is also what tells a cancel apart
-        if not jobstate.succeed(ctx.store, job_id, summary):
+        # refused (a number it cannot hold) once failed the job after its model had replaced the
+        # good one. The job succeeds after the swap: no client reads it succeeded with the old model
+        if not jobstate.store_result(ctx.store, job_id, summary):
             return "cancelled"
         ctx.storage.replace_dir(out, ctx.storage.model_dir(pid))
+    jobstate.succeed(ctx.store, job_id, summary)
     log.info(
         "reconstructed: %s/%s images registered, %s points",
         summary.get("registered"),
