@@ -238,3 +238,109 @@ def test_a_control_set_that_cannot_fix_the_model_leaves_it_as_mapped(
     # the one shape of ``points``, whatever the outcome: a dict per point, with its role and why
     assert [p["name"] for p in out["points"]] == names and all(p["role"] == "unused" for p in out["points"])
     assert all(isinstance(p.get("reason"), str) for p in out["points"]), out["points"]
+
+
+# -- generated first lines: whatever line 1 holds, a refusal naming it or a usable file -------------
+FRAGMENTS = [
+    "+proj=utm",
+    "+zone=32",
+    "+datum=WGS84",
+    "+units=km",
+    "+init=",
+    "+nadgrids=",
+    "+geoidgrids=",
+    "+grids=",
+    "+file=",
+    "+towgs84=0,0,0",
+    "proj=longlat",
+    "+a=1",
+    "+b=1",
+    "+proj=pipeline",
+    "+step",
+    "+inv",
+    "EPSG:",
+    "ESRI:",
+    "IAU_2015:",
+    "IGNF:",
+    "urn:ogc:def:crs:EPSG::",
+    "WGS84",
+    "PROJCS[",
+    "GEOGCRS[",
+    "BOUNDCRS[",
+    "PARAMETERFILE[",
+    "EXTENSION[",
+    '"',
+    "]",
+    ",",
+    "/etc/shadow",
+    "/dev/kmsg",
+    "/dev/zero",
+    "http://127.0.0.1:9/g.tif",
+    "file:///etc/passwd",
+    "@null",
+    "~/.proj",
+    "..",
+    "\\\\server\\share",
+    "%s%n",
+    "\u202e",
+    "\x7f",
+    "9" * 30,
+    "-1e308",
+    "nan",
+    ":",
+    "=",
+    " ",
+    "+",
+]
+
+
+def generated_first_lines(seed: int, n: int) -> list[str]:
+    """``n`` first lines made of FRAGMENTS and numbers, reproducible by ``seed``."""
+    import random
+
+    rng = random.Random(seed)
+    lines = []
+    for _ in range(n):
+        parts = [rng.choice(FRAGMENTS) for _ in range(rng.randint(1, 6))]
+        parts += [str(rng.randint(0, 99999))] * rng.randint(0, 1)
+        lines.append(("" if rng.random() < 0.5 else " ").join(parts).replace("\n", " "))
+    return lines
+
+
+def test_generated_first_lines_are_read_or_refused_and_open_nothing(targets: dict[str, Path]) -> None:
+    body = "".join(
+        f"{x} {y} {z} 10 20 a.jpg p{k}\n{x} {y} {z} 30 40 b.jpg p{k}\n" for k, (x, y, z) in enumerate(SPREAD)
+    )
+    lines = generated_first_lines(1, 200)
+    outcomes: list[str] = []
+
+    def read_all() -> None:
+        for crs in lines:
+            try:
+                read_gcp_file(crs + "\n" + body, SIZES)
+                outcomes.append("read")
+            except GcpError as e:
+                outcomes.append(
+                    "refused" if str(e).startswith("line 1: ") or "usable point" in str(e) else str(e)
+                )
+
+    with watched(targets["secret"].parent) as seen:
+        t = threading.Thread(target=read_all, daemon=True)
+        t.start()
+        t.join(120)
+        assert not t.is_alive(), "a generated first line blocked the reader"
+    assert seen == [], seen
+    assert set(outcomes) <= {"read", "refused"}, [o for o in outcomes if o not in ("read", "refused")]
+    assert len(outcomes) == len(lines)
+
+
+def test_unknown_check_points_are_named_up_to_ten_and_messages_are_capped() -> None:
+    from geomatch.geo.gcp import choose_checkpoints
+    from geomatch_core.errors import MAX_MESSAGE, InvalidRequest
+
+    names = [f"{i:04d}" + "x" * 996 for i in range(3500)]
+    with pytest.raises(GcpError) as e:
+        choose_checkpoints(["gcp01", "gcp02", "gcp03", "gcp04"], names)
+    assert len(str(e.value)) < 1000 and str(e.value).endswith("and 3490 more"), str(e.value)[-80:]
+    long = InvalidRequest("y" * 10**6)
+    assert len(long.message) == MAX_MESSAGE and long.message.endswith("more characters)"), long.message[-60:]

@@ -23,7 +23,7 @@ from geomatch.synth.aerial import Scene
 from geomatch.synth.gcps import scene_gcps
 
 from ..fswatch import watched
-from ..test_gcp_hostile import hostile, make_targets
+from ..test_gcp_hostile import generated_first_lines, hostile, make_targets
 from .conftest import SCENE_SEED
 from .grpc_harness import GrpcDeployment, error_of, running_grpc
 from .harness import upload, wait_job
@@ -175,6 +175,39 @@ def test_hostile_coordinate_systems_are_refused_open_nothing_and_leave_health_an
     assert seen == [], seen
     assert stored(dep, pid) == gcp_list.encode()
     assert c.get(f"/v1/projects/{pid}/gcp").json()["crs"] == "EPSG:32632"
+
+
+def test_generated_first_lines_never_fail_inside_the_server(
+    dep: GrpcDeployment, key: str, scene: Path, gcp_list: str
+) -> None:
+    """Generated coordinate systems (file-naming parameters, paths, URLs, WKT fragments, other
+    authorities, control characters) over REST and gRPC: 200 or a 4xx / INVALID_ARGUMENT with a
+    message, never a server error; the GET of what was stored answers too."""
+    c = dep.client(key)
+    pid = project(c, scene, "gcp-generated")
+    assert c.put(f"/v1/projects/{pid}/gcp", content=gcp_list).status_code == 200
+    points = gcp_list.split("\n", 1)[1]
+    statuses: list[int] = []
+    with dep.grpc_client(key, timeout=30) as g:
+        for crs in generated_first_lines(2, 60):
+            body = f"{crs}\n{points}"
+            r = c.put(
+                f"/v1/projects/{pid}/gcp", content=body.encode(), headers={"content-type": "text/plain"}
+            )
+            statuses.append(r.status_code)
+            assert r.status_code in (200, 400, 422), (crs, r.status_code, r.text)
+            if r.status_code != 200:
+                assert r.json()["detail"], r.text
+            assert c.get(f"/v1/projects/{pid}/gcp").status_code == 200
+            try:
+                g.put_gcp(pid, body)
+            except grpc.RpcError as e:
+                assert e.code() == grpc.StatusCode.INVALID_ARGUMENT and e.details(), (
+                    crs,
+                    e.code(),
+                    e.details(),
+                )
+    print(f"generated first lines: {statuses.count(200)} read, {len(statuses) - statuses.count(200)} refused")
 
 
 def test_grpc_put_get_delete(dep: GrpcDeployment, key: str, scene: Path, gcp_list: str) -> None:

@@ -11,12 +11,35 @@ from pathlib import Path
 import httpx
 import pytest
 
-from workers.redact import without_paths
+from workers.redact import MAX_MESSAGE, client_message, without_paths
 
 from .harness import Deployment, upload, wait_job
 
 # a "/" starting a word, as an absolute path's does (not "0/0", not a URL's)
 ABSOLUTE_PATH = re.compile(r"(?<![\w.:/~-])/[^\s/]")
+
+
+@pytest.mark.unit
+def test_a_store_or_redis_error_reaches_the_client_as_the_part_that_failed(tmp_path: Path) -> None:
+    """No SQL, parameters or driver text in a job's error (PostgreSQL's refusal of a NaN once
+    reached clients with the whole UPDATE); a step's own reasons as written; all capped."""
+    import redis
+    import sqlalchemy.exc
+
+    from workers.context import PermanentError
+
+    sql = sqlalchemy.exc.DataError(
+        "UPDATE jobs SET state=%(state)s, result=%(result)s WHERE jobs.id = %(id_1)s",
+        {"result": '{"x": NaN}'},
+        Exception('invalid input syntax for type json DETAIL: Token "NaN" is invalid.'),
+    )
+    text = client_message(sql, tmp_path)
+    assert text == "the metadata store refused or lost the operation (Exception)", text
+    ro = redis.ReadOnlyError("You can't write against a read only replica.")
+    assert client_message(ro, tmp_path) == "the queue (Redis) refused or lost the operation (ReadOnlyError)"
+    assert client_message(PermanentError("bad options"), tmp_path) == "bad options"
+    assert client_message(ValueError("x" * 10**5), tmp_path).endswith("...")
+    assert len(client_message(ValueError("x" * 10**5), tmp_path)) == MAX_MESSAGE
 
 
 @pytest.mark.unit
