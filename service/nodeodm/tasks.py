@@ -182,7 +182,7 @@ class NodeTasks:
         pid, record = self._read(tenant_id, task)
         project = self.svc.projects.get_project(tenant_id, pid)
         cycles = self._cycles(tenant_id, pid)
-        status, error, progress, processing = _status(cycles[-1] if cycles else None)
+        status, error, progress, processing = task_status(cycles[-1] if cycles else None)
         out: dict[str, Any] = {
             "uuid": task_uuid(pid),
             "name": record.get("name", project.name),
@@ -204,16 +204,18 @@ class NodeTasks:
 
     def _console(self, tenant_id: str, pid: str, record: dict[str, Any]) -> list[str]:
         lines = [f"geomatch task {record.get('name', '')} ({task_uuid(pid)})"]
-        for n, c in enumerate(self._cycles(tenant_id, pid)):
+        cycles = self._cycles(tenant_id, pid)
+        for n, c in enumerate(cycles):
             lines += _cycle_lines(n, c)
-        if record.get("committed") and self._model_summary(pid) is not None:
-            cycles = self._cycles(tenant_id, pid)
-            if cycles and _status(cycles[-1])[0] == COMPLETED:
-                with contextlib.suppress(NotFound):
-                    from geomatch.report import to_markdown
+        # the model's survey report closes the console of a completed run (a restart's lines
+        # take its place until that run completes: WebODM starts a restarted task's console anew)
+        done = bool(cycles) and task_status(cycles[-1])[0] == COMPLETED
+        if done and self._model_summary(pid) is not None:
+            with contextlib.suppress(NotFound):
+                from geomatch.report import to_markdown
 
-                    report = self.svc.outputs.survey_report(tenant_id, pid).report
-                    lines += to_markdown(report, f"Survey report: {record.get('name', '')}").splitlines()
+                report = self.svc.outputs.survey_report(tenant_id, pid).report
+                lines += to_markdown(report, f"Survey report: {record.get('name', '')}").splitlines()
         return lines
 
     def _model_summary(self, pid: str) -> Path | None:
@@ -248,7 +250,7 @@ class NodeTasks:
         if not record.get("committed"):
             raise Conflict(f"task {task_uuid(pid)} was never committed: commit it first")
         cycles = self._cycles(tenant_id, pid)
-        if cycles and _status(cycles[-1])[0] in (QUEUED, RUNNING):
+        if cycles and task_status(cycles[-1])[0] in (QUEUED, RUNNING):
             raise Conflict(f"task {task_uuid(pid)} is still running: cancel it first")
         opts = parse_options(options if options is not None else json.dumps(record.get("options", [])))
         self._start(tenant_id, pid, record, opts)
@@ -260,7 +262,7 @@ class NodeTasks:
         Range requests of one download all read the same bytes."""
         pid, record = self._read(tenant_id, task)
         cycles = self._cycles(tenant_id, pid)
-        if not cycles or _status(cycles[-1])[0] != COMPLETED:
+        if not cycles or task_status(cycles[-1])[0] != COMPLETED:
             raise Conflict(f"task {task_uuid(pid)} has not completed: nothing to download yet")
         odm = self.svc.outputs.model_file(tenant_id, pid, "odm")
         console = ("\n".join(self._console(tenant_id, pid, record)) + "\n").encode()
@@ -305,7 +307,7 @@ class NodeTasks:
         return int(n or 0) + int(m or 0)
 
 
-def _status(c: Cycle | None) -> tuple[int, str | None, int, int]:
+def task_status(c: Cycle | None) -> tuple[int, str | None, int, int]:
     """(status code, error, progress 0-100, processing ms) of a task's latest cycle."""
     if c is None:
         return QUEUED, None, 0, 0
