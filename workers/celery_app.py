@@ -12,8 +12,8 @@
 - Every key (queues, unacked sets, results) starts with GEOMATCH_REDIS_PREFIX, so deployments,
   test runs and other tenants of one Redis never see each other's messages.
 - A Redis failing over (READONLY, LOADING, MASTERDOWN for a few seconds) is a lost connection to
-  the broker, not an unrecoverable error (``workers.celery_transport``), and a publish waits
-  through it (``task_publish_retry_policy``: about 20 s) rather than failing the step.
+  the broker, not an unrecoverable error (``workers.celery_transport``), and a step's publish waits
+  through about 20 s of it (``CeleryQueue.enqueue``) rather than failing the step.
 - Job steps go to GEOMATCH_QUEUE, interactive ones (match pictures) to GEOMATCH_QUEUE.interactive,
   which a worker also consumes: a picture does not wait behind a whole match job.
 """
@@ -40,12 +40,6 @@ def make_app(settings: Settings) -> Celery:
     app = Celery("geomatch", broker=settings.redis_url, backend=settings.redis_url, set_as_current=False)
     app.conf.update(
         broker_transport=TRANSPORT,
-        task_publish_retry_policy={
-            "max_retries": 12,
-            "interval_start": 0.2,
-            "interval_step": 0.5,
-            "interval_max": 2,
-        },
         task_default_queue=settings.queue,
         task_routes={RENDER_PAIR: {"queue": interactive_queue(settings)}},
         task_acks_late=True,

@@ -14,6 +14,7 @@ from geomatch_core.config import Settings
 from geomatch_core.queue import RENDER_PAIR
 
 from .celery_app import interactive_queue, make_app
+from .celery_transport import publish_through_failover
 from .liveness import Registry
 
 
@@ -26,8 +27,10 @@ class CeleryQueue:
         self._workers = Registry(self._redis, settings.redis_prefix, settings.worker_lease_s)
 
     def enqueue(self, step: str, *args: Any) -> None:
+        """Queue a step; through a Redis failover of a few seconds (READONLY) it waits, rather than
+        failing the step that queues the next one or the request that starts a job."""
         queue = interactive_queue(self.settings) if step == RENDER_PAIR else self.settings.queue
-        self.app.send_task(step, args=list(args), queue=queue)
+        publish_through_failover(lambda: self.app.send_task(step, args=list(args), queue=queue, retry=False))
 
     def call(self, step: str, *args: Any, timeout: float) -> Any:
         r = self.app.send_task(step, args=list(args), queue=interactive_queue(self.settings), expires=timeout)

@@ -12,10 +12,16 @@ once it is connected again; ``workers.sweep`` re-dispatches a job left without a
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
+from typing import TypeVar
+
 import redis.exceptions
 from kombu.transport import redis as kombu_redis
 
 # what a Redis that is failing over or starting answers: retry the connection, do not give up
+T = TypeVar("T")
+
 FAILOVER_ERRORS: tuple[type[Exception], ...] = (
     redis.exceptions.ReadOnlyError,
     redis.exceptions.BusyLoadingError,
@@ -34,8 +40,49 @@ class Transport(kombu_redis.Transport):
     # connection: without these kombu's ensure gives up at the second error after it reconnected
     # ("the transport cannot tell recoverable errors apart"), and a PING answers on a replica, so
     # a step's publish failed at once in a failover and Celery rejected the step unqueued
+    # (publish_through_failover paces the tries of the steps' own publishes)
     recoverable_connection_errors = connection_errors
     recoverable_channel_errors: tuple[type[Exception], ...] = ()
+
+
+FAILOVER_PAUSE_S = 1.0  # between two tries of a publish that met a failover
+FAILOVER_TRIES = 20  # so a publish waits out about 20 s of one
+LOST_PAUSE_S, LOST_TRIES = 0.2, 4  # a lost connection: kombu's default publish retry, about 1 s
+
+
+def _caused_by(exc: BaseException, kinds: tuple[type[BaseException], ...]) -> bool:
+    """Whether ``exc`` or what it was raised from (kombu's OperationalError wraps Redis's) is one
+    of ``kinds``."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, kinds):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
+def publish_through_failover(publish: Callable[[], T]) -> T:
+    """``publish()`` (a send without kombu's own retry), tried again every FAILOVER_PAUSE_S while
+    Redis answers as a failing-over server does (FAILOVER_TRIES times), and a few times when the
+    connection was lost. Not kombu's retry (``Connection.ensure``): it tries again at once once it
+    has a fresh connection, and a replica's connections open and answer PING, so its tries were
+    spent in 0.1 s; and its reconnect left a pooled producer on a closed channel now and then
+    (AttributeError on the next publish)."""
+    failovers = lost = 0
+    while True:
+        try:
+            return publish()
+        except Exception as e:
+            if _caused_by(e, FAILOVER_ERRORS) and failovers < FAILOVER_TRIES - 1:
+                failovers += 1
+                time.sleep(FAILOVER_PAUSE_S)
+            elif _caused_by(
+                e, (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError, OSError)
+            ) and (lost < LOST_TRIES - 1):
+                lost += 1
+                time.sleep(LOST_PAUSE_S)
+            else:
+                raise
 
 
 TRANSPORT = f"{__name__}:Transport"  # Celery's broker_transport: kombu imports it by this name
