@@ -5,7 +5,7 @@ its defaults beside COLMAP's SIFT pipeline.
 Each seed is a flight rendered once by ``geomatch synth --kind fixedwing`` (geomatch/synth/
 fixedwing.py and farmtex.py; 640x480, 2.5 m GPS noise, 3 % of triggers failing, return legs 1.75x
 the outbound legs' 30 m spacing) and cached under ``bench/out/fixedwing``. Seeds: tuning 1, 2, 3
-(what defaults may be tuned on); test 101, 102, 103 (held out: report, never tune). The runs, each
+(what defaults may be tuned on); test 101-105 (held out: report, never tune). The runs, each
 a child process (wall time, peak RSS):
 
 - ``geomatch run IMAGES --out OUT``, the defaults a user gets (its own GPS georeferencing);
@@ -48,7 +48,7 @@ from geomatch.synth.sensors import GPS_ORIGIN
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out" / "fixedwing"
-SPLITS = {"tuning": (1, 2, 3), "test": (101, 102, 103)}
+SPLITS = {"tuning": (1, 2, 3), "test": (101, 102, 103, 104, 105)}
 PHOTOS = 160
 WRONG_FACTOR = 3.0  # a camera farther than this many GPS sigmas from the truth is misplaced
 
