@@ -21,9 +21,10 @@ from geomatch.export import export, export_zip, open_run
 from geomatch.export.georef import model_frame, utm_zone
 from geomatch.export.laz import LAZ_NAME
 from geomatch.export.opensfm import opensfm_camera
-from geomatch.export.reportpdf import markdown_pdf
+from geomatch.export.reportpdf import markdown_pdf, plain_text, table_cells
 from geomatch.geo.geodesy import EnuFrame
 from geomatch.metadata import read_metadata
+from geomatch.report import escape_markdown
 
 from .colmap_synthetic import synthetic_database
 
@@ -157,6 +158,16 @@ def test_opensfm_camera_normalises_by_the_larger_side() -> None:
     o = opensfm_camera(cam)
     assert o["focal_x"] == o["focal_y"] == pytest.approx(0.8)
     assert o["c_x"] == pytest.approx(0.01) and o["c_y"] == pytest.approx(-0.01) and o["k1"] == -0.05
+
+
+@pytest.mark.unit
+def test_report_pdf_shows_escaped_names_as_they_are() -> None:
+    """The Markdown escapes client-chosen names (report.escape_markdown); the PDF shows them plain."""
+    assert plain_text(r"- not registered: DJI\_0027\*.JPG") == "- not registered: DJI_0027*.JPG"
+    assert table_cells(r"| a\|b.jpg | control | 3 (3) |") == ["a|b.jpg", "control", "3 (3)"]
+    for name in ("DJI_0027.JPG", "a|b*c[1](x)<img src=x>.jpg", "`x`#!\\y~"):
+        assert plain_text(escape_markdown(name)) == name
+        assert table_cells(f"| {escape_markdown(name)} | x |") == [name, "x"]
 
 
 @pytest.mark.unit

@@ -9,11 +9,17 @@ else the PDF's core font shows Latin-1 and a ``?`` for anything beyond it.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from fpdf import FPDF
 
 DEJAVU = Path("/usr/share/fonts/truetype/dejavu")
+# CommonMark's backslash escapes (of ASCII punctuation): the report escapes client-chosen names
+# so that the Markdown shows them as they are (geomatch.report.escape_markdown); the PDF shows them
+# without the backslashes
+_ESCAPED = re.compile(r"\\([!-/:-@\[-`{-~])")
+_CELL_BORDER = re.compile(r"(?<!\\)\|")
 
 
 def _font(pdf: FPDF) -> tuple[str, bool]:
@@ -26,8 +32,17 @@ def _font(pdf: FPDF) -> tuple[str, bool]:
     return "Helvetica", False
 
 
-def _cells(line: str) -> list[str]:
-    return [c.strip() for c in line.strip().strip("|").split("|")]
+def plain_text(markdown: str) -> str:
+    """A line of the report as it reads: backslash escapes resolved."""
+    return _ESCAPED.sub(r"\1", markdown)
+
+
+def table_cells(line: str) -> list[str]:
+    """The cells of a Markdown table row; an escaped ``\\|`` inside a cell is not a border."""
+    inner = line.strip()
+    inner = inner[1:] if inner.startswith("|") else inner
+    inner = inner[:-1] if inner.endswith("|") and not inner.endswith("\\|") else inner
+    return [plain_text(c.strip()) for c in _CELL_BORDER.split(inner)]
 
 
 def markdown_pdf(markdown: str) -> bytes:
@@ -37,8 +52,11 @@ def markdown_pdf(markdown: str) -> bytes:
     pdf.add_page()
     family, unicode_ok = _font(pdf)
 
-    def text(s: str) -> str:
+    def shown(s: str) -> str:
         return s if unicode_ok else s.encode("latin-1", "replace").decode("latin-1")
+
+    def text(s: str) -> str:
+        return shown(plain_text(s))
 
     table: list[list[str]] = []
 
@@ -50,7 +68,7 @@ def markdown_pdf(markdown: str) -> bytes:
             for row in table:
                 r = t.row()
                 for cell in row:
-                    r.cell(text(cell))
+                    r.cell(shown(cell))  # table_cells resolved the escapes
         table.clear()
         pdf.ln(2)
 
@@ -59,7 +77,7 @@ def markdown_pdf(markdown: str) -> bytes:
         if line.startswith("|"):
             if set(line.replace("|", "").strip()) <= set("-: "):
                 continue  # the header's separator row
-            table.append(_cells(line))
+            table.append(table_cells(line))
             continue
         flush_table()
         if line.startswith("# "):
