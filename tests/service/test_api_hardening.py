@@ -240,6 +240,8 @@ def test_schema_says_what_the_server_takes(server: tuple[Deployment, httpx.Clien
         "colmap-text",
         "hloc",
         "openmvs",
+        "odm",
+        "laz",
     ]
     r = c.get("/v1/projects/0123/model", params={"format": "tar"})
     assert r.status_code == 422 and "format" in r.json()["detail"], r.text

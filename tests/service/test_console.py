@@ -551,7 +551,12 @@ def test_ground_control_points_card(console: Console, scene: Path, tmp_path: Pat
     pid = c.post("/v1/projects", json={"name": "console gcps"}).json()["id"]
     files = [("files", (n, (scene / "images" / n).read_bytes(), "image/png")) for n in IMAGES[:2]]
     assert c.post(f"/v1/projects/{pid}/images", files=files).status_code == 201
-    lines = [f"46500{i} 524700{i} 408 {100 + 50 * i} 200 {n} g{i}" for i in range(3) for n in IMAGES[:2]]
+    # three points off one line: a collinear set cannot fix a rotation and is refused on upload
+    lines = [
+        f"{465000 + 40 * i} {5247000 + 30 * i * i} 408 {100 + 50 * i} 200 {n} g{i}"
+        for i in range(3)
+        for n in IMAGES[:2]
+    ]
     lines += ["465009 5247009 408 10 10 ground_00.png <b>lone</b>", "465008 5247008 408 5 5 missing.png g8"]
     good = "EPSG:32632\n" + "\n".join(lines) + "\n"
     card = "document.getElementById('gcp-card').dataset.state"
