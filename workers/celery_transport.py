@@ -18,11 +18,24 @@ from typing import TypeVar
 
 import redis.exceptions
 from kombu.transport import redis as kombu_redis
+from redis._parsers.base import BaseParser
 
-# what a Redis that is failing over or starting answers: retry the connection, do not give up
 T = TypeVar("T")
 
+
+class UnblockedError(redis.exceptions.ResponseError):
+    """UNBLOCKED: a blocking read (the consumer's BRPOP) cut off because the server turned replica
+    under it. redis-py knows no class for that reply and raises a plain ResponseError, which kombu
+    counts as a channel error: a worker waiting for a step when the failover began exited with
+    ``Unrecoverable error`` before any write could answer READONLY."""
+
+
+# redis-py picks an error reply's exception class by its first word (both parsers, hiredis too)
+BaseParser.EXCEPTION_CLASSES.setdefault("UNBLOCKED", UnblockedError)
+
+# what a Redis that is failing over or starting answers: retry the connection, do not give up
 FAILOVER_ERRORS: tuple[type[Exception], ...] = (
+    UnblockedError,
     redis.exceptions.ReadOnlyError,
     redis.exceptions.BusyLoadingError,
     redis.exceptions.MasterDownError,
