@@ -74,13 +74,13 @@ def test_a_blocking_read_cut_off_by_the_failover_is_a_lost_connection() -> None:
     """The consumer waits for steps in BRPOP; when the server turns replica the wait ends with an
     UNBLOCKED error reply, which redis-py raised as a plain ResponseError (a channel error to
     kombu: the worker exited). It is read as the failover it is, so the consumer reconnects."""
-    from redis._parsers import _RESP2Parser
+    from redis.connection import DefaultParser  # the parser a connection reads replies with
 
     reply = "UNBLOCKED force unblock from blocking operation, instance state changed (master -> replica?)"
-    err = _RESP2Parser(socket_read_size=65536).parse_error(reply)
+    err = DefaultParser(socket_read_size=65536).parse_error(reply)
     assert isinstance(err, celery_transport.UnblockedError)
     assert isinstance(err, Transport.connection_errors)
     # anything else a server says stays what it was: an error of the request, not of the link
-    parser = _RESP2Parser(socket_read_size=65536)
+    parser = DefaultParser(socket_read_size=65536)
     other = parser.parse_error("WRONGTYPE Operation against a key holding the wrong kind of value")
     assert not isinstance(other, Transport.connection_errors)
