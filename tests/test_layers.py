@@ -53,6 +53,8 @@ RANKS = {
     "geomatch.planning": 3,
     # synthetic scenes with ground truth (the indoor pairs score themselves with eval.pose)
     "geomatch.synth": 4,
+    # the map of a georeferenced model: DSM and orthophoto (export's frames, the photos)
+    "geomatch.ortho": 4,
     # the stages over all of it: one pair matched and written (pairstep, dbwrite), a run's summary
     # and archive (rundir), the run itself (pipeline), the demo, drawings of matches
     "geomatch.pairstep": 5,

@@ -1,0 +1,202 @@
+"""The map (geomatch.ortho) on a small synthetic survey with an exact model (tests/ortho_scene.py):
+the orthophoto against the ground's true texture, its COG, alpha and CRS, the DSM against the true
+ground with wrong points thrown in, tiles against one piece, the photo cache's bound, refusals."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pyproj
+import pytest
+import rasterio
+
+from geomatch.export.georef import utm_zone
+from geomatch.ortho import DSM_PATH, ORTHO_PATH, MapOptions, OrthoError, make_map
+from geomatch.ortho.accuracy import patch_offsets
+from geomatch.ortho.cog import is_cog
+from geomatch.ortho.dsm import NODATA, build_dsm
+from geomatch.ortho.photos import PhotoCache
+from geomatch.ortho.survey import open_survey
+from geomatch.synth.sensors import GPS_ORIGIN
+from tests.ortho_scene import OrthoScene, make_scene, truth_image
+
+pytestmark = pytest.mark.unit
+
+
+@pytest.fixture(scope="module")
+def flat(tmp_path_factory: pytest.TempPathFactory) -> OrthoScene:
+    return make_scene(tmp_path_factory.mktemp("flat"), photos=6, width=240, height=180, altitude=40.0)
+
+
+@pytest.fixture(scope="module")
+def flat_map(flat: OrthoScene) -> dict[str, object]:
+    return make_map(flat.run).record
+
+
+def read(path: Path) -> tuple[np.ndarray, rasterio.Affine, str]:
+    with rasterio.open(path) as src:
+        return np.moveaxis(src.read(), 0, -1), src.transform, src.crs.to_string()
+
+
+def test_orthophoto_lies_on_the_true_ground(flat: OrthoScene, flat_map: dict[str, object]) -> None:
+    ortho, truth = truth_image(flat, flat.run / ORTHO_PATH)
+    off = patch_offsets(ortho, truth, patch=48)
+    s = off.summary()
+    assert s["patches"] >= 10, s
+    assert s["median_gsd"] <= 0.5 and s["p95_gsd"] <= 1.5, s
+    # a shift of the map by two pixels is seen as two pixels: the measure can fail
+    shifted = np.roll(ortho, 2, axis=1)
+    s2 = patch_offsets(shifted, truth, patch=48).summary()
+    assert 1.5 <= s2["median_gsd"] <= 2.5, s2
+
+
+def test_the_gsd_is_the_surveys(flat: OrthoScene, flat_map: dict[str, object]) -> None:
+    assert flat_map["gsd_m"] == pytest.approx(flat.gsd, rel=0.03)
+
+
+def test_cogs_with_alpha_in_the_models_crs(flat: OrthoScene, flat_map: dict[str, object]) -> None:
+    for rel in (ORTHO_PATH, DSM_PATH):
+        valid, errors, _ = is_cog(flat.run / rel)
+        assert valid, (rel, errors)
+    ortho, t, crs = read(flat.run / ORTHO_PATH)
+    want = utm_zone(GPS_ORIGIN.lat, GPS_ORIGIN.lon)
+    assert pyproj.CRS.from_user_input(crs) == want
+    assert ortho.shape[2] == 4
+    alpha = ortho[..., 3]
+    assert set(np.unique(alpha)) == {0, 255}
+    assert 0.3 < (alpha == 255).mean() < 1.0
+    assert not ortho[alpha == 0, :3].any()  # nothing under the transparent part
+    with rasterio.open(flat.run / ORTHO_PATH) as src:
+        assert src.overviews(1), "no overviews"
+        assert src.colorinterp[3] == rasterio.enums.ColorInterp.alpha
+    assert abs(t.a - flat_map["gsd_m"]) < 1e-9 and t.e == -t.a
+    summary = json.loads((flat.run / "summary.json").read_text())
+    assert summary["ortho"]["crs"] == want.to_string()
+    assert (flat.run / "odm_orthophoto" / "preview.png").is_file()
+
+
+def test_dsm_is_the_ground_with_outliers_rejected(flat: OrthoScene, flat_map: dict[str, object]) -> None:
+    dsm, _, _ = read(flat.run / DSM_PATH)
+    h = dsm[..., 0]
+    valid = h != NODATA
+    assert valid.mean() > 0.3 and (~valid).any()
+    # the flat scene's ground is at the GPS origin's height; points 5-30 m off were thrown in
+    err = np.abs(h[valid] - GPS_ORIGIN.alt)
+    assert err.max() < 0.5, err.max()
+    assert flat_map["dsm_points_rejected"] > 0
+
+
+def test_dsm_median_survives_a_spike_cluster() -> None:
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(0, 100, 4000), rng.uniform(0, 100, 4000), np.zeros(4000)])
+    pts[:40, :2] = rng.uniform(48, 52, (40, 2))
+    pts[:40, 2] = 25.0  # a tight cluster of wrong points
+    dsm = build_dsm(pts, min_cell=0.1)
+    assert np.abs(dsm.height[dsm.valid]).max() < 1.0
+    assert dsm.points_rejected >= 35
+    # and a real step (a building 30 m wide) stays
+    pts[:, 2] = np.where((np.abs(pts[:, 0] - 50) < 15) & (np.abs(pts[:, 1] - 50) < 15), 10.0, 0.0)
+    dsm = build_dsm(pts, min_cell=0.1)
+    assert dsm.at(np.array([50.0]), np.array([50.0]))[0] == pytest.approx(10.0, abs=0.5)
+
+
+def test_tiles_agree_with_one_piece(flat: OrthoScene, tmp_path: Path) -> None:
+    one = make_map(flat.run, out=tmp_path / "one", options=MapOptions(tile=8192))
+    tiled = make_map(flat.run, out=tmp_path / "tiled", options=MapOptions(tile=96, cache_mb=0.5))
+    a, _, _ = read(one.orthophoto)
+    b, _, _ = read(tiled.orthophoto)
+    assert a.shape == b.shape and a.shape[0] > 2 * 96  # several tiles a side
+    assert np.array_equal(a[..., 3], b[..., 3])
+    assert np.abs(a.astype(int) - b.astype(int)).max() <= 1
+    # the small cache had to decode photos again: the bound held
+    assert tiled.record["photos_decoded"] > one.record["photos_decoded"]
+
+
+def test_photo_cache_stays_in_its_bytes(flat: OrthoScene) -> None:
+    survey = open_survey(flat.run)
+    one = flat.cams[0].width * flat.cams[0].height * 3
+    cache = PhotoCache(flat.images, budget_mb=2.5 * one / 2**20)
+    for v in survey.views:
+        cache.get(v, 1.0)
+        assert cache.nbytes() <= 2.5 * one
+    assert cache.decoded == len(survey.views)
+
+
+def test_peak_memory_follows_the_tile_not_the_map(flat: OrthoScene, tmp_path: Path) -> None:
+    def peak(tile: int) -> int:
+        tracemalloc.start()
+        try:
+            make_map(flat.run, out=tmp_path / f"t{tile}", options=MapOptions(tile=tile, cache_mb=1.0))
+            return tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+
+    small, big = peak(64), peak(8192)
+    assert small < 0.6 * big, (small, big)
+
+
+def test_a_model_without_georeferencing_is_refused(tmp_path: Path) -> None:
+    scene = make_scene(tmp_path, photos=2, width=96, height=72, points_per_photo=50, georeferenced=False)
+    with pytest.raises(OrthoError, match="georeferenced"):
+        make_map(scene.run)
+    assert not (scene.run / "odm_orthophoto").exists() and not (scene.run / "odm_dem").exists()
+
+
+def test_a_gcp_models_map_is_in_the_gcp_files_crs(flat: OrthoScene, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(flat.run / "sparse", run / "sparse")
+    origin = [2683000.0, 1247000.0, 400.0]  # Swiss LV95 (EPSG:2056), as a GCP file names it
+    summary = {
+        "image_dir": str(flat.images),
+        "georeferenced": True,
+        "frame": "GCP",
+        "gcp": {"frame": "EPSG:2056", "origin": origin},
+    }
+    (run / "summary.json").write_text(json.dumps(summary))
+    rec = make_map(run).record
+    _, _, crs = read(run / ORTHO_PATH)
+    assert pyproj.CRS.from_user_input(crs) == pyproj.CRS.from_epsg(2056)
+    w, s, e, n = rec["bounds"]
+    assert w < origin[0] < e and s < origin[1] < n  # the scene's origin is in the middle of it
+
+
+def test_clear_errors(flat: OrthoScene, tmp_path: Path) -> None:
+    with pytest.raises(OrthoError, match="not a run folder"):
+        make_map(tmp_path)
+    with pytest.raises(OrthoError, match="photos"):
+        make_map(flat.run, images=tmp_path / "nowhere", out=tmp_path / "x")
+    with pytest.raises(OrthoError, match="GSD"):
+        make_map(flat.run, out=tmp_path / "y", options=MapOptions(gsd=-1.0))
+    empty = tmp_path / "empty"
+    (empty / "sparse" / "0").mkdir(parents=True)
+    pycolmap.Reconstruction().write(str(empty / "sparse" / "0"))
+    (empty / "summary.json").write_text(
+        json.dumps({"georeferenced": True, "frame": "ENU", "origin": GPS_ORIGIN.as_dict()})
+    )
+    with pytest.raises(OrthoError):
+        make_map(empty)
+
+
+def test_sloped_ground(tmp_path: Path) -> None:
+    """Slopes up to 17 %: the DSM follows them and the map stays on the ground."""
+    scene = make_scene(tmp_path, photos=6, width=240, height=180, altitude=40.0, relief=(150.0, 4.0))
+    rec = make_map(scene.run).record
+    ortho, truth = truth_image(scene, scene.run / ORTHO_PATH)
+    s = patch_offsets(ortho, truth, patch=48).summary()
+    assert s["patches"] >= 8 and s["median_gsd"] <= 0.5 and s["p95_gsd"] <= 1.5, s
+    dsm, t, _ = read(scene.run / DSM_PATH)
+    h = dsm[..., 0]
+    rows, cols = np.nonzero(h != NODATA)
+    e, n = t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e
+    lon, lat = pyproj.Transformer.from_crs(rec["crs"], "EPSG:4326", always_xy=True).transform(e, n)
+    enu = GPS_ORIGIN.from_geodetic(np.asarray(lat), np.asarray(lon), np.zeros(len(e)))
+    ground = scene.world.terrain.height(enu[:, 0], enu[:, 1]) + GPS_ORIGIN.alt
+    assert np.ptp(ground) > 2.0  # the scene is not flat
+    err = np.abs(h[rows, cols] - ground)
+    # the edges (the hull grown by two cells) are extrapolated: the bulk is held tight
+    assert np.median(err) < 0.2 and np.percentile(err, 90) < 0.5, (np.median(err), np.percentile(err, 90))
