@@ -49,7 +49,25 @@ def survey_report(summary: Mapping[str, Any]) -> dict[str, Any]:
         "georeferencing": _georeferencing(summary),
         "timings_s": _timings(summary),
     }
+    if summary.get("ortho"):
+        out["map"] = _map(summary["ortho"])
     return out
+
+
+def _map(o: Mapping[str, Any]) -> dict[str, Any]:
+    """The orthophoto and DSM (geomatch.ortho's record): what a team checks before sending a map."""
+    extent = o.get("extent_m") or [None, None]
+    return {
+        "gsd_cm": _round(100.0 * float(o["gsd_m"]), 2) if o.get("gsd_m") is not None else None,
+        "dsm_cell_m": _round(o.get("dsm_cell_m"), 3),
+        "extent_m": [_round(extent[0], 1), _round(extent[1], 1)],
+        "area_ha": _round(float(o["area_m2"]) / 1e4, 3) if o.get("area_m2") is not None else None,
+        "size_px": o.get("size_px"),
+        "crs": o.get("crs"),
+        "bounds_wgs84": o.get("bounds_wgs84"),
+        "photos": o.get("photos"),
+        "seconds": (o.get("seconds") or {}).get("total"),
+    }
 
 
 def _photos(s: Mapping[str, Any]) -> dict[str, Any]:
@@ -213,9 +231,26 @@ def to_markdown(r: Mapping[str, Any], title: str = "Survey report") -> str:
         lines += _gps_check_markdown(ge["gps_check"])
     if "gcp" in ge:
         lines += _gcp_markdown(ge["gcp"])
+    if r.get("map"):
+        lines += _map_markdown(r["map"])
     lines += ["", "## Time per stage (s)", "", "| stage | s |", "|---|---:|"]
     lines += [f"| {e(k)} | {v} |" for k, v in r["timings_s"].items()]
     return "\n".join(lines) + "\n"
+
+
+def _map_markdown(m: Mapping[str, Any]) -> list[str]:
+    e = escape_markdown
+    size = m.get("size_px") or [None, None]
+    ext = m.get("extent_m") or [None, None]
+    return [
+        "",
+        "## Map",
+        "",
+        f"- orthophoto: {m['gsd_cm']} cm per pixel (GSD), {size[0]} x {size[1]} pixels, "
+        f"{ext[0]} x {ext[1]} m, {m['area_ha']} ha mapped",
+        f"- surface model (DSM): {m['dsm_cell_m']} m cells, from the sparse points",
+        f"- coordinate system: {e(m['crs'])}",
+    ]
 
 
 def _gps_check_markdown(g: Mapping[str, Any]) -> list[str]:

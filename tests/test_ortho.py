@@ -200,3 +200,37 @@ def test_sloped_ground(tmp_path: Path) -> None:
     err = np.abs(h[rows, cols] - ground)
     # the edges (the hull grown by two cells) are extrapolated: the bulk is held tight
     assert np.median(err) < 0.2 and np.percentile(err, 90) < 0.5, (np.median(err), np.percentile(err, 90))
+
+
+def test_the_map_in_the_exports_and_the_report(
+    flat: OrthoScene, flat_map: dict[str, object], tmp_path: Path
+) -> None:
+    from geomatch.export import ExportError, export, open_run
+    from geomatch.report import survey_report, to_markdown
+
+    source = open_run(flat.run)
+    odm = export(source, "odm", tmp_path / "odm")
+    rel = {p.relative_to(tmp_path / "odm").as_posix() for p in odm}
+    assert {"odm_orthophoto/odm_orthophoto.tif", "odm_dem/dsm.tif"} <= rel
+    assert (tmp_path / "odm" / ORTHO_PATH).read_bytes() == (flat.run / ORTHO_PATH).read_bytes()
+    [tif] = export(source, "orthophoto", tmp_path / "o")
+    assert tif.name == "odm_orthophoto.tif" and is_cog(tif)[0]
+    [dem] = export(source, "dsm", tmp_path / "d")
+    assert dem.name == "dsm.tif"
+
+    summary = json.loads((flat.run / "summary.json").read_text())
+    report = survey_report(summary)
+    assert report["map"]["gsd_cm"] == pytest.approx(100 * flat_map["gsd_m"], abs=0.01)
+    assert report["map"]["crs"] == flat_map["crs"]
+    page = to_markdown(report)
+    assert "## Map" in page and f"{report['map']['gsd_cm']} cm per pixel" in page
+
+    bare = tmp_path / "bare"
+    shutil.copytree(flat.run / "sparse", bare / "sparse")
+    (bare / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "ortho"}))
+    with pytest.raises(ExportError, match="geomatch ortho"):
+        export(open_run(bare), "orthophoto", tmp_path / "none")
+    files = {
+        p.relative_to(tmp_path / "odm2").as_posix() for p in export(open_run(bare), "odm", tmp_path / "odm2")
+    }
+    assert "odm_orthophoto/odm_orthophoto.tif" not in files and "odm_report/shots.geojson" in files

@@ -33,6 +33,8 @@ class ExportFormat:
     # the service serves this file of its model folder, as the pipeline wrote it, instead of
     # zipping an export (the pipeline writes points.ply already)
     model_file: str | None = None
+    # why a model folder may lack its model_file, for the service's 404
+    missing: str = "no 3D points"
 
     @property
     def proto_name(self) -> str:
@@ -102,6 +104,27 @@ FORMATS: dict[str, ExportFormat] = {
             _ZIP,
             "the georeferenced point cloud (LAZ, projected CRS, colours)",
             9,
+        ),
+        # the map: files the map step writes into the run folder (geomatch.ortho), served as they are
+        ExportFormat(
+            "orthophoto",
+            "geomatch.export.mapfiles:write_orthophoto",
+            frozenset(),
+            "image/tiff",
+            "the orthophoto (Cloud-Optimized GeoTIFF, RGBA, projected CRS), when the map was made",
+            10,
+            model_file="odm_orthophoto/odm_orthophoto.tif",
+            missing="no map: reconstruct with the option ortho",
+        ),
+        ExportFormat(
+            "dsm",
+            "geomatch.export.mapfiles:write_dsm",
+            frozenset(),
+            "image/tiff",
+            "the surface model (Cloud-Optimized GeoTIFF, float32 heights), when the map was made",
+            11,
+            model_file="odm_dem/dsm.tif",
+            missing="no map: reconstruct with the option ortho",
         ),
     )
 }

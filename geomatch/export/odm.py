@@ -9,9 +9,12 @@ node's ``all.zip`` is this folder plus the task's console output):
 - ``odm_report/stats.json`` (``stats``), ``odm_report/report.md`` and ``report.pdf`` (the survey
   report, ``reportpdf``);
 - ``odm_georeferencing/ground_control_points.geojson`` (``gcpjson``) when the model's folder holds
-  the GCP file it was georeferenced by (``gcp_list.txt``).
+  the GCP file it was georeferenced by (``gcp_list.txt``);
+- ``odm_orthophoto/odm_orthophoto.tif`` and ``odm_dem/dsm.tif`` when the run's map was made
+  (``mapfiles``: geomatch.ortho writes them into the run folder at these places), from which
+  WebODM shows the map and takes the task's CRS.
 
-No orthophoto, DSM or mesh: geomatch makes a sparse model, and WebODM shows what exists.
+No mesh and no dense cloud: geomatch makes a sparse model, and WebODM shows what exists.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from ..report import survey_report, to_markdown
 from .gcpjson import write_gcp_geojson
 from .georef import model_frame
 from .laz import LAZ_NAME, model_points, write_laz
+from .mapfiles import copy_map
 from .opensfm import write_cameras_json
 from .photos import read_photos, write_images_json
 from .reportpdf import write_pdf
@@ -55,6 +59,7 @@ def write(source: Source, dest: Path) -> list[Path]:
         xyz, rgb = model_points(source.model)
         written.append(write_laz(dest / GEOREF / LAZ_NAME, xyz, rgb, frame))
         written.append(write_shots(dest / REPORT / "shots.geojson", rec, frame, photos))
+        written += copy_map(source, dest)
     gcp_file = source.summary.parent / GCP_FILE
     if summary.get("gcp") and gcp_file.is_file():
         sizes = {name: (p.width, p.height) for name, p in photos.items()}

@@ -26,7 +26,9 @@ import numpy as np
 import rasterio
 from PIL import Image
 
+from ..export.mapfiles import DSM, ORTHOPHOTO
 from ..imageio import working_scale
+from ..report import survey_report
 from .cog import tiled_writer, write_window
 from .dsm import NODATA, build_dsm
 from .gains import exposure_gains
@@ -35,8 +37,7 @@ from .mosaic import Mosaic, footprint, render_tile
 from .photos import PhotoCache
 from .survey import OrthoError, Survey, open_survey
 
-ORTHO_PATH = Path("odm_orthophoto") / "odm_orthophoto.tif"
-DSM_PATH = Path("odm_dem") / "dsm.tif"
+ORTHO_PATH, DSM_PATH = ORTHOPHOTO, DSM  # where ODM has them (export.mapfiles)
 PREVIEW_PATH = Path("odm_orthophoto") / "preview.png"
 PREVIEW_SIDE = 1024
 MAX_PIXELS = 4_000_000_000  # an orthophoto beyond this is a wrong GSD, not a survey
@@ -192,6 +193,8 @@ def record_in_summary(run: Path, record: dict[str, Any]) -> None:
     path = run / "summary.json"
     summary = json.loads(path.read_text())
     summary["ortho"] = record
+    if "report" in summary:  # the report the run or job wrote, with the map now
+        summary["report"] = survey_report(summary)
     tmp = path.with_name(f".{path.name}.ortho.part")
     tmp.write_text(json.dumps(summary, indent=1))
     os.replace(tmp, path)

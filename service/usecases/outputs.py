@@ -72,7 +72,8 @@ class OutputUseCases(UseCases):
         if not path.is_file():
             if not (self.ctx.storage.model_dir(project_id) / "summary.json").is_file():
                 raise NotFound(f"project {project_id} has no model yet: POST .../reconstruct")
-            raise NotFound(f"the model of project {project_id} has no {fmt} (no 3D points)")
+            why = FORMATS[fmt].missing if fmt in FORMATS else "no 3D points"
+            raise NotFound(f"the model of project {project_id} has no {fmt} ({why})")
         return path
 
     def _model_export(self, tenant_id: str, project_id: str, fmt: str) -> Path:
