@@ -103,17 +103,19 @@ def write_preview(ortho: Path, dest: Path, side: int = PREVIEW_SIDE) -> Path:
     return dest
 
 
-def make_map(
-    run: str | Path,
-    images: str | Path | None = None,
-    out: str | Path | None = None,
-    options: MapOptions | None = None,
-) -> MapResult:
-    """The DSM, orthophoto and preview of the run folder ``run`` (written under ``out``, default
-    ``run``), its ``summary.json`` given the ``ortho`` record when ``out`` is the run."""
-    opts = options or MapOptions()
-    run = Path(run)
-    dest = Path(out) if out is not None else run
+@dataclass
+class Prepared:
+    """Everything before the tiles: the mosaic every tile reads, the photos' cache, the survey's
+    own GSD and the seconds spent (DSM, gains)."""
+
+    mosaic: Mosaic
+    photos: PhotoCache
+    auto_gsd: float
+    seconds: dict[str, float]
+
+
+def prepare(run: Path, images: str | Path | None, opts: MapOptions) -> Prepared:
+    """The survey of ``run``, its DSM, the GSD, the exposure gains and each photo's footprint."""
     t0 = time.perf_counter()
     survey = open_survey(run)
     image_dir = Path(images) if images is not None else read_image_dir(run)
@@ -140,11 +142,32 @@ def make_map(
     scales = np.clip(np.where(native > 0, native / gsd, 1.0), 0.02, 1.0)
     photos = PhotoCache(image_dir, opts.cache_mb)
     gains = exposure_gains(survey, dsm, photos)
-    t_gains = time.perf_counter()
     boxes = np.array([footprint(v, survey, dsm) for v in survey.views])
     pad = 0.05 * np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])[:, None] + dsm.cell
     boxes = boxes + pad * np.array([-1.0, -1.0, 1.0, 1.0])
+    t_gains = time.perf_counter()
     mosaic = Mosaic(survey, dsm, grid, boxes, gains, scales)
+    return Prepared(mosaic, photos, auto_gsd, {"dsm": t_dsm - t0, "gains": t_gains - t_dsm})
+
+
+def make_map(
+    run: str | Path,
+    images: str | Path | None = None,
+    out: str | Path | None = None,
+    options: MapOptions | None = None,
+) -> MapResult:
+    """The DSM, orthophoto and preview of the run folder ``run`` (written under ``out``, default
+    ``run``), its ``summary.json`` given the ``ortho`` record when ``out`` is the run."""
+    opts = options or MapOptions()
+    run = Path(run)
+    dest = Path(out) if out is not None else run
+    t0 = time.perf_counter()
+    prep = prepare(run, images, opts)
+    mosaic, photos = prep.mosaic, prep.photos
+    survey, dsm, grid, gains = mosaic.survey, mosaic.dsm, mosaic.grid, mosaic.gains
+    gsd, auto_gsd = grid.res, prep.auto_gsd
+    w, s, e, n = dsm.grid.bounds
+    t_gains = time.perf_counter()
 
     ortho_path, dsm_path, preview_path = dest / ORTHO_PATH, dest / DSM_PATH, dest / PREVIEW_PATH
     with tiled_writer(dsm_path, dsm.grid, survey.crs, 1, "float32", nodata=NODATA) as dst:
@@ -177,8 +200,8 @@ def make_map(
         "photos_decoded": photos.decoded,
         "options": {k: v for k, v in asdict(opts).items()},
         "seconds": {
-            "dsm": round(t_dsm - t0, 3),
-            "gains": round(t_gains - t_dsm, 3),
+            "dsm": round(prep.seconds["dsm"], 3),
+            "gains": round(prep.seconds["gains"], 3),
             "orthophoto": round(t_ortho - t_gains, 3),
             "total": round(time.perf_counter() - t0, 3),
         },

@@ -95,6 +95,32 @@ def sample(img: np.ndarray, x: np.ndarray, y: np.ndarray, row: int = 1024) -> np
     return out.reshape(-1, img.shape[2])[:n].astype(np.float64)
 
 
+def best_views(mosaic: Mosaic, e: np.ndarray, n: np.ndarray) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """For ground positions (flat arrays): the views that may see them (footprints), and for each
+    its scores (K, N; inf where unseen) and whether it sees them (K, N)."""
+    survey, dsm = mosaic.survey, mosaic.dsm
+    z = dsm.at(e, n)
+    xyz = survey.model_from_projected(np.column_stack([e, n, z]))
+    cands = candidates(mosaic, (float(e.min()), float(n.min()), float(e.max()), float(n.max())))
+    scores = np.full((len(cands), len(e)), np.inf, np.float32)
+    seen = np.zeros((len(cands), len(e)), bool)
+    for k, p in enumerate(cands):
+        _, ok, sc = sees(survey.views[p], dsm, xyz, e, n, z)
+        scores[k], seen[k] = sc, ok
+    return cands, scores, seen
+
+
+def labels(mosaic: Mosaic, step: int) -> np.ndarray:
+    """The view each place of the map comes from (mostly: seams are blended), every ``step``
+    pixels: (rows, cols) view indices, -1 where no photo sees it. For pictures of the seams."""
+    e, n = mosaic.grid.centres(0, mosaic.grid.height, 0, mosaic.grid.width, step=step)
+    cands, scores, seen = best_views(mosaic, e.ravel(), n.ravel())
+    if not cands:
+        return np.full(e.shape, -1)
+    best = np.asarray(cands)[np.argmin(scores, axis=0)]
+    return np.where(seen.any(axis=0), best, -1).reshape(e.shape)
+
+
 def render_tile(mosaic: Mosaic, photos: PhotoCache, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
     """The (row1 - row0, col1 - col0, 4) RGBA uint8 window of the orthophoto."""
     grid, dsm, survey = mosaic.grid, mosaic.dsm, mosaic.survey
@@ -106,21 +132,12 @@ def render_tile(mosaic: Mosaic, photos: PhotoCache, row0: int, row1: int, col0: 
     # grid.centres adds half a pixel: a node is the centre of its pixel
     shape_c = ce.shape
     ce_f, cn_f = ce.ravel(), cn.ravel()
-    cz = dsm.at(ce_f, cn_f)
-    cxyz = survey.model_from_projected(np.column_stack([ce_f, cn_f, cz]))
-    e_lo, n_hi = ce_f.min(), cn_f.max()
-    e_hi, n_lo = ce_f.max(), cn_f.min()
-    cands = candidates(mosaic, (e_lo, n_lo, e_hi, n_hi))
-
+    cands, flat_scores, flat_seen = best_views(mosaic, ce_f, cn_f)
     out = np.zeros((row1 - row0, col1 - col0, 4), np.uint8)
     if not cands:
         return out
-    scores = np.full((len(cands), *shape_c), np.inf, np.float32)
-    seen = np.zeros((len(cands), *shape_c), bool)
-    for k, p in enumerate(cands):
-        _, ok, s = sees(survey.views[p], dsm, cxyz, ce_f, cn_f, cz)
-        scores[k] = s.reshape(shape_c)
-        seen[k] = ok.reshape(shape_c)
+    scores = flat_scores.reshape(len(cands), *shape_c)
+    seen = flat_seen.reshape(len(cands), *shape_c)
     best = np.argmin(scores, axis=0)
     any_seen = seen.any(axis=0)
     size = 2 * FEATHER + 1
