@@ -11,7 +11,7 @@ import pytest
 
 from geomatch.synth.aerial import write_scene
 
-from .harness import Deployment
+from .harness import Deployment, deployed
 from .image_harness import IMAGE_ENV, ImageDeployment
 
 SCENE_SEED = 1  # the scene of tests/test_pipeline_e2e.py: 2 aerial + 4 ground, 640x480
@@ -52,12 +52,8 @@ def deployment(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iter
         if image
         else Deployment(root, redis_url, GEOMATCH_MAX_UPLOAD_MB="2")
     )
-    try:
-        d.start_server()
-        d.start_worker()
-        yield d
-    finally:
-        d.stop()
+    with deployed(d) as running:
+        yield running
 
 
 @pytest.fixture(scope="session")

@@ -18,7 +18,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from service.clients.grpc_client import GrpcClient
 
-from .harness import Deployment, free_port, metadata_database
+from .harness import Deployment, deployed, free_port, metadata_database
 
 # every method of geomatch.v1.Matching, as the server must serve them (reflection lists them)
 SERVED_METHODS = {
@@ -129,12 +129,8 @@ def running_grpc(
     root: Path, redis_url: str | None, how: str = "module", **env: str
 ) -> Iterator[GrpcDeployment]:
     """A deployment whose gRPC server is up (``how`` as in ``start_grpc``), stopped on exit."""
-    d = GrpcDeployment(root, redis_url, **env)
-    try:
-        d.start_grpc(how)
+    with deployed(GrpcDeployment(root, redis_url, **env), workers=0, grpc=how) as d:
         yield d
-    finally:
-        d.stop()
 
 
 @contextlib.contextmanager

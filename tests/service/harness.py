@@ -19,7 +19,7 @@ import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 import pytest
@@ -180,6 +180,26 @@ class Deployment:
         """Read the metadata store directly (SQLite under GEOMATCH_HOME)."""
         with contextlib.closing(sqlite3.connect(self.home / "geomatch.sqlite", timeout=30)) as c:
             return c.execute(sql, params).fetchall()
+
+
+D = TypeVar("D", bound=Deployment)
+
+
+@contextlib.contextmanager
+def deployed(d: D, workers: int = 1, node: bool = False, grpc: str | None = None) -> Iterator[D]:
+    """``d`` serving, with ``workers`` workers (Redis mode), stopped on exit whatever happens: the
+    one way the tests' deployment fixtures start and stop one. ``grpc``: a GrpcDeployment's
+    server (``start_grpc``'s ``how``) instead of `geomatch serve`; ``node``: with the NodeODM node."""
+    try:
+        if grpc is not None:
+            d.start_grpc(grpc)  # type: ignore[attr-defined]  # a GrpcDeployment
+        else:
+            d.start_server(node=node)
+        for _ in range(workers):
+            d.start_worker()
+        yield d
+    finally:
+        d.stop()
 
 
 POSTGRES_ADMIN = "postgresql://postgres@127.0.0.1:5432/postgres"

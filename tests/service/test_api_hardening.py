@@ -19,7 +19,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from .harness import Deployment, metadata_database, upload, wait_job
+from .harness import Deployment, deployed, metadata_database, upload, wait_job
 
 pytestmark = pytest.mark.service
 
@@ -39,11 +39,8 @@ def server(
     with metadata_database("postgresql" if request.param == "redis-postgres" else "sqlite") as url:
         env = {"DATABASE_URL": url} if url else {}
         d = Deployment(tmp_path_factory.mktemp(request.param), redis_url if url else None, **env)
-        try:
-            d.start_server()
-            yield d, d.client(d.create_key("hardening"))
-        finally:
-            d.stop()
+        with deployed(d, workers=0) as running:
+            yield running, running.client(running.create_key("hardening"))
 
 
 def staged(d: Deployment) -> list[str]:

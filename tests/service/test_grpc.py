@@ -36,6 +36,7 @@ from service.grpcapi.pb import pb2
 
 from ..small_scene import PAIRS  # the measured pair list (tests/small_scene.py)
 from .grpc_harness import SERVED_METHODS, GrpcDeployment, code_of, error_of
+from .harness import deployed
 from .test_api import bad_files
 
 pytestmark = pytest.mark.service
@@ -52,13 +53,10 @@ MiB = 1024 * 1024
 @pytest.fixture(scope="module")
 def dep(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[GrpcDeployment]:
     """Uploads capped at 2 MiB, so the size limit is testable with small files."""
-    d = GrpcDeployment(tmp_path_factory.mktemp("grpc"), redis_url, GEOMATCH_MAX_UPLOAD_MB="2")
-    try:
-        d.start_grpc("module")
-        d.start_worker()
+    with deployed(
+        GrpcDeployment(tmp_path_factory.mktemp("grpc"), redis_url, GEOMATCH_MAX_UPLOAD_MB="2"), grpc="module"
+    ) as d:
         yield d
-    finally:
-        d.stop()
 
 
 @pytest.fixture(scope="module")

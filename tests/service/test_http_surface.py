@@ -12,19 +12,15 @@ from collections.abc import Iterator
 
 import pytest
 
-from .harness import Deployment, noise_project
+from .harness import Deployment, deployed, noise_project
 
 pytestmark = pytest.mark.service
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[tuple[Deployment, str]]:
-    d = Deployment(tmp_path_factory.mktemp("http-surface"), redis_url)
-    try:
-        d.start_server()
+    with deployed(Deployment(tmp_path_factory.mktemp("http-surface"), redis_url), workers=0) as d:
         yield d, d.create_key("surface")
-    finally:
-        d.stop()
 
 
 def test_responses_carry_nosniff_no_store_on_tenant_data_and_no_server_banner(

@@ -30,7 +30,7 @@ from service.grpcapi.limits import STREAMS
 from service.grpcapi.pb import pb2
 
 from .grpc_harness import GrpcDeployment, error_of
-from .harness import Deployment, noise_png, noise_project
+from .harness import Deployment, deployed, noise_png, noise_project
 
 pytestmark = pytest.mark.service
 
@@ -50,11 +50,8 @@ def dep(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Gr
         GEOMATCH_RENDER_TIMEOUT="20",
         TMPDIR=str(tmp_path_factory.mktemp("limits-tmpdir")),
     )
-    try:
-        d.start_grpc("serve")
-        yield d
-    finally:
-        d.stop()
+    with deployed(d, workers=0, grpc="serve") as running:
+        yield running
 
 
 @pytest.fixture(scope="module")
@@ -398,11 +395,8 @@ def small(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Deployment]:
         GEOMATCH_RATE_LIMIT="5",
         GEOMATCH_RATE_BURST="40",
     )
-    try:
-        d.start_server()
-        yield d
-    finally:
-        d.stop()
+    with deployed(d, workers=0) as running:
+        yield running
 
 
 def test_quotas_of_a_tenant(small: Deployment) -> None:

@@ -33,7 +33,7 @@ from pyodm.types import NodeOption, TaskInfo, TaskStatus
 from geomatch.synth.aerial import Scene, write_scene
 from geomatch.synth.gcps import scene_gcps
 
-from .harness import Deployment
+from .harness import Deployment, deployed
 
 pytestmark = pytest.mark.service
 
@@ -62,13 +62,8 @@ def photos(tmp_path_factory: pytest.TempPathFactory) -> list[str]:
 
 @pytest.fixture(scope="module")
 def deployment(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Deployment]:
-    d = Deployment(tmp_path_factory.mktemp("nodeodm"), redis_url)
-    try:
-        d.start_server(node=True)
-        d.start_worker()
+    with deployed(Deployment(tmp_path_factory.mktemp("nodeodm"), redis_url), node=True) as d:
         yield d
-    finally:
-        d.stop()
 
 
 @pytest.fixture(scope="module")
