@@ -73,6 +73,7 @@ MAPPERS = ("auto", "incremental", "global")
 GLOBAL_MAPPER_IMAGES = 100
 TILING = ("auto", "on", "off")
 CAMERAS = ("auto", "per-image")
+ORTHO = ("off", "on")  # the map (geomatch.ortho) after mapping
 CAPTURES = ("aerial", "ground", "auto")  # how an uploaded image was taken (auto: EXIF/XMP decides)
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
 
@@ -320,6 +321,25 @@ _OPTIONS: tuple[Option, ...] = (
         high=10000,
         zero=f"auto: COLMAP's own {MIN_POSE_INLIERS}, {TILED_MIN_POSE_INLIERS} in a project with tiled pairs",
     ),
+    # the map after mapping (geomatch.ortho)
+    Option(
+        "ortho",
+        str,
+        "off",
+        "the map: a DSM and an orthophoto (Cloud-Optimized GeoTIFFs) of a georeferenced model "
+        "(on: made after mapping; a model without GPS or GCPs gets none, and the summary says why)",
+        choices=ORTHO,
+    ),
+    Option(
+        "ortho_gsd",
+        float,
+        0.0,
+        "the orthophoto's pixel on the ground, metres (0: the survey's GSD at the photos' working size)",
+        low=0.005,
+        high=10.0,
+        zero="the survey's GSD",
+        unit=" m",
+    ),
 )
 OPTIONS: dict[str, Option] = {o.name: o for o in _OPTIONS}
 DEFAULTS: dict[str, Any] = {o.name: o.default for o in _OPTIONS}
@@ -329,7 +349,19 @@ MATCH_OPTIONS = ("method", "resize", "device", "sparse", "dense", "loftr_weights
 OPTIMIZER_OPTIONS = ("tau", "iterations", "w", "theta_iter", "theta_c", "memory_budget_mb")
 RUN_OPTIONS = ("pairs", "tiling", "snap_radius", "mapper", "min_pose_inliers", "camera")
 # a project's configuration and a match job's options (REST, gRPC, the use cases)
-PROJECT_OPTIONS = ("pairs", "method", "resize", "tiling", "snap_radius", "camera", "mapper")
+PROJECT_OPTIONS = (
+    "pairs",
+    "method",
+    "resize",
+    "tiling",
+    "snap_radius",
+    "camera",
+    "mapper",
+    "ortho",
+    "ortho_gsd",
+)
+# the options a reconstruct job takes from its match job or its project (the rest are matching's)
+RECONSTRUCT_OPTIONS = ("mapper", "ortho", "ortho_gsd")
 PAIR_OPTIONS = ("method", "resize", "tiling")  # one pair matched on its own (gRPC MatchPair)
 
 

@@ -26,6 +26,9 @@ CHECKPOINTS_HELP = (
     "names) or their names, comma separated (with a GCP file among the task's files)"
 )
 NODE_OPTIONS = (*PROJECT_OPTIONS, CHECKPOINTS)
+# where the node's default is not the table's: a WebODM task's map is the first thing WebODM shows
+# (ODM always makes one), so a task makes it unless told ``ortho: off``
+NODE_DEFAULTS: dict[str, Any] = {"ortho": "on"}
 
 
 def node_name(name: str) -> str:
@@ -59,7 +62,7 @@ def node_options() -> list[dict[str, Any]]:
             {
                 "name": node_name(name),
                 "type": _type(o),
-                "value": str(o.default),
+                "value": str(NODE_DEFAULTS.get(name, o.default)),
                 "domain": _domain(o),
                 "help": o.help,
             }
@@ -115,7 +118,7 @@ def _checkpoints(value: Any) -> list[str] | int | None:
 def parse_options(raw: str | None) -> TaskOptions:
     """A task's ``options`` form field (NodeODM's JSON list of ``{name, value}``)."""
     if raw is None or not raw.strip():
-        return TaskOptions([], {})
+        return TaskOptions([], dict(NODE_DEFAULTS))
     try:
         items = json.loads(raw)
     except ValueError as e:
@@ -142,4 +145,4 @@ def parse_options(raw: str | None) -> TaskOptions:
             project[name] = o.check(_typed(o, value))
         except OptionError as e:
             raise InvalidRequest(f"option {node_name(name)}: {e}") from None
-    return TaskOptions(given, project, checkpoints)
+    return TaskOptions(given, NODE_DEFAULTS | project, checkpoints)

@@ -10,7 +10,13 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from geomatch.options import PROJECT_OPTIONS, fewest_pairs, too_many_pairs, too_much_queued
+from geomatch.options import (
+    PROJECT_OPTIONS,
+    RECONSTRUCT_OPTIONS,
+    fewest_pairs,
+    too_many_pairs,
+    too_much_queued,
+)
 from geomatch_core import jobstate
 from geomatch_core.errors import Conflict, InvalidRequest, NotFound, PlanTooLarge, Unavailable, WorkQueued
 from geomatch_core.models import JOB_STATES, Image, Job
@@ -40,6 +46,7 @@ class JobUseCases(UseCases):
             self._check_plan_size(opts["pairs"], len(names))
             self._check_queued(s, tenant_id, opts["pairs"], len(names))
             mapper = opts.pop("mapper")
+            mapping = {k: opts.pop(k) for k in RECONSTRUCT_OPTIONS if k != "mapper"}
             job = Job(project_id=project_id, tenant_id=tenant_id, kind="match", options=opts)
             s.add(job)
             s.flush()
@@ -47,7 +54,9 @@ class JobUseCases(UseCases):
             if req.reconstruct:
                 check_open_jobs(s, self.ctx.settings, tenant_id)
                 held_out = check_checkpoints(s, self.ctx.storage, project_id, req.checkpoints)
-                follower = _reconstruct_job(s, project_id, tenant_id, mapper, job.id, checkpoints=held_out)
+                follower = _reconstruct_job(
+                    s, project_id, tenant_id, mapper, job.id, checkpoints=held_out, mapping=mapping
+                )
             views = job_view(job), job_view(follower) if follower else None
         self.enqueue(views[0])
         return views
@@ -108,7 +117,10 @@ class JobUseCases(UseCases):
                 )
             check_open_jobs(s, self.ctx.settings, tenant_id)
             held_out = check_checkpoints(s, self.ctx.storage, project_id, checkpoints)
-            view = job_view(_reconstruct_job(s, project_id, tenant_id, mapper, checkpoints=held_out))
+            config = {**DEFAULTS, **check_config(dict(p.config))}
+            mapping = {k: config[k] for k in RECONSTRUCT_OPTIONS if k != "mapper"}
+            job = _reconstruct_job(s, project_id, tenant_id, mapper, checkpoints=held_out, mapping=mapping)
+            view = job_view(job)
         self.enqueue(view)
         return view
 
@@ -202,11 +214,15 @@ def _reconstruct_job(
     mapper: str,
     after: str | None = None,
     checkpoints: list[str] | int = 0,
+    mapping: dict[str, Any] | None = None,
 ) -> Job:
-    """``checkpoints`` go into the options only when asked for (the job's GCP step reads them)."""
+    """``checkpoints`` go into the options only when asked for (the job's GCP step reads them), and
+    so does the map (``mapping``: ``ortho`` on, with its ``ortho_gsd``)."""
     options: dict[str, Any] = {"mapper": mapper}
     if checkpoints:
         options["checkpoints"] = checkpoints
+    if mapping and mapping.get("ortho") == "on":
+        options |= {"ortho": "on", "ortho_gsd": float(mapping.get("ortho_gsd") or 0.0)}
     job = Job(
         project_id=project_id,
         tenant_id=tenant_id,

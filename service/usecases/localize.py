@@ -23,7 +23,7 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from geomatch.options import CAPTURES, PROJECT_OPTIONS
+from geomatch.options import CAPTURES, PROJECT_OPTIONS, RECONSTRUCT_OPTIONS
 from geomatch_core.errors import BadFile, Conflict, InvalidRequest, NotFound, Overloaded, QuotaExceeded
 from geomatch_core.models import Image, Job, Project, new_id
 
@@ -174,8 +174,9 @@ class LocalizeUseCases(UseCases):
         staged: int = 0,
     ) -> Job:
         opts = {**DEFAULTS, **check_config(config)}
-        # the project's matcher and its options; the mapper and a match job's pairs do not apply
-        opts = {k: v for k, v in opts.items() if k in PROJECT_OPTIONS and k not in ("mapper", "pairs")}
+        # the project's matcher and its options; the mapping's and a match job's pairs do not apply
+        skip = {*RECONSTRUCT_OPTIONS, "pairs"}
+        opts = {k: v for k, v in opts.items() if k in PROJECT_OPTIONS and k not in skip}
         job = Job(
             id=job_id,
             project_id=project_id,

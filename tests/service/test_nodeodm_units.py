@@ -11,7 +11,7 @@ import pytest
 from geomatch.options import OPTIONS, PROJECT_OPTIONS
 from geomatch_core.errors import InvalidRequest, NotFound
 from service.nodeodm.app import redacted
-from service.nodeodm.options import node_options, parse_options
+from service.nodeodm.options import NODE_DEFAULTS, node_options, parse_options
 from service.nodeodm.tasks import (
     CANCELED,
     COMPLETED,
@@ -34,10 +34,11 @@ def test_every_project_option_is_offered_with_nodeodms_five_keys() -> None:
     assert all(set(o) == {"name", "type", "value", "domain", "help"} for o in listed.values())
     for name in PROJECT_OPTIONS:  # a new option of the table appears here without an edit
         o = listed[name.replace("_", "-")]
-        assert o["value"] == str(OPTIONS[name].default)
+        assert o["value"] == str(NODE_DEFAULTS.get(name, OPTIONS[name].default))
         assert (o["type"] == "enum") == bool(OPTIONS[name].choices)
         assert o["domain"] == list(OPTIONS[name].choices) or not OPTIONS[name].choices
     assert "checkpoints" in listed
+    assert listed["ortho"]["value"] == "on"  # WebODM shows a task's map first: made unless told off
 
 
 def test_task_options_drop_unknown_names_and_take_text_values() -> None:
@@ -48,12 +49,16 @@ def test_task_options_drop_unknown_names_and_take_text_values() -> None:
         {"name": "checkpoints", "value": "gcp01, gcp03"},
     ]
     opts = parse_options(json.dumps(sent))
-    assert opts.project == {"resize": 480, "snap_radius": 2.0}
+    assert opts.project == {"resize": 480, "snap_radius": 2.0, "ortho": "on"}
     assert opts.checkpoints == ["gcp01", "gcp03"]
     assert [o["name"] for o in opts.given] == ["resize", "snap-radius", "checkpoints"]
-    assert parse_options(json.dumps({"mapper": "global"})).project == {"mapper": "global"}
+    assert parse_options(json.dumps({"mapper": "global"})).project == {"mapper": "global", "ortho": "on"}
+    assert parse_options(json.dumps({"ortho": "off", "ortho-gsd": "0.05"})).project == {
+        "ortho": "off",
+        "ortho_gsd": 0.05,
+    }
     assert (
-        parse_options(None).project == {}
+        parse_options(None).project == {"ortho": "on"}
         and parse_options('[{"name": "checkpoints", "value": 2}]').checkpoints == 2
     )
 
