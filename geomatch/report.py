@@ -67,6 +67,8 @@ def _map(o: Mapping[str, Any]) -> dict[str, Any]:
         "bounds_wgs84": o.get("bounds_wgs84"),
         "photos": o.get("photos"),
         "seconds": (o.get("seconds") or {}).get("total"),
+        # the preview's size, the cameras and GCPs on it (fractions of it): the console's map
+        "preview": o.get("preview") if isinstance(o.get("preview"), dict) else None,
     }
 
 

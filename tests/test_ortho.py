@@ -78,6 +78,17 @@ def test_cogs_with_alpha_in_the_models_crs(flat: OrthoScene, flat_map: dict[str,
     summary = json.loads((flat.run / "summary.json").read_text())
     assert summary["ortho"]["crs"] == want.to_string()
     assert (flat.run / "odm_orthophoto" / "preview.png").is_file()
+    preview = summary["ortho"]["preview"]
+    assert max(preview["width"], preview["height"]) <= 1024
+    assert len(preview["cameras"]) == len(flat.cams)  # all of them over the map
+    assert all(0 <= c["x"] <= 1 and 0 <= c["y"] <= 1 for c in preview["cameras"])
+    # the first camera's marker is where its centre is on the map: east of west by its share
+    first = next(c for c in preview["cameras"] if c["name"] == flat.cams[0].name)
+    lat, lon, _ = GPS_ORIGIN.to_geodetic(flat.cams[0].centre[None])
+    e, n = pyproj.Transformer.from_crs("EPSG:4326", want, always_xy=True).transform(lon[0], lat[0])
+    w, s, east, north = summary["ortho"]["bounds"]
+    assert first["x"] == pytest.approx((e - w) / (east - w), abs=1e-3)
+    assert first["y"] == pytest.approx((north - n) / (north - s), abs=1e-3)
 
 
 def test_dsm_is_the_ground_with_outliers_rejected(flat: OrthoScene, flat_map: dict[str, object]) -> None:

@@ -126,6 +126,16 @@ FORMATS: dict[str, ExportFormat] = {
             model_file="odm_dem/dsm.tif",
             missing="no map: reconstruct with the option ortho",
         ),
+        ExportFormat(
+            "map-preview",
+            "geomatch.export.mapfiles:write_preview",
+            frozenset(),
+            "image/png",
+            "the orthophoto at most 1024 px a side (PNG with alpha), for a page to show",
+            12,
+            model_file="odm_orthophoto/preview.png",
+            missing="no map: reconstruct with the option ortho",
+        ),
     )
 }
 

@@ -16,6 +16,7 @@ from .source import ExportError, Source
 
 ORTHOPHOTO = Path("odm_orthophoto") / "odm_orthophoto.tif"
 DSM = Path("odm_dem") / "dsm.tif"
+PREVIEW = Path("odm_orthophoto") / "preview.png"
 MAKE_IT = "make it with `geomatch ortho OUT` (or `geomatch run --ortho`, or a reconstruct job with ortho)"
 
 
@@ -25,18 +26,18 @@ def run_folder(source: Source) -> Path | None:
 
 
 def map_files(source: Source) -> list[Path]:
-    """The map's files the run has, relative to the run folder (ORTHOPHOTO, DSM)."""
+    """The map's files the run has, relative to the run folder (ORTHOPHOTO, DSM, PREVIEW)."""
     run = run_folder(source)
     if run is None:
         return []
-    return [rel for rel in (ORTHOPHOTO, DSM) if (run / rel).is_file()]
+    return [rel for rel in (ORTHOPHOTO, DSM, PREVIEW) if (run / rel).is_file()]
 
 
 def copy_map(source: Source, dest: Path) -> list[Path]:
-    """The run's map files copied into ``dest`` at the same relative places."""
+    """The run's orthophoto and DSM copied into ``dest`` at the same relative places (ODM's)."""
     run = run_folder(source)
     out = []
-    for rel in map_files(source):
+    for rel in (r for r in map_files(source) if r != PREVIEW):
         assert run is not None
         (dest / rel).parent.mkdir(parents=True, exist_ok=True)
         out.append(Path(shutil.copyfile(run / rel, dest / rel)))
@@ -58,3 +59,7 @@ def write_orthophoto(source: Source, dest: Path) -> list[Path]:
 
 def write_dsm(source: Source, dest: Path) -> list[Path]:
     return _one(source, dest, DSM, "DSM")
+
+
+def write_preview(source: Source, dest: Path) -> list[Path]:
+    return _one(source, dest, PREVIEW, "map preview")

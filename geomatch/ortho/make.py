@@ -26,7 +26,7 @@ import numpy as np
 import rasterio
 from PIL import Image
 
-from ..export.mapfiles import DSM, ORTHOPHOTO
+from ..export.mapfiles import DSM, ORTHOPHOTO, PREVIEW
 from ..imageio import working_scale
 from ..report import survey_report
 from .cog import tiled_writer, write_window
@@ -34,11 +34,12 @@ from .dsm import NODATA, build_dsm
 from .gains import exposure_gains
 from .grid import Grid
 from .mosaic import Mosaic, footprint, render_tile
+from .overlay import overlay
 from .photos import PhotoCache
 from .survey import OrthoError, Survey, open_survey
 
 ORTHO_PATH, DSM_PATH = ORTHOPHOTO, DSM  # where ODM has them (export.mapfiles)
-PREVIEW_PATH = Path("odm_orthophoto") / "preview.png"
+PREVIEW_PATH = PREVIEW
 PREVIEW_SIDE = 1024
 MAX_PIXELS = 4_000_000_000  # an orthophoto beyond this is a wrong GSD, not a survey
 DSM_CELLS_PER_GSD = 4.0  # the DSM is never finer than this many map pixels
@@ -91,7 +92,7 @@ def tiles(grid: Grid, size: int) -> list[tuple[int, int, int, int]]:
     return out
 
 
-def write_preview(ortho: Path, dest: Path, side: int = PREVIEW_SIDE) -> Path:
+def write_preview(ortho: Path, dest: Path, side: int = PREVIEW_SIDE) -> tuple[int, int]:
     """The orthophoto at most ``side`` pixels a side, RGBA PNG, read from the COG's overviews."""
     with rasterio.open(ortho) as src:
         f = min(1.0, side / max(src.width, src.height))
@@ -100,7 +101,7 @@ def write_preview(ortho: Path, dest: Path, side: int = PREVIEW_SIDE) -> Path:
     tmp = dest.with_name(f".{dest.name}.part")
     Image.fromarray(np.moveaxis(data, 0, -1).astype(np.uint8), "RGBA").save(tmp, format="PNG")
     os.replace(tmp, dest)
-    return dest
+    return shape[2], shape[1]
 
 
 @dataclass
@@ -176,13 +177,18 @@ def make_map(
         for r0, r1, c0, c1 in tiles(grid, opts.tile):
             write_window(dst, render_tile(mosaic, photos, r0, r1, c0, c1), r0, c0)
     t_ortho = time.perf_counter()
-    write_preview(ortho_path, preview_path)
+    preview_size = write_preview(ortho_path, preview_path)
 
     lonlat = survey.frame.to_wgs84(survey.model_from_projected(np.array([[w, s, 0.0], [e, n, 0.0]])))
     record: dict[str, Any] = {
         "orthophoto": ORTHO_PATH.as_posix(),
         "dsm": DSM_PATH.as_posix(),
-        "preview": PREVIEW_PATH.as_posix(),
+        "preview": {
+            "path": PREVIEW_PATH.as_posix(),
+            "width": preview_size[0],
+            "height": preview_size[1],
+            **overlay(run, survey, grid),
+        },
         "gsd_m": gsd,
         "gsd_auto_m": auto_gsd,
         "dsm_cell_m": dsm.cell,
