@@ -7,6 +7,7 @@
 import * as api from "./api.js";
 import { bindGcp, checkpoints, describeGcp, loadGcp } from "./gcp.js";
 import { bindLocate, resetLocate, showLocate } from "./locate.js";
+import { showMap } from "./map.js";
 import { showReport } from "./report.js";
 import { Viewer } from "./viewer.js";
 
@@ -135,6 +136,7 @@ async function openProject(id) {
   $("camera-caption").textContent = "Click a camera (orange) to see its image.";
   resetLocate();
   showReport(null);
+  showMap(null);
   $("checkpoints").value = "";
   await refreshProject();
   await resume();
@@ -470,6 +472,7 @@ async function loadModel() {
       viewer.clear();
       showLocate(false);
       showReport(null);
+      showMap(null);
       return;
     }
   }
@@ -480,12 +483,16 @@ async function loadModel() {
     `${summary.registered} of ${summary.images} images registered, ${summary.points3D} points, ` +
     `mean reprojection error ${Number(summary.mean_reprojection_error).toFixed(2)} px (${summary.mapper} mapper).` +
     describeGcp(summary);
+  let report = null;
   try {
-    showReport(await api.get(`/projects/${pid()}/report?format=json`));
+    report = await api.get(`/projects/${pid()}/report?format=json`);
   } catch (error) {
     if (error.status !== 404) throw error;
-    showReport(null);
   }
+  showReport(report);
+  await showMap(report, async () =>
+    objectUrl(await api.blob(`/projects/${pid()}/model?format=map-preview`, state.controller.signal)),
+  );
   try {
     viewer.load(await api.get(`/projects/${pid()}/model?format=scene`));
   } catch (error) {
@@ -512,6 +519,8 @@ async function download(e) {
     "model?format=ply": "points.ply",
     database: "database.db",
     "report?format=md": "report.md",
+    "model?format=orthophoto": "odm_orthophoto.tif",
+    "model?format=dsm": "dsm.tif",
   };
   try {
     const url = objectUrl(await api.blob(`/projects/${pid()}/${what}`, state.controller.signal));
