@@ -56,6 +56,8 @@ def survey_report(summary: Mapping[str, Any]) -> dict[str, Any]:
 
 def _map(o: Mapping[str, Any]) -> dict[str, Any]:
     """The orthophoto and DSM (geomatch.ortho's record): what a team checks before sending a map."""
+    if o.get("skipped"):
+        return {"skipped": o["skipped"]}
     extent = o.get("extent_m") or [None, None]
     return {
         "gsd_cm": _round(100.0 * float(o["gsd_m"]), 2) if o.get("gsd_m") is not None else None,
@@ -242,6 +244,8 @@ def to_markdown(r: Mapping[str, Any], title: str = "Survey report") -> str:
 
 def _map_markdown(m: Mapping[str, Any]) -> list[str]:
     e = escape_markdown
+    if m.get("skipped"):
+        return ["", "## Map", "", f"- no map: {e(m['skipped'])}"]
     size = m.get("size_px") or [None, None]
     ext = m.get("extent_m") or [None, None]
     return [

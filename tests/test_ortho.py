@@ -156,6 +156,16 @@ def test_a_model_without_georeferencing_is_refused(tmp_path: Path) -> None:
     with pytest.raises(OrthoError, match="georeferenced"):
         make_map(scene.run)
     assert not (scene.run / "odm_orthophoto").exists() and not (scene.run / "odm_dem").exists()
+    # as a stage of a run or a job: the model stays, the summary and its report say why
+    from geomatch.ortho import map_step
+    from geomatch.report import survey_report, to_markdown
+
+    record = map_step(scene.run)
+    assert "georeferenced" in record["skipped"]
+    summary = json.loads((scene.run / "summary.json").read_text())
+    assert summary["ortho"] == record
+    assert "- no map: the map needs a georeferenced model" in to_markdown(survey_report(summary))
+    assert not (scene.run / "odm_orthophoto").exists()
 
 
 def test_a_gcp_models_map_is_in_the_gcp_files_crs(flat: OrthoScene, tmp_path: Path) -> None:

@@ -19,7 +19,7 @@ from the sparse points and the cameras, without a dense reconstruction. One modu
 
 from __future__ import annotations
 
-from .make import DSM_PATH, ORTHO_PATH, MapOptions, MapResult, make_map
+from .make import DSM_PATH, ORTHO_PATH, MapOptions, MapResult, make_map, map_step
 from .survey import OrthoError
 
-__all__ = ["DSM_PATH", "ORTHO_PATH", "MapOptions", "MapResult", "OrthoError", "make_map"]
+__all__ = ["DSM_PATH", "ORTHO_PATH", "MapOptions", "MapResult", "OrthoError", "make_map", "map_step"]

@@ -25,6 +25,7 @@ import numpy as np
 from scipy import interpolate, spatial
 
 from .grid import Grid
+from .survey import OrthoError
 
 POINTS_PER_CELL = 4.0
 OUTLIER_MADS = 4.0
@@ -33,8 +34,8 @@ MARGIN_CELLS = 2
 NODATA = -9999.0  # what ODM's dsm.tif marks no-data with
 
 
-class DsmError(ValueError):
-    pass
+class DsmError(OrthoError):
+    """The points cannot make a surface (too few, all on a line)."""
 
 
 @dataclass(frozen=True)

@@ -227,3 +227,16 @@ def record_in_summary(run: Path, record: dict[str, Any]) -> None:
     tmp = path.with_name(f".{path.name}.ortho.part")
     tmp.write_text(json.dumps(summary, indent=1))
     os.replace(tmp, path)
+
+
+def map_step(run: Path, images: str | Path | None = None, gsd: float | None = None) -> dict[str, Any]:
+    """The map as a stage of ``geomatch run --ortho`` or a reconstruct job with ``ortho``: its
+    record (written into the run's summary.json as ``ortho``), or ``{"skipped": why}`` when the
+    model cannot have a map (not georeferenced, too few points), recorded the same way: the model
+    is the run's product and stays good without a map."""
+    try:
+        return make_map(run, images, options=MapOptions(gsd=gsd or None)).record
+    except OrthoError as e:
+        record: dict[str, Any] = {"skipped": str(e)}
+        record_in_summary(run, record)
+        return record
