@@ -385,7 +385,9 @@ def reconstruct(
     shutil.rmtree(work, ignore_errors=True)
     summary: dict[str, Any] = {"mapper": mapper, "mapper_requested": requested, "models": len(ranked)}
     summary["view_graph"] = report.as_dict() if report is not None else None
-    summary["joined_models"] = [j.as_dict() for j in joins]
+    summary["joined_models"] = [j.as_dict() for j in joins if not j.refused]
+    # blocks a join would have placed against the pairs they have with the rest: left apart
+    summary["joins_refused"] = [j.as_dict() for j in joins if j.refused]
     summary["placed_from_pairs"] = [p.as_dict() for p in placements]
     summary["mapping_attempts"] = attempts
     summary["pair_agreement"] = agreed.as_dict() if agreed is not None else None

@@ -11,19 +11,23 @@ from the crop keypoints. The two models share a camera but no 3D point, so COLMA
 The shared image does: its pose gives the rotation and translation between the models, and the
 scale is the ratio of depths, in that image, of the two models' points seen at nearby pixels
 (the same surfaces, reached through different keypoints). A join is kept only when enough such
-neighbours agree on one scale; the joined cameras are then fixed in the first model, every point
-is triangulated again from the database with the poses held, and a bundle adjustment refines the
-whole.
+neighbours agree on one scale, and only where the verified pairs between the placed cameras and
+the first model's others hold the placed poses (joincheck.py: a block at a wrong scale keeps its
+rotations and breaks those pairs); the joined cameras are then fixed in the first model, every
+point is triangulated again from the database with the poses held, and a bundle adjustment refines
+the whole. A join those pairs refuse leaves the second model as it was, and the summary says so.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 from scipy.spatial import cKDTree
+
+from .joincheck import CrossPairs, View, cross_pairs
 
 # two observations, one per model, within this many pixels of each other in the shared image see
 # the same surface: close enough that a facade edge between them is rare, far enough that the
@@ -44,7 +48,15 @@ class Join:
     scale: float  # the second model's units in the first's
     neighbours: int  # depth ratios the scale rests on
     spread: float  # their median absolute deviation in log scale
-    images: tuple[str, ...]  # the images the first model gained
+    images: tuple[str, ...]  # the images the first model gained (or would have, when refused)
+    # inliers of the verified pairs between those images and the first model's others (not the
+    # shared image's) that the placed poses hold, and that they break
+    pairs_held: int = 0
+    pairs_contradicted: int = 0
+
+    @property
+    def refused(self) -> bool:
+        return CrossPairs(self.pairs_held, self.pairs_contradicted).refuse
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -53,6 +65,8 @@ class Join:
             "neighbours": self.neighbours,
             "spread": round(self.spread, 4),
             "images": list(self.images),
+            "pairs_held": self.pairs_held,
+            "pairs_contradicted": self.pairs_contradicted,
         }
 
 
@@ -138,6 +152,24 @@ def place(first: pycolmap.Reconstruction, second: pycolmap.Reconstruction) -> Jo
     return Join(via, scale, n, spread, tuple(sorted(new)))
 
 
+def verify(rec: pycolmap.Reconstruction, join: Join, base: set[str], database: Path) -> Join:
+    """``join`` with the inliers of the verified pairs of ``database`` between the images it placed
+    and the images of ``base`` (the first model's own, the shared image aside) that ``rec`` holds,
+    and of those it breaks (joincheck.py). Measured on the adjusted model: the placement alone
+    carries the second model's error in the shared image's pose, which the adjustment takes out of
+    a right join and cannot take out of a wrong one (its cross pairs have no points to pull by)."""
+
+    def view(name: str) -> View:
+        image = rec.find_image_with_name(name)
+        return View(rec.cameras[image.camera_id], image.cam_from_world())
+
+    held = _registered(rec)
+    placed = {name: view(name) for name in join.images if name in held}
+    others = {name: view(name) for name in sorted(base & held) if name != join.via}
+    check = cross_pairs(database, placed, others)
+    return replace(join, pairs_held=check.held, pairs_contradicted=check.contradicted)
+
+
 def join_models(
     models: list[pycolmap.Reconstruction],
     database: Path,
@@ -148,27 +180,36 @@ def join_models(
     """``models`` (largest first) with every later model that shares an image with the first
     placed into it, its points triangulated again from ``database`` (the mapper's copy) with the
     poses held and the whole bundle-adjusted; the models that could not be joined follow as they
-    were. ``work``: a scratch folder for the triangulation."""
+    were. A join whose cross pairs refuse it (:func:`verify`) is undone and the rest joined again
+    without it. The joins come back with the models, refused ones included (``Join.refused``),
+    for the summary. ``work``: a scratch folder for the triangulation."""
     if len(models) < 2:
         return models, []
-    first, rest = pycolmap.Reconstruction(models[0]), []
-    joins = []
-    for other in models[1:]:
-        j = place(first, other)
-        if j is None:
-            rest.append(other)
-        else:
-            joins.append(j)
-    if not joins:
-        return models, []
-    work.mkdir(parents=True, exist_ok=True)
-    joined = pycolmap.triangulate_points(
-        first, str(database), str(image_dir), str(work), clear_points=True, options=options
-    )
-    adjust(joined)
-    # a model whose images all went into the first adds nothing more
-    kept = [m for m in rest if _registered(m) - _registered(joined)]
-    return [joined, *kept], joins
+    base = _registered(models[0])
+    refused: dict[int, Join] = {}
+    while True:  # each pass refuses one join more or returns: at most len(models) passes
+        first, rest, joins = pycolmap.Reconstruction(models[0]), [], {}
+        for k, other in enumerate(models[1:], start=1):
+            j = None if k in refused else place(first, other)
+            if j is None:
+                rest.append(other)
+            else:
+                joins[k] = j
+        if not joins:
+            return models, list(refused.values())
+        into = work / f"pass_{len(refused)}"
+        into.mkdir(parents=True, exist_ok=True)
+        joined = pycolmap.triangulate_points(
+            first, str(database), str(image_dir), str(into), clear_points=True, options=options
+        )
+        adjust(joined)
+        checked = {k: verify(joined, j, base, database) for k, j in joins.items()}
+        newly = {k: j for k, j in checked.items() if j.refused}
+        if not newly:
+            # a model whose images all went into the first adds nothing more
+            kept = [m for m in rest if _registered(m) - _registered(joined)]
+            return [joined, *kept], [*checked.values(), *refused.values()]
+        refused.update(newly)
 
 
 def adjust(rec: pycolmap.Reconstruction) -> None:
