@@ -255,3 +255,17 @@ def test_the_map_in_the_exports_and_the_report(
         p.relative_to(tmp_path / "odm2").as_posix() for p in export(open_run(bare), "odm", tmp_path / "odm2")
     }
     assert "odm_orthophoto/odm_orthophoto.tif" not in files and "odm_report/shots.geojson" in files
+
+
+def test_model_coordinates_between_nodes_are_exact(flat: OrthoScene, flat_map: dict[str, object]) -> None:
+    from geomatch.ortho.grid import Grid
+    from geomatch.ortho.mosaic import model_grid
+
+    survey = open_survey(flat.run)
+    w, s, e, n = flat_map["bounds"]
+    grid = Grid.covering(w, s, e, n, flat_map["gsd_m"])
+    ee, nn = grid.centres(3, 203, 5, 180)
+    z = GPS_ORIGIN.alt + np.random.default_rng(1).normal(0.0, 20.0, ee.shape)  # far off its median
+    got = model_grid(survey, ee, nn, z)
+    want = survey.model_from_projected(np.column_stack([ee.ravel(), nn.ravel(), z.ravel()]))
+    assert np.abs(got.reshape(-1, 3) - want).max() < 1e-4

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from .dsm import Dsm
 from .grid import Grid
@@ -121,6 +122,36 @@ def labels(mosaic: Mosaic, step: int) -> np.ndarray:
     return np.where(seen.any(axis=0), best, -1).reshape(e.shape)
 
 
+def model_grid(survey: Survey, e: np.ndarray, n: np.ndarray, z: np.ndarray, step: int = 16) -> np.ndarray:
+    """Model coordinates (h, w, 3) of a regular window of ground positions (``e``, ``n`` from
+    Grid.centres, heights ``z``). A GCP model's frame is the map's CRS shifted: exact. A GPS
+    model's (ENU) needs PROJ and the ellipsoid per position, the slowest part of a tile done per
+    pixel, so it is done every ``step`` pixels at the window's median height and one metre above
+    it, and the pixels are interpolated between the nodes and along the local vertical: the
+    change of frame bends by millimetres over kilometres, nothing over a few metres."""
+    h, w = e.shape
+    if survey.frame.offset is not None or h < 2 or w < 2:
+        return survey.model_from_projected(np.column_stack([e.ravel(), n.ravel(), z.ravel()])).reshape(
+            h, w, 3
+        )
+    res_e, res_n = e[0, 1] - e[0, 0], n[1, 0] - n[0, 0]
+    rows = np.arange(0, h - 1 + step, step, dtype=np.float64)
+    cols = np.arange(0, w - 1 + step, step, dtype=np.float64)
+    ne, nn = np.meshgrid(e[0, 0] + cols * res_e, n[0, 0] + rows * res_n)
+    h0 = float(np.median(z))
+    base = survey.model_from_projected(np.column_stack([ne.ravel(), nn.ravel(), np.full(ne.size, h0)]))
+    above = survey.model_from_projected(np.column_stack([ne.ravel(), nn.ravel(), np.full(ne.size, h0 + 1.0)]))
+    rr, cc = np.meshgrid(
+        np.arange(h, dtype=np.float64) / step, np.arange(w, dtype=np.float64) / step, indexing="ij"
+    )
+    out = np.empty((h, w, 3))
+    for k in range(3):
+        a = ndimage.map_coordinates(base[:, k].reshape(ne.shape), [rr, cc], order=1)
+        u = ndimage.map_coordinates((above[:, k] - base[:, k]).reshape(ne.shape), [rr, cc], order=1)
+        out[..., k] = a + (z - h0) * u
+    return out
+
+
 def render_tile(mosaic: Mosaic, photos: PhotoCache, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
     """The (row1 - row0, col1 - col0, 4) RGBA uint8 window of the orthophoto."""
     grid, dsm, survey = mosaic.grid, mosaic.dsm, mosaic.survey
@@ -147,7 +178,7 @@ def render_tile(mosaic: Mosaic, photos: PhotoCache, row0: int, row1: int, col0: 
     h, w = e.shape
     e_f, n_f = e.ravel(), n.ravel()
     z = dsm.at(e_f, n_f)
-    xyz = survey.model_from_projected(np.column_stack([e_f, n_f, z]))
+    xyz = model_grid(survey, e, n, z.reshape(h, w)).reshape(-1, 3)
     # where each full pixel falls on the lattice (node (i, j) is pixel (kr0 + i, kc0 + j) * COARSE)
     rr = (np.arange(row0, row1, dtype=np.float32) / COARSE - kr0).astype(np.float32)
     cc = (np.arange(col0, col1, dtype=np.float32) / COARSE - kc0).astype(np.float32)
