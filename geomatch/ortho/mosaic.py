@@ -28,6 +28,7 @@ from .survey import Survey, View
 
 COARSE = 8  # pixels between the lattice's nodes
 FEATHER = 3  # nodes each side of a seam
+EDGE = 0.05  # of a photo's shorter side: its weight fades to nothing over this towards its edge
 
 
 @dataclass(frozen=True)
@@ -152,6 +153,15 @@ def model_grid(survey: Survey, e: np.ndarray, n: np.ndarray, z: np.ndarray, step
     return out
 
 
+def edge_ramp(view: View, uv: np.ndarray) -> np.ndarray:
+    """A photo's weight near its frame: 1 inside, down to almost nothing at the edge over
+    ``EDGE`` of its shorter side, so that where a photo ends inside a seam's blend its colour
+    fades out instead of stopping at a straight line (a place only it sees keeps its colour:
+    the weights are normalised)."""
+    margin = np.minimum.reduce([uv[:, 0], uv[:, 1], view.width - uv[:, 0], view.height - uv[:, 1]])
+    return np.clip(margin / (EDGE * min(view.width, view.height)), 1e-3, 1.0)
+
+
 def render_tile(mosaic: Mosaic, photos: PhotoCache, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
     """The (row1 - row0, col1 - col0, 4) RGBA uint8 window of the orthophoto."""
     grid, dsm, survey = mosaic.grid, mosaic.dsm, mosaic.survey
@@ -204,7 +214,7 @@ def render_tile(mosaic: Mosaic, photos: PhotoCache, row0: int, row1: int, col0: 
         img = photos.get(view, float(mosaic.scales[p]))
         x, y = to_pixels(view, img, uv)
         colour = sample(img, x, y)
-        wk = full[idx].astype(np.float64)
+        wk = full[idx].astype(np.float64) * edge_ramp(view, uv)
         acc[idx] += wk[:, None] * colour * mosaic.gains[p][None]
         wsum[idx] += wk
     has = wsum > 0
