@@ -120,7 +120,8 @@ def labels(mosaic: Mosaic, step: int) -> np.ndarray:
     if not cands:
         return np.full(e.shape, -1)
     best = np.asarray(cands)[np.argmin(scores, axis=0)]
-    return np.where(seen.any(axis=0), best, -1).reshape(e.shape)
+    mapped = seen.any(axis=0) & mosaic.dsm.inside(e.ravel(), n.ravel())
+    return np.where(mapped, best, -1).reshape(e.shape)
 
 
 def model_grid(survey: Survey, e: np.ndarray, n: np.ndarray, z: np.ndarray, step: int = 16) -> np.ndarray:
