@@ -10,7 +10,7 @@ reported apart; tune on the first only.
 
 Raw pair matches are cached per scene under bench/out/air_ground_sweep, keyed by the pixels, the
 pair and the matcher's config, so a re-run after a change re-matches only the pairs it changes.
-``--tiled-floor N`` writes the tiled pairs with dbwrite.TILED_MIN_INLIERS set to N (0: COLMAP's own
+``--tiled-floor N`` writes the tiled pairs with database.TILED_MIN_INLIERS set to N (0: COLMAP's own
 floor only), the ablation row of that floor; ``--min-pose-inliers N`` maps with that PnP minimum
 (RunOptions.min_pose_inliers; 0: the default); neither matches anything again. ``--tile-min-probe N``
 matches with MatcherConfig.tile_min_probe set to N (0: a tiled pair whose crop probe finds too few
@@ -43,10 +43,9 @@ import numpy as np
 import pycolmap
 from common import print_table
 
-from geomatch import dbwrite
 from geomatch.eval.evaluate import evaluate_run
 from geomatch.eval.pairtruth import judge_pairs
-from geomatch.pipeline import RunOptions, run
+from geomatch.pipeline import RunOptions, database, run
 from geomatch.synth.aerial import write_scene
 
 OUT = Path(__file__).parent / "out" / "air_ground_sweep"
@@ -124,7 +123,7 @@ def run_seed(
         write_scene(scene, n_aerial, n_ground, seed)
     case, left = subset(scene, seed, drop, drop_seed) if drop else (scene, [])
     extra = "".join(f"_{k}{v}" for k, v in sorted((matcher or {}).items()))
-    out = case / f"run_floor{dbwrite.TILED_MIN_INLIERS}_pnp{min_pose_inliers}{extra}"
+    out = case / f"run_floor{database.TILED_MIN_INLIERS}_pnp{min_pose_inliers}{extra}"
     shutil.rmtree(out, ignore_errors=True)  # a fresh database; raw matches come from the cache
     opts = RunOptions(progress=False, min_pose_inliers=min_pose_inliers, matcher=dict(matcher or {}))
     s = run(case / "images", out, opts, match=matchcache.cached(scene / "matches"))
@@ -206,7 +205,7 @@ def main() -> None:
     ap.add_argument("--layouts", default="2+4,2+6,4+8", help="aerial+ground per scene, comma-separated")
     ap.add_argument("--seeds", default="4242,1-9", help="tuning seeds")
     ap.add_argument("--test-seeds", default="", help="test seeds, reported apart (never tune on them)")
-    ap.add_argument("--tiled-floor", type=int, help="dbwrite.TILED_MIN_INLIERS for this run")
+    ap.add_argument("--tiled-floor", type=int, help="database.TILED_MIN_INLIERS for this run")
     ap.add_argument("--min-pose-inliers", type=int, default=0, help="PnP minimum (0: the default)")
     ap.add_argument("--tile-min-probe", type=int, help="MatcherConfig.tile_min_probe for this run")
     ap.add_argument("--drop", type=int, default=0, help="ground photos left out of each scene (0: none)")
@@ -214,7 +213,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="append each seed's row to this JSON-lines file")
     args = ap.parse_args()
     if args.tiled_floor is not None:
-        dbwrite.TILED_MIN_INLIERS = args.tiled_floor
+        database.TILED_MIN_INLIERS = args.tiled_floor
     matcher = {} if args.tile_min_probe is None else {"tile_min_probe": args.tile_min_probe}
     rows = []
     t0 = time.perf_counter()
@@ -227,7 +226,7 @@ def main() -> None:
                     if args.json:
                         with args.json.open("a") as f:
                             f.write(json.dumps(row) + "\n")
-    label = f"defaults, tiled pairs verified from {dbwrite.TILED_MIN_INLIERS} inliers"
+    label = f"defaults, tiled pairs verified from {database.TILED_MIN_INLIERS} inliers"
     if args.min_pose_inliers:
         label += f", PnP minimum {args.min_pose_inliers}"
     if matcher:

@@ -28,7 +28,7 @@ from common import print_table
 
 from geomatch.geo.gps import footprint, look_point
 from geomatch.metadata import ImageMeta
-from geomatch.sfm.pairs import gps_neighbours
+from geomatch.pipeline.pair_sources import gps_neighbours
 from geomatch.synth.camera import look_at
 
 WIDTH, HEIGHT = 4000, 3000

@@ -16,11 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from geomatch import pairstep
 from geomatch.imageio import image_key
 from geomatch.matching.matcher import Matcher
-from geomatch.pairstep import MatchPair, PairMatches
-from geomatch.sfm.pairs import Pair
+from geomatch.pipeline import match_pairs
+from geomatch.pipeline.database import PairMatches
+from geomatch.pipeline.match_pairs import MatchPair
+from geomatch.pipeline.pair_sources import Pair
 
 
 def match(
@@ -32,11 +33,11 @@ def match(
     aerial_project: bool = False,
     survey: bool = False,
 ) -> PairMatches:
-    """``geomatch.pairstep.match``, read back from the folder ``cache`` when the pair is there
+    """``geomatch.pipeline.match_pairs.match``, read back from the folder ``cache`` when the pair is there
     (None: no cache)."""
     if not cache:
-        return pairstep.match(matcher, pair, image0, image1, aerial_project, survey)
-    config = pairstep.pair_matcher(matcher, pair, aerial_project, survey).config
+        return match_pairs.match(matcher, pair, image0, image1, aerial_project, survey)
+    config = match_pairs.pair_matcher(matcher, pair, aerial_project, survey).config
     sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
     h = hashlib.sha256(
         repr(
@@ -55,7 +56,7 @@ def match(
     if path.is_file():
         with np.load(path) as z:
             return PairMatches(z["k0"], z["k1"], z["scores"], sizes, pair.tiled)
-    out = pairstep.match(matcher, pair, image0, image1, aerial_project, survey)
+    out = match_pairs.match(matcher, pair, image0, image1, aerial_project, survey)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
     np.savez(tmp, k0=out.keypoints0, k1=out.keypoints1, scores=out.scores)
@@ -65,9 +66,9 @@ def match(
 
 def cached(cache: str | Path | None) -> MatchPair:
     """A pair matcher for ``geomatch.pipeline.run(..., match=)`` reading and filling ``cache``
-    (None: ``geomatch.pairstep.match`` itself)."""
+    (None: ``geomatch.pipeline.match_pairs.match`` itself)."""
     if not cache:
-        return pairstep.match
+        return match_pairs.match
 
     def match_cached(
         matcher: Matcher,

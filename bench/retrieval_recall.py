@@ -16,8 +16,8 @@ import numpy as np
 from common import print_table
 
 from geomatch.matching.matcher import Matcher, MatcherConfig
-from geomatch.sfm.pairs import nearest_neighbours
-from geomatch.sfm.retrieval import vlad
+from geomatch.pipeline.pair_sources import nearest_neighbours
+from geomatch.pipeline.retrieval import vlad
 from geomatch.synth.aerial import Scene, covisibility
 
 

@@ -119,10 +119,10 @@ def worker(images: Path, out: Path) -> None:
     """``geomatch.pipeline.run`` with a user's defaults; the features' seconds counted by wrapping
     the matcher's extraction (outermost call per thread: the stored matcher calls the base one),
     split into those of the plan and those of the matching."""
-    from geomatch import planning
     from geomatch.matching.matcher import Matcher
     from geomatch.matching.stored import StoredFeaturesMatcher
     from geomatch.pipeline import RunOptions, run
+    from geomatch.pipeline import plan as planning
 
     spent = {"features": 0.0}
     local = threading.local()

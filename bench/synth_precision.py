@@ -20,7 +20,7 @@ import numpy as np
 from common import print_table
 
 from geomatch.matching.matcher import Matcher, config_from_options
-from geomatch.sfm import pairs as pairing
+from geomatch.pipeline import pair_sources as pairing
 from geomatch.synth.aerial import Scene, covisibility, write_scene
 from geomatch.synth.camera import Camera
 

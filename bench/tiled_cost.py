@@ -24,10 +24,12 @@ import numpy as np
 from common import print_table
 from synth_precision import correct
 
-from geomatch import capture, pairstep, planning
 from geomatch.imagefolder import Images, list_images
 from geomatch.matching.matcher import Matcher, config_from_options
 from geomatch.metadata import read_metadata
+from geomatch.pipeline import match_pairs
+from geomatch.pipeline import plan as planning
+from geomatch.pipeline.aerial import aerial_set, captures
 from geomatch.synth.aerial import Scene, write_scene
 
 ROWS = [
@@ -65,7 +67,7 @@ def main() -> None:
         names = list_images(image_dir)
         aerial_names = [n for n in (scene / "aerial.txt").read_text().split() if n]
         metas = {n: read_metadata(image_dir / n) for n in names}
-        aerial = capture.aerial_set(capture.captures(names, aerial_names, None), metas)
+        aerial = aerial_set(captures(names, aerial_names, None), metas)
         rows = []
         for label, tiling, mode in ROWS:
             m = Matcher(config_from_options(method="geo", resize=args.resize, device="cpu", tile_crops=mode))
@@ -79,7 +81,7 @@ def main() -> None:
             secs, crops, matches, right = [], [], [], []
             for p in ag:
                 t0 = time.perf_counter()
-                r = pairstep.match(m, p, images[p.name0], images[p.name1])
+                r = match_pairs.match(m, p, images[p.name0], images[p.name1])
                 secs.append(time.perf_counter() - t0)
                 crops.append(r.crops)
                 matches.append(len(r))
@@ -89,7 +91,7 @@ def main() -> None:
             plain = []
             for p in gg:
                 t0 = time.perf_counter()
-                pairstep.match(m, p, images[p.name0], images[p.name1])
+                match_pairs.match(m, p, images[p.name0], images[p.name1])
                 plain.append(time.perf_counter() - t0)
             rows.append(
                 dict(

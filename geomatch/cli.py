@@ -71,7 +71,7 @@ def cmd_match(args: argparse.Namespace) -> int:
 
 def _run_options(args: argparse.Namespace) -> RunOptions:
     from .pipeline import RunOptions
-    from .sfm.pairs import read_pairs_file
+    from .pipeline.pair_sources import read_pairs_file
 
     values = options.given(args, options.MATCH_OPTIONS + options.OPTIMIZER_OPTIONS + options.RUN_OPTIONS)
     pairs_list = None

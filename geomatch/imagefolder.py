@@ -30,6 +30,25 @@ def list_images(folder: Path) -> list[str]:
     return names
 
 
+# (x scale, y scale) from working to photo pixels, and the photo's (width, height)
+PhotoScale = tuple[float, float, tuple[int, int]]
+
+
+def to_photo(size: tuple[int, int], max_side: int | None) -> PhotoScale | None:
+    """How a photo of ``size`` (width, height) read at ``max_side`` maps back to its own pixels;
+    None when it is read as stored."""
+    w, h = working_size(*size, max_side)
+    if (w, h) == size:
+        return None
+    return size[0] / w, size[1] / h, size
+
+
+def photo_size(path: Path) -> tuple[int, int]:
+    """(width, height) of a photo as stored, from its header."""
+    with Image.open(path) as im:
+        return int(im.size[0]), int(im.size[1])
+
+
 class Images:
     """Decoded images of a folder, as many as ``budget_mb`` holds (least recently used go first):
     a 12 MP photo decodes to 36 MB, so a count bound would be a gigabyte on real projects."""
@@ -46,22 +65,16 @@ class Images:
         img = self._cache.get(name)
         if img is None:
             img = read_image(self.folder / name, self.max_side)
-            if self.max_side and name not in self._sizes:
-                with Image.open(self.folder / name) as im:  # decoded above: a readable image
-                    self._sizes[name] = im.size
+            if self.max_side and name not in self._sizes:  # decoded above: a readable image
+                self._sizes[name] = photo_size(self.folder / name)
             self._cache.put(name, img)
         return img
 
-    def to_photo(self, name: str) -> tuple[float, float, tuple[int, int]] | None:
+    def to_photo(self, name: str) -> PhotoScale | None:
         """(x, y scale from working to photo pixels, the photo's (width, height)) of an image read
         below its stored size; None when it is read as stored."""
         size = self._sizes.get(name)
-        if size is None:
-            return None
-        w, h = working_size(*size, self.max_side)
-        if (w, h) == size:
-            return None
-        return size[0] / w, size[1] / h, size
+        return to_photo(size, self.max_side) if size is not None else None
 
     def nbytes(self) -> int:
         return self._cache.nbytes()

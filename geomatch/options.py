@@ -455,28 +455,3 @@ def fewest_pairs(spec: str, n: int) -> tuple[int, bool]:
     fewest = max((PAIR_KIND[kind].fewest(n, k) for kind, k in parts), default=0)
     exact = len(parts) == 1 and PAIR_KIND[parts[0][0]].exact
     return fewest, exact
-
-
-def too_many_pairs(pairs: int, n: int, limit: int, plan: str, exact: bool = True) -> str:
-    """The refusal of a match job whose plan is over ``limit`` pairs, with how to split the work."""
-    k = max(1, limit // max(n, 1))
-    count = f"{pairs}" if exact else f"at least {pairs}"
-    return (
-        f"this match would plan {count} pairs ({plan} over {n} images), over the limit of {limit} "
-        f"pairs per job (GEOMATCH_MAX_PAIRS_PER_JOB). Split the work: pair each image with its K "
-        f'nearest instead of every other, "gps:{k}" (photos with GPS), "retrieval:{k}" (by '
-        f'appearance) or "sequential:{k}" (a video or a flight line), about {k * n} pairs here; '
-        "or match the project in parts with explicit pair lists"
-    )
-
-
-def too_much_queued(queued: int, jobs: int, adding: int, limit: int, exact: bool = True) -> str:
-    """The refusal of a match past a tenant's queued pairs (``GEOMATCH_MAX_QUEUED_PAIRS``)."""
-    more = f"{adding}" if exact else f"at least {adding}"
-    nearest = " or ".join(f'"{k.name}:K"' for k in PAIR_KINDS if k.takes_k)
-    return (
-        f"this tenant's unfinished match jobs ({jobs}) hold {queued} pairs not matched yet and this "
-        f"match would add {more}, over the limit of {limit} queued pairs per tenant "
-        "(GEOMATCH_MAX_QUEUED_PAIRS). Retry when some of them have finished, cancel one, or plan "
-        f"fewer pairs ({nearest} instead of exhaustive)"
-    )

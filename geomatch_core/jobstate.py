@@ -7,11 +7,12 @@ counted once, and exactly one caller sees a job complete.
 
 from __future__ import annotations
 
-import math
 from typing import Any, cast
 
 from sqlalchemy import CursorResult, Update, select, update
 from sqlalchemy.orm import Session
+
+from geomatch.pipeline.outputs import finite
 
 from .models import TERMINAL_STATES, Job, JobPair, now
 from .queue import ENTRY_STEP, JobQueue
@@ -133,21 +134,6 @@ def finish_if_complete(store: MetadataStore, job_id: str, result: dict[str, Any]
                 .values(state="succeeded", finished_at=now(), result=result),
             )
         )
-
-
-def finite(value: Any) -> Any:
-    """``value`` (a result: dicts, lists, numbers, text) with every NaN or infinite number as None.
-
-    JSON has no NaN: PostgreSQL's json type refuses the whole result (the job then failed after its
-    work was done) and SQLite stores text no JSON reader takes. A number a step could not measure
-    is unknown, which is what null says."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: finite(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [finite(v) for v in value]
-    return value
 
 
 def store_result(store: MetadataStore, job_id: str, result: dict[str, Any]) -> bool:

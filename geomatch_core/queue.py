@@ -10,7 +10,6 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 PLAN_MATCH = "geomatch.plan_match"
-EXTRACT = "geomatch.extract"
 MATCH_PAIR = "geomatch.match_pair"
 RECONSTRUCT = "geomatch.reconstruct"
 RENDER_PAIR = "geomatch.render_pair"

@@ -65,6 +65,11 @@ class Storage:
         """The project's ground control points, OpenDroneMap's ``gcp_list.txt`` as uploaded (UTF-8)."""
         return self.project_dir(project_id) / "gcp_list.txt"
 
+    def plan_path(self, project_id: str) -> Path:
+        """The plan of the project's last match job (geomatch.pipeline.plan.Plan), which its
+        reconstruct jobs map by."""
+        return self.project_dir(project_id) / "plan.json"
+
     def model_dir(self, project_id: str) -> Path:
         return self.project_dir(project_id) / "model"
 

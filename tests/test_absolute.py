@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from geomatch.localize import LocalizeOptions, judge
-from geomatch.sfm.absolute import Correspondences, Observations, estimate_pose, lift, merge
+from geomatch.localize.absolute import Correspondences, Observations, estimate_pose, lift, merge
 
 pytestmark = pytest.mark.unit
 

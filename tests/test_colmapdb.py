@@ -4,9 +4,8 @@ import numpy as np
 import pycolmap
 import pytest
 
-from geomatch.dbwrite import TILED_MIN_INLIERS, write
 from geomatch.metadata import ImageMeta
-from geomatch.pairstep import PairMatches
+from geomatch.pipeline.database import TILED_MIN_INLIERS, PairMatches, write
 from geomatch.sfm.colmapdb import ColmapDatabase
 
 pytestmark = pytest.mark.unit

@@ -30,8 +30,8 @@ from geomatch.geo.georef import (
 )
 from geomatch.geo.similarity import umeyama_upright, upright_with_heights
 from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata, up_in_camera
-from geomatch.options import check, parse_plan
-from geomatch.sfm import pairs
+from geomatch.options import PairSpecError, check, parse_plan
+from geomatch.pipeline import pair_sources as pairs
 from geomatch.sfm.colmapdb import ColmapDatabase
 from geomatch.synth.aerial import Scene, write_scene
 from geomatch.synth.groundtruth import write_gt
@@ -421,7 +421,7 @@ def test_gps_plans() -> None:
     assert parse_plan("gps:8+retrieval:4") == [("gps", 8), ("retrieval", 4)]
     assert parse_plan("gps:3+retrieval:2+gps:4") == [("gps", 4), ("retrieval", 2)]  # a union
     for bad in ("gps", "gps:0", "exhaustive+gps:3", "gps:3+", "gps:3 retrieval:3"):
-        with pytest.raises(pairs.PairSpecError):
+        with pytest.raises(PairSpecError):
             parse_plan(bad)
     assert check("pairs", " gps:10+retrieval:5 ") == "gps:10+retrieval:5"
     assert check("pairs", "gps:2+gps:3") == "gps:2+gps:3"

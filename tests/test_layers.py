@@ -44,26 +44,20 @@ RANKS = {
     # one pair (puts the backbones together); many pairs into a model (georeferenced by geo)
     "geomatch.matching": 2,
     "geomatch.sfm": 2,
-    # which images are aerial: the caller's word, the metadata, a survey's GPS track (geo)
-    "geomatch.capture": 2,
     # judging a model against ground truth (with sfm's statistics); exporting a model
     "geomatch.eval": 3,
     "geomatch.export": 3,
-    # which pairs a project matches and how (sfm's pairings, matching's turn probes)
-    "geomatch.planning": 3,
     # synthetic scenes with ground truth (the indoor pairs score themselves with eval.pose)
     "geomatch.synth": 4,
     # the map of a georeferenced model: DSM and orthophoto (export's frames, the photos)
     "geomatch.ortho": 4,
-    # the stages over all of it: one pair matched and written (pairstep, dbwrite), a run's summary
-    # and archive (rundir), the run itself (pipeline), the demo, drawings of matches
-    "geomatch.pairstep": 5,
-    "geomatch.dbwrite": 5,
-    "geomatch.rundir": 5,
+    # the pipeline's stages over all of it: which images are aerial, the plan, each pair matched
+    # and written, the model mapped and georeferenced, the summary; the in-process runner
     "geomatch.pipeline": 5,
-    "geomatch.demo": 5,
-    "geomatch.viz": 5,
-    # new photos placed in a project's model: a folder over pairstep's matching and dbwrite's writes
+    # what runs the pipeline for a user: the demo; drawings of matches
+    "geomatch.demo": 6,
+    "geomatch.viz": 6,
+    # new photos placed in a project's model: a folder over the pipeline's matching and writes
     "geomatch.localize": 6,
     # the commands over all of it, and the package's public names
     "geomatch.cli": 7,

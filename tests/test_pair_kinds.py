@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geomatch import options, planning
+from geomatch import options
 from geomatch.imagefolder import Images
 from geomatch.options import PAIR_KIND, PAIR_KINDS, PAIR_SPEC_LIST, fewest_pairs, parse_plan
+from geomatch.pipeline import plan as planning
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.unit

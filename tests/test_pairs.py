@@ -3,10 +3,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from geomatch.capture import aerial_set, captures
 from geomatch.metadata import ImageMeta, read_metadata
-from geomatch.sfm import pairs
-from geomatch.sfm.retrieval import vlad
+from geomatch.options import PairSpecError, parse_plan, parse_spec
+from geomatch.pipeline import pair_sources as pairs
+from geomatch.pipeline.aerial import aerial_set, captures
+from geomatch.pipeline.retrieval import vlad
 from geomatch.synth.aerial import write_scene
 
 pytestmark = pytest.mark.unit
@@ -15,12 +16,12 @@ NAMES = ["a0.jpg", "a1.jpg", "g0.jpg", "g1.jpg", "g2.jpg"]
 
 
 def test_specs() -> None:
-    assert pairs.parse_spec("exhaustive") == ("exhaustive", 0)
-    assert pairs.parse_spec("sequential:3") == ("sequential", 3)
-    assert pairs.parse_spec("retrieval:10") == ("retrieval", 10)
+    assert parse_spec("exhaustive") == ("exhaustive", 0)
+    assert parse_spec("sequential:3") == ("sequential", 3)
+    assert parse_spec("retrieval:10") == ("retrieval", 10)
     for bad in ("exhaustive:2", "sequential", "retrieval:0", "nearest:3", ""):
-        with pytest.raises(pairs.PairSpecError):
-            pairs.parse_spec(bad)
+        with pytest.raises(PairSpecError):
+            parse_spec(bad)
     assert len(pairs.exhaustive(NAMES)) == 10
     assert pairs.sequential(NAMES, 2) == [
         ("a0.jpg", "a1.jpg"),
@@ -35,9 +36,9 @@ def test_specs() -> None:
 
 def test_explicit_pairs_are_checked() -> None:
     assert pairs.explicit([["a0.jpg", "g1.jpg"]], NAMES) == [("a0.jpg", "g1.jpg")]
-    with pytest.raises(pairs.PairSpecError, match="not among the images"):
+    with pytest.raises(PairSpecError, match="not among the images"):
         pairs.explicit([["a0.jpg", "nope.jpg"]], NAMES)
-    with pytest.raises(pairs.PairSpecError, match="itself"):
+    with pytest.raises(PairSpecError, match="itself"):
         pairs.explicit([["a0.jpg", "a0.jpg"]], NAMES)
     assert pairs.read_pairs_file("# comment\na0.jpg g0.jpg\n\ng1.jpg g2.jpg\n") == [
         ["a0.jpg", "g0.jpg"],
@@ -106,9 +107,9 @@ def test_auto_plans_exhaustive_for_a_small_project_and_gps_neighbours_for_a_loca
     assert plan == f"gps:{pairs.AUTO_GPS_K}" and len(raw) < len(pairs.exhaustive(many)) / 2
     half = {n: located[n] for n in many[: len(many) // 2]}
     assert pairs.auto_pairs(many, half)[1] == "exhaustive"  # most without a fix
-    assert pairs.parse_plan("auto") == [("auto", 0)]
-    with pytest.raises(pairs.PairSpecError, match="auto stands alone"):
-        pairs.parse_plan("auto+gps:3")
+    assert parse_plan("auto") == [("auto", 0)]
+    with pytest.raises(PairSpecError, match="auto stands alone"):
+        parse_plan("auto+gps:3")
 
 
 @pytest.mark.unit

@@ -9,10 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geomatch.dbwrite import write
 from geomatch.metadata import ImageMeta
-from geomatch.pairstep import PairMatches
-from geomatch.pipeline import PairWriter
+from geomatch.pipeline.database import PairMatches, write
+from geomatch.pipeline.runner import PairWriter
 from geomatch.sfm.colmapdb import ColmapDatabase
 
 pytestmark = pytest.mark.unit

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from geomatch.options import fewest_pairs, too_many_pairs
-from geomatch.sfm import pairs
+from geomatch.options import fewest_pairs
+from geomatch.pipeline import pair_sources as pairs
+from geomatch_core.errors import too_many_pairs
 
 pytestmark = pytest.mark.unit
 

@@ -8,8 +8,8 @@ import pytest
 from geomatch import Matcher
 from geomatch.eval.homography import reprojection_errors
 from geomatch.matching.rotation import best_turn, points_back, quarter_turn
-from geomatch.pairstep import match
-from geomatch.sfm.pairs import Pair, finalize
+from geomatch.pipeline.match_pairs import match
+from geomatch.pipeline.pair_sources import Pair, finalize
 from geomatch.synth.photos import WarpedPair
 
 

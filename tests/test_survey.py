@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from geomatch.capture import aerial_set, captures
 from geomatch.geo.survey import is_survey_track
 from geomatch.imagefolder import Images
 from geomatch.matching.rotation import quarter_turn
 from geomatch.matching.turnhint import TurnHint
 from geomatch.metadata import ImageMeta
-from geomatch.planning import image_turns
-from geomatch.sfm.pairs import exhaustive, finalize
+from geomatch.pipeline.aerial import aerial_set, captures
+from geomatch.pipeline.pair_sources import exhaustive, finalize
+from geomatch.pipeline.plan import image_turns
 
 pytestmark = pytest.mark.unit
 

@@ -19,8 +19,8 @@ from geomatch.matching.guided import KEEP_SAMPSON
 from geomatch.matching.matcher import MatcherConfig
 from geomatch.matching.rotation import anchor_count, quarter_turn
 from geomatch.matching.variants import for_pair
-from geomatch.planning import image_turns
-from geomatch.sfm.pairs import exhaustive, finalize, with_turns
+from geomatch.pipeline.pair_sources import exhaustive, finalize, with_turns
+from geomatch.pipeline.plan import image_turns
 from geomatch.synth.photos import WarpedPair, warped_pair
 
 pytestmark = pytest.mark.nets

@@ -11,8 +11,8 @@ import pycolmap
 import pytest
 
 from geomatch.localize import LocalizeOptions, Project, judge
+from geomatch.localize.absolute import Correspondences, estimate_pose
 from geomatch.localize.localizer import unvouched_cameras
-from geomatch.sfm.absolute import Correspondences, estimate_pose
 from geomatch.sfm.leftovers import leave_out_unvouched
 from geomatch.sfm.modelagree import agreement, misplaced, outvoted, unvouched
 from geomatch.sfm.viewgraph import ViewGraphReport

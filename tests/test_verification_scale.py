@@ -10,9 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geomatch.dbwrite import verification_error, write
 from geomatch.metadata import ImageMeta
-from geomatch.pairstep import PairMatches
+from geomatch.pipeline.database import PairMatches, verification_error, write
 from geomatch.sfm.colmapdb import ColmapDatabase
 
 pytestmark = pytest.mark.unit

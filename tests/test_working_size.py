@@ -12,7 +12,7 @@ import pytest
 
 from geomatch.imagefolder import Images
 from geomatch.imageio import read_image, working_size
-from geomatch.pairstep import PairMatches
+from geomatch.pipeline.database import PairMatches
 from geomatch.synth.photos import warped_pair
 
 pytestmark = pytest.mark.unit
@@ -66,7 +66,7 @@ def test_the_plan_reads_the_photos_through_the_callers_folder_even_before_it_dec
     """An Images that has decoded nothing yet has length 0: a plan that took it for absent read the
     photos again at their stored size, so a survey's turn probes hashed other pixels than its
     matching and every photo's features were extracted twice."""
-    from geomatch import planning
+    from geomatch.pipeline import plan as planning
 
     _jpeg(tmp_path / "a.jpg", 1600, 900)
     _jpeg(tmp_path / "b.jpg", 1600, 900)

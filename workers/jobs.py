@@ -1,9 +1,10 @@
 """The steps of a job, whatever runs them (Celery worker processes or the embedded threads).
 
 A match job is ``plan_match`` -> ``match_pair`` per pair, a window of them at a time (each pair
-step makes the features it needs and queues the next pair); ``extract`` runs the extraction steps
-that an older version's deployment left in the queue, so an upgrade finishes them; a reconstruct
-job is one ``reconstruct``, a localize job one ``localize``. Every step may run twice (redelivery
+step makes the features it needs and queues the next pair); a reconstruct job is one
+``reconstruct``, a localize job one ``localize``. The planning and the mapping are the library's
+stages (geomatch.pipeline.prepare, geomatch.pipeline.reconstruction), the ones ``geomatch run``
+calls: this module runs them queued. Every step may run twice (redelivery
 after a worker died, a duplicate dispatch) and must then do nothing twice:
 
 - a pair already in the COLMAP database is not matched again, and ``write_pair`` is a no-op for
@@ -32,12 +33,10 @@ from geomatch.options import (
     DEFAULTS,
     PROJECT_OPTIONS,
     fewest_pairs,
-    plan_needs_matcher,
-    too_many_pairs,
-    too_much_queued,
 )
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
 from geomatch_core import jobstate
+from geomatch_core.errors import too_many_pairs, too_much_queued
 from geomatch_core.models import Image, Job, JobPair
 from geomatch_core.queue import LOCALIZE, MATCH_PAIR, RENDER_PAIR
 
@@ -58,9 +57,11 @@ def plan_match(ctx: Context, job_id: str) -> str:
 
 
 def _plan(ctx: Context, job: Job) -> None:
-    from geomatch import capture, dbwrite, planning
-    from geomatch.geo import gps
-    from geomatch.metadata import read_metadata
+    """The project prepared as ``geomatch run`` prepares it (geomatch.pipeline.prepare): its
+    photos read, its aerial images and plan decided, its images registered; the plan kept beside
+    the database (plan.json) for the reconstruct job, the pairs not matched yet as the job's rows."""
+    from geomatch.pipeline import database
+    from geomatch.pipeline.prepare import PlanRequest, ProjectImages, frames, plan_project, register
     from geomatch.sfm.colmapdb import ColmapDatabase
 
     t0 = time.perf_counter()
@@ -71,38 +72,39 @@ def _plan(ctx: Context, job: Job) -> None:
         ).all()
     names = [n for n, _ in rows]
     image_dir = ctx.storage.images_dir(pid)
-    metas = {n: read_metadata(image_dir / n) for n in names}
-    fixes = gps.fixes(names, metas)
-    aerial = capture.aerial_set(dict(rows), metas, fixes.enu if fixes is not None else None)
-    with ctx.store.session() as s:
-        for n in names:
-            s.execute(
-                update(Image).where(Image.project_id == pid, Image.name == n).values(aerial=n in aerial)
-            )
+    images = ProjectImages.read(image_dir, names)
     spec = opts["pairs"] if isinstance(opts["pairs"], str) else DEFAULTS["pairs"]
     pairs_list = opts["pairs"] if isinstance(opts["pairs"], list) else None
     limit = ctx.settings.max_pairs_per_job
     least, exact = fewest_pairs(spec, len(names)) if pairs_list is None else (len(pairs_list), True)
     if limit and least > limit:  # the API refused this at its image count: images were added since
-        plan = spec if pairs_list is None else "the pair list"
-        raise PermanentError(too_many_pairs(least, len(names), limit, plan, exact))
-    # retrieval's global descriptors and a survey's quarter turns (planning.image_turns)
-    features = pairs_list is None and plan_needs_matcher(spec)
-    matcher = runtime.matcher(ctx, opts) if features or (aerial and aerial >= set(names)) else None
-    planned = planning.plan(
-        image_dir, names, aerial, spec, pairs_list, opts["tiling"], matcher, fixes=fixes, metas=metas
+        words = spec if pairs_list is None else "the pair list"
+        raise PermanentError(too_many_pairs(least, len(names), limit, words, exact))
+    request = PlanRequest(spec, pairs_list, opts["tiling"])
+    plan = plan_project(
+        images,
+        dict(rows),
+        request,
+        lambda: runtime.matcher(ctx, opts),
+        frames(image_dir, runtime.images_mb(ctx)),
     )
-    if limit and len(planned) > limit:  # auto, gps:K, retrieval:K: known once planned; no row written
-        plan = planning.plan_in_words(spec, names, fixes, metas) if pairs_list is None else "the pair list"
-        raise PermanentError(too_many_pairs(len(planned), len(names), limit, plan))
+    if limit and len(plan.pairs) > limit:  # auto, gps:K, retrieval:K: known once planned; no row written
+        words = plan.in_words if pairs_list is None else "the pair list"
+        raise PermanentError(too_many_pairs(len(plan.pairs), len(names), limit, words))
+    aerial = set(plan.aerial)
+    with ctx.store.session() as s:
+        for n in names:
+            s.execute(
+                update(Image).where(Image.project_id == pid, Image.name == n).values(aerial=n in aerial)
+            )
+    db_path = ctx.storage.database_path(pid)
     with ctx.locks.project(pid):
         if not jobstate.is_active(ctx.store, job.id):
             return
-        with ColmapDatabase(ctx.storage.database_path(pid)) as db:
-            ids = dbwrite.register(db, names, metas, opts["share_camera"])
-            todo = dbwrite.unmatched(db, ids, planned)
-        if fixes is not None:
-            gps.write_pose_priors(ctx.storage.database_path(pid), ids, fixes)
+        ids = register(db_path, images, opts["share_camera"])
+        with ColmapDatabase(db_path) as db:
+            todo = database.unmatched(db, ids, plan.pairs)
+        plan.write(ctx.storage.plan_path(pid))
     queue_limit = ctx.settings.max_queued_pairs
     if queue_limit:  # the API counted this job by the fewest pairs its plan could have
         queued, jobs, _ = jobstate.queued_pairs(ctx.store, job.tenant_id, other_than=job.id)
@@ -130,7 +132,7 @@ def _plan(ctx: Context, job: Job) -> None:
     log.info(
         "planned %d pairs (%d already matched, %d tiled) in %.1fs",
         len(todo),
-        len(planned) - len(todo),
+        len(plan.pairs) - len(todo),
         sum(p.tiled for p in todo),
         time.perf_counter() - t0,
         extra={"job_id": job.id, "project_id": pid},
@@ -173,23 +175,10 @@ def _next_pairs(ctx: Context, job_id: str) -> int:
     return len(claimed)
 
 
-def extract(ctx: Context, job_id: str, name: str, full: bool, crops: bool) -> str:
-    """An image's features ahead of its pairs. ``_dispatch`` does not queue it: it serves the
-    steps an older version's deployment left in the queue."""
-    from geomatch import pairstep
-
-    job = jobstate.get(ctx.store, job_id)
-    if job is None or job.state != "running":
-        return "skipped"
-    image = runtime.image(ctx, ctx.storage.image_path(job.project_id, name))
-    n = pairstep.extract(runtime.matcher(ctx, runtime.job_options(job.options)), image, full, crops)
-    return f"{n} feature entries"
-
-
 def match_pair(ctx: Context, job_id: str, idx: int) -> str:
-    from geomatch import pairstep
+    from geomatch.pipeline import match_pairs
+    from geomatch.pipeline.pair_sources import Pair
     from geomatch.sfm.colmapdb import ColmapDatabase
-    from geomatch.sfm.pairs import Pair
 
     job = jobstate.get(ctx.store, job_id)
     if job is None or job.state != "running":
@@ -201,7 +190,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         aerial_project = bool(
             s.scalar(select(exists().where(Image.project_id == job.project_id, Image.aerial.is_(True))))
         )
-        # a survey (every image aerial): its aerial pairs take the guided matcher (pairstep.match)
+        # a survey (every image aerial): its aerial pairs take the guided matcher (match_pairs.match)
         survey = aerial_project and not s.scalar(
             select(exists().where(Image.project_id == job.project_id, Image.aerial.is_(False)))
         )
@@ -215,18 +204,19 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
             id0, id1 = _image_id(db, p.name0), _image_id(db, p.name1)
             present = db.has_pair(id0, id1)  # redelivered after its write, or matched by another job
         if not present:
-            a = runtime.image(ctx, ctx.storage.image_path(pid, p.name0))
-            b = runtime.image(ctx, ctx.storage.image_path(pid, p.name1))
+            a, photo0 = runtime.frame(ctx, ctx.storage.image_path(pid, p.name0))
+            b, photo1 = runtime.frame(ctx, ctx.storage.image_path(pid, p.name1))
             turns = None if p.turn < 0 else divmod(p.turn, 4)
             pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate, turns)
-            target = pairstep.PairTarget(
+            target = match_pairs.PairTarget(
                 lambda: _writable(ctx, job_id, pid, db_path),
                 id0,
                 id1,
                 float(opts["snap_radius"]),
                 read=lambda: _readable(ctx, pid, db_path),
+                photos=(photo0, photo1),
             )
-            r = pairstep.run_pair(
+            r = match_pairs.run_pair(
                 runtime.matcher(ctx, opts), pair, a, b, target, aerial_project=aerial_project, survey=survey
             )
             if r.written is None:
@@ -287,28 +277,29 @@ def _writable(ctx: Context, job_id: str, pid: str, db_path: Path) -> Iterator[An
 
 
 def _image_id(db: Any, name: str) -> int:
-    if not db.db.exists_image(name):
+    image_id = db.image_id(name)
+    if image_id is None:
         raise PermanentError(f"image {name!r} is not in the COLMAP database")
-    return int(db.db.read_image_with_name(name).image_id)
+    return int(image_id)
 
 
 # -- reconstruct jobs ---------------------------------------------------------------------------
 def reconstruct(ctx: Context, job_id: str) -> str:
-    from geomatch import rundir
-    from geomatch.geo import gps
-    from geomatch.report import survey_report
-    from geomatch.sfm import mapping
+    """The project mapped as ``geomatch run`` maps it (geomatch.pipeline.reconstruction), from a
+    snapshot of its database and the plan its match job kept, into a fresh folder swapped in whole."""
+    from geomatch.pipeline.outputs import finish
+    from geomatch.pipeline.plan import Plan
+    from geomatch.pipeline.prepare import ProjectImages
+    from geomatch.pipeline.reconstruction import map_project, mapping_settings
     from geomatch.sfm.colmapdb import ColmapDatabase
-    from geomatch.sfm.upright import image_up
 
     job = jobstate.claim(ctx.store, job_id)
     if job is None:
         return "skipped"
     pid = job.project_id
-    db_path = ctx.storage.database_path(pid)
+    db_path, plan_path = ctx.storage.database_path(pid), ctx.storage.plan_path(pid)
     if not db_path.is_file():
         raise PermanentError("the project has no COLMAP database: run a match job first")
-    t0 = time.perf_counter()
     runtime.release()
     for name in ctx.storage.remove_stale_work(pid):  # left by attempts that died (SIGKILL)
         log.info("removed stale work folder %s", name, extra={"job_id": job_id, "project_id": pid})
@@ -316,32 +307,23 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         snapshot = work / "database.db"
         with ctx.locks.project(pid):  # a consistent copy; matching may go on while we map
             snapshot_sqlite(db_path, snapshot)
-        out = work / "model"
-        images = ctx.storage.images_dir(pid)
-        opts = runtime.job_options(job.options)
-        with ctx.store.session() as s:  # aerial and ground images: the project's pairs were tiled
-            kinds = set(s.scalars(select(Image.aerial).where(Image.project_id == pid).distinct()))
-        metas = gps.metadata_of_database(snapshot, images)  # read once for the fixes and up
-        summary = mapping.reconstruct(
-            snapshot,
-            images,
-            out,
-            opts["mapper"],
-            gps=gps.fixes(list(metas), metas),
-            tiled=len(kinds) == 2 and opts["tiling"] != "off",
-            # each photo's up where it is known (its gimbal, a survey's nadir camera), as `geomatch
-            # run` gives it: the view graph holds the pairs' rotations to it
-            up=image_up(metas, kinds == {True}),
-            survey=kinds == {True},
-        )
+            if not plan_path.is_file():  # matched by a version that kept no plan
+                raise PermanentError("the project has no plan: run a match job first (it keeps one)")
+            plan = Plan.read(plan_path)
+        image_dir = ctx.storage.images_dir(pid)
         with ColmapDatabase(snapshot) as db:
-            summary["database"] = db.stats()
-        _georeference_by_gcps(ctx, job, out, summary)
-        summary["timings"] = {"mapping": round(time.perf_counter() - t0, 3)}
-        summary["job_id"] = job_id
-        summary = jobstate.finite(summary)  # summary.json and the stored result: JSON, no NaN
-        summary["report"] = survey_report(summary)
-        rundir.write_outputs(out, summary, archive=True)
+            names = [n for n in db.image_names() if (image_dir / n).is_file()]
+        images = ProjectImages.read(image_dir, names)
+        settings = mapping_settings(runtime.job_options(job.options), plan)
+        out = work / "model"
+        summary = map_project(
+            snapshot, images, plan, out, settings, _control_points(ctx, job), {"job_id": job_id}
+        )
+        summary = finish(out, summary, archive=True)
+        g = summary.get("gcp")
+        if g is not None:
+            fit = f"RMSE 3D control {g.get('control_rmse_3d_m')} m, check {g.get('check_rmse_3d_m')} m"
+            log.info("GCPs: %s", g.get("error") or fit, extra={"job_id": job_id, "project_id": pid})
         # the result is stored first and the model swapped in only once it is: a result the store
         # refused (a number it cannot hold) once failed the job after its model had replaced the
         # good one. The job succeeds after the swap: no client reads it succeeded with the old model
@@ -360,40 +342,20 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     return "done"
 
 
-def _georeference_by_gcps(ctx: Context, job: Job, out: Path, summary: dict[str, Any]) -> None:
-    """When the project has ground control points (``Storage.gcp_path``): read them again against
-    the project's images as they are now (added or gone since the upload) and move the model in
-    ``out`` into their frame, judged at the job's check points (``geomatch.geo.gcp``). Whatever
-    keeps the points from being used (a file that no longer fits the images, too few points placed
-    in the model) leaves the model in the frame the mapping gave it and goes into the summary's
-    ``gcp`` as ``error``: the reconstruction itself succeeded."""
-    from geomatch.geo import gcp as gcpgeo
-    from geomatch.geo.gcpfile import GcpError, read_gcp_file
+def _control_points(ctx: Context, job: Job) -> Any:
+    """The project's ground control points (``Storage.gcp_path``), held out at the job's check
+    points; None when it has none. A failed fit is told without the server's paths."""
+    from geomatch.pipeline.reconstruction import ControlPoints
 
     pid = job.project_id
     try:
         text = ctx.storage.gcp_path(pid).read_text(encoding="utf-8")
     except FileNotFoundError:
-        return
-    # the model keeps the file it was georeferenced by: its exports place the points by it
-    (out / "gcp_list.txt").write_text(text, encoding="utf-8")
-    with ctx.store.session() as s:
-        rows = s.execute(select(Image.name, Image.width, Image.height).where(Image.project_id == pid))
-        sizes = {name: (int(w), int(h)) for name, w, h in rows}
-    checkpoints = job.options.get("checkpoints") or 0
-    gcps = None
-    try:
-        gcps = read_gcp_file(text, sizes)
-        gcpgeo.georeference_summary(summary, out, gcps, checkpoints)
-    except GcpError as e:
-        summary["gcp"] = gcpgeo.failed(gcps, f"the project's GCP file: {e}")
-    except Exception as e:  # numbers the fit cannot take: the model stays as mapped
-        log.warning("GCP georeferencing failed: %r", e, extra={"job_id": job.id, "project_id": pid})
-        why = redact.client_message(e, ctx.storage.root, ctx.storage.project_dir(pid))
-        summary["gcp"] = gcpgeo.failed(gcps, f"the GCP georeferencing failed ({why})")
-    g = summary.get("gcp", {})
-    fit = f"RMSE 3D control {g.get('control_rmse_3d_m')} m, check {g.get('check_rmse_3d_m')} m"
-    log.info("GCPs: %s", g.get("error") or fit, extra={"job_id": job.id, "project_id": pid})
+        return None
+    root, folder = ctx.storage.root, ctx.storage.project_dir(pid)
+    return ControlPoints(
+        text, job.options.get("checkpoints") or 0, lambda e: redact.client_message(e, root, folder)
+    )
 
 
 # -- localize jobs ------------------------------------------------------------------------------
@@ -478,14 +440,11 @@ def render_pair(ctx: Context, project_id: str, name0: str, name1: str) -> dict[s
     if not db_path.is_file():
         return {"error": "not_matched"}
     with ctx.locks.project(project_id), ColmapDatabase(db_path) as db:
-        if not (db.db.exists_image(name0) and db.db.exists_image(name1)):
-            return {"error": "not_matched"}
-        id0, id1 = _image_id(db, name0), _image_id(db, name1)
-        if not db.has_pair(id0, id1):
+        id0, id1 = db.image_id(name0), db.image_id(name1)
+        if id0 is None or id1 is None or not db.has_pair(id0, id1):
             return {"error": "not_matched"}
         kp0, kp1 = db.keypoints(id0), db.keypoints(id1)
-        m = np.asarray(db.db.read_matches(id0, id1)).reshape(-1, 2)
-        inl = np.asarray(db.db.read_two_view_geometry(id0, id1).inlier_matches).reshape(-1, 2)
+        m, inl = db.matches(id0, id1), db.inlier_matches(id0, id1)
     is_inlier = {(int(a), int(b)) for a, b in inl}
     scores = np.array([1.0 if (int(a), int(b)) in is_inlier else 0.0 for a, b in m], np.float32)
     a = runtime.image(ctx, ctx.storage.image_path(project_id, name0))

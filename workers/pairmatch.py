@@ -53,9 +53,11 @@ def _match(
 ) -> dict[str, Any]:
     import numpy as np
 
-    from geomatch import capture, pairstep, planning
     from geomatch.imageio import read_image
     from geomatch.metadata import read_metadata
+    from geomatch.pipeline import match_pairs
+    from geomatch.pipeline.aerial import aerial_set
+    from geomatch.pipeline.plan import plan
 
     def check() -> None:
         if time.time() > deadline:
@@ -67,8 +69,8 @@ def _match(
     names = ["0", "1"]
     taken = dict(zip(names, captures, strict=True))
     metas = {n: read_metadata(folder / n) for n in names if taken[n] == "auto"}
-    aerial = capture.aerial_set(taken, metas)
-    pair = planning.plan(folder, names, aerial, pairs_list=[names], tiling=options["tiling"])[0]
+    aerial = aerial_set(taken, metas)
+    pair = plan(folder, names, aerial, pairs_list=[names], tiling=options["tiling"])[0]
     a, b = read_image(folder / "0"), read_image(folder / "1")  # not runtime.image: these are read once
     matcher = runtime.matcher(ctx, options)
     t1 = time.perf_counter()
@@ -76,11 +78,11 @@ def _match(
     for name, img in (("0", a), ("1", b)):  # features one image at a time: a deadline check between
         check()
         tiled_side = pair.tiled and (name == "0") == pair.aerial_first
-        pairstep.extract(matcher, img, full=not tiled_side, crops=tiled_side)
+        match_pairs.extract(matcher, img, full=not tiled_side, crops=tiled_side)
         timings[f"features{name}"] = time.perf_counter() - t1
         t1 = time.perf_counter()
     check()
-    m = pairstep.run_pair(matcher, pair, a, b, aerial_project=bool(aerial)).matches
+    m = match_pairs.run_pair(matcher, pair, a, b, aerial_project=bool(aerial)).matches
     k0, k1, sc, F = m.keypoints0, m.keypoints1, m.scores, m.F
     timings["match"] = time.perf_counter() - t1
     out = folder / "result.npz"

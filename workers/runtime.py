@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import numpy as np
 
+    from geomatch.imagefolder import PhotoScale
     from geomatch.matching.matcher import Matcher
     from geomatch.options import CacheBudget
 
@@ -74,21 +75,35 @@ def release() -> None:
     return_freed_memory()
 
 
-def image(ctx: Context, path: Path) -> np.ndarray:
-    """A decoded image, from the thread's byte-bounded LRU when it was read lately (a tiled
-    aerial image meets all its ground partners in a row)."""
+def image(ctx: Context, path: Path, max_side: int | None = None) -> np.ndarray:
+    """A decoded image (``max_side``: a larger photo at that size), from the thread's byte-bounded
+    LRU when it was read lately (a tiled aerial image meets all its ground partners in a row)."""
     from geomatch.imageio import read_image
     from geomatch.lru import ByteLRU
 
-    cache: ByteLRU[tuple[str, float], np.ndarray] | None = getattr(_local, "images", None)
+    cache: ByteLRU[tuple[str, float, int | None], np.ndarray] | None = getattr(_local, "images", None)
     if cache is None:
         cache = _local.images = ByteLRU(_budget(ctx).images_mb)
-    key = (str(path), path.stat().st_mtime)
+    key = (str(path), path.stat().st_mtime, max_side)
     img = cache.get(key)
     if img is None:
-        img = read_image(path)
+        img = read_image(path, max_side)
         cache.put(key, img)
     return img
+
+
+def frame(ctx: Context, path: Path) -> tuple[np.ndarray, PhotoScale | None]:
+    """A photo as the pipeline matches it, at most the working size (imageio.WORKING_SIDE, as
+    ``geomatch run`` reads it), and how its matches map back to the photo's own pixels."""
+    from geomatch.imagefolder import photo_size, to_photo
+    from geomatch.imageio import WORKING_SIDE
+
+    return image(ctx, path, WORKING_SIDE), to_photo(photo_size(path), WORKING_SIDE)
+
+
+def images_mb(ctx: Context) -> float:
+    """The thread's budget of decoded images (part of GEOMATCH_CACHE_MB), for a plan's reads."""
+    return _budget(ctx).images_mb
 
 
 def _budget(ctx: Context) -> CacheBudget:

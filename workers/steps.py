@@ -7,7 +7,6 @@ from collections.abc import Callable
 from typing import Any
 
 from geomatch_core.queue import (
-    EXTRACT,
     LOCALIZE,
     MATCH_PAIR,
     MATCH_TWO,
@@ -20,7 +19,6 @@ from . import jobs, pairmatch
 
 STEPS: dict[str, Callable[..., Any]] = {
     PLAN_MATCH: jobs.plan_match,
-    EXTRACT: jobs.extract,
     MATCH_PAIR: jobs.match_pair,
     RECONSTRUCT: jobs.reconstruct,
     LOCALIZE: jobs.localize,

@@ -17,8 +17,8 @@ def add_to_project(project: Project, photo: Path, evidence: Evidence, matcher: A
     matches to the model images it was matched with) and into its images folder, so a later
     reconstruct maps it (the mapper reads the photos: track refinement). Idempotent: an image and
     a pair already there are left as they are. Returns the photo's image id."""
-    from ..dbwrite import write
     from ..metadata import read_metadata
+    from ..pipeline.database import write
     from ..sfm.colmapdb import ColmapDatabase
 
     photo = Path(photo)

@@ -17,7 +17,7 @@ import numpy as np
 from ..options import DEFAULTS
 
 if TYPE_CHECKING:
-    from ..sfm.absolute import Correspondences, Pose
+    from .absolute import Correspondences, Pose
 
 
 @dataclass

@@ -27,7 +27,7 @@ from .project import Project, project_matcher
 
 if TYPE_CHECKING:
     from ..metadata import ImageMeta
-    from ..sfm.absolute import Correspondences, Pose
+    from .absolute import Correspondences, Pose
 
 
 QUERY = "\x00query"  # the photo's name in a planned pair: never a model image's name
@@ -57,7 +57,7 @@ class Localizer:
         import pycolmap
 
         from ..imagefolder import Images
-        from ..sfm.absolute import Observations
+        from .absolute import Observations
 
         self.project, self.options = project, options
         self.matcher = matcher if matcher is not None else project_matcher(project)
@@ -120,7 +120,7 @@ class Localizer:
         project with aerial images, the ``aerial_candidates`` most similar aerial images, or
         the nearest to its fix). A tiled pair costs several matchings (five crops at most), so
         the second stage runs only when the first does not localize the photo confidently."""
-        from ..sfm.retrieval import vlad
+        from ..pipeline.retrieval import vlad
 
         opts = self.options
         vectors = vlad([*self.model_descriptors(), self.local_descriptors(image)])
@@ -153,9 +153,9 @@ class Localizer:
         """The photo matched with ``chosen`` (pairs planned and tiled as ``geomatch run`` plans
         them), the matches lifted to 2D-3D; added to ``into``'s when given."""
         from ..imageio import snap_radius
-        from ..pairstep import match
-        from ..sfm import pairs as pairing
-        from ..sfm.absolute import lift, merge
+        from ..pipeline import pair_sources as pairing
+        from ..pipeline.match_pairs import match
+        from .absolute import lift, merge
 
         aerial = set(self.aerial) | ({QUERY} if aerial_photo else set())
         tiling = str(self.project.run_options.get("tiling", DEFAULTS["tiling"]))
@@ -194,7 +194,7 @@ class Localizer:
     def localize(self, photo: Path) -> tuple[Localization, Evidence | None]:
         from ..imageio import read_image, snap_radius
         from ..metadata import read_metadata
-        from ..sfm.absolute import Correspondences
+        from .absolute import Correspondences
 
         t0 = time.perf_counter()
         photo = Path(photo)
@@ -236,7 +236,7 @@ class Localizer:
         """Per model image, how many of its own 2D-3D correspondences the pose reprojects within
         ``threshold``: the images that independently agree with it (a wrong pose fitted to one
         image's coherent but wrong matches, a facade's repeated windows say, finds no second)."""
-        from ..sfm.absolute import reprojection_errors
+        from .absolute import reprojection_errors
 
         out: dict[str, int] = {}
         for part in ev.parts:
@@ -249,7 +249,7 @@ class Localizer:
         return out
 
     def pose(self, corr: Correspondences, camera: Any, threshold: float, estimate_focal: bool) -> Pose | None:
-        from ..sfm.absolute import estimate_pose
+        from .absolute import estimate_pose
 
         if len(corr) < 4:
             return None

@@ -150,6 +150,19 @@ class ColmapDatabase:
             self.db.write_frame(frame)
         return int(image_id)
 
+    def image_id(self, name: str) -> int | None:
+        """The id of the image called ``name``; None when the database does not hold it."""
+        image = self.db.read_image_with_name(name) if self.db.exists_image(name) else None
+        return int(image.image_id) if image is not None else None
+
+    def image_names(self) -> list[str]:
+        """The names of the images the database holds, in its order."""
+        return [im.name for im in self.db.read_all_images()]
+
+    def pose_priors(self) -> int:
+        """How many images carry a pose prior (their GPS fix)."""
+        return int(self.db.num_pose_priors())
+
     def camera(self, image_id: int) -> pycolmap.Camera:
         return self.db.read_camera(self.db.read_image(image_id).camera_id)
 
@@ -164,6 +177,14 @@ class ColmapDatabase:
         """Whether the pair is written, either order; a pair written with zero matches is (a
         matcher that found nothing is an answer too, not a reason to match again)."""
         return bool(self.db.exists_matches(image_id0, image_id1))
+
+    def matches(self, image_id0: int, image_id1: int) -> np.ndarray:
+        """(N, 2) keypoint indices of the pair's matches (image0's, image1's)."""
+        return np.asarray(self.db.read_matches(image_id0, image_id1)).reshape(-1, 2)
+
+    def inlier_matches(self, image_id0: int, image_id1: int) -> np.ndarray:
+        """(N, 2) keypoint indices of the pair's matches its verified geometry keeps."""
+        return np.asarray(self.db.read_two_view_geometry(image_id0, image_id1).inlier_matches).reshape(-1, 2)
 
     def write_pair(
         self,

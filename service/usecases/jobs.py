@@ -10,15 +10,18 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from geomatch.options import (
-    PROJECT_OPTIONS,
-    RECONSTRUCT_OPTIONS,
-    fewest_pairs,
+from geomatch.options import PROJECT_OPTIONS, RECONSTRUCT_OPTIONS, fewest_pairs
+from geomatch_core import jobstate
+from geomatch_core.errors import (
+    Conflict,
+    InvalidRequest,
+    NotFound,
+    PlanTooLarge,
+    Unavailable,
+    WorkQueued,
     too_many_pairs,
     too_much_queued,
 )
-from geomatch_core import jobstate
-from geomatch_core.errors import Conflict, InvalidRequest, NotFound, PlanTooLarge, Unavailable, WorkQueued
 from geomatch_core.models import JOB_STATES, Image, Job
 from geomatch_core.queue import ENTRY_STEP
 

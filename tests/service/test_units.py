@@ -20,11 +20,10 @@ from sqlalchemy import select
 
 from geomatch.features.store import FeatureStore
 from geomatch.matching.stored import build_matcher
-from geomatch.options import too_much_queued
-from geomatch.sfm.pairs import PairSpecError, parse_plan
+from geomatch.options import PairSpecError, parse_plan
 from geomatch.synth.photos import WarpedPair
 from geomatch_core import jobstate
-from geomatch_core.errors import BadFile, InvalidRequest, NotFound
+from geomatch_core.errors import BadFile, InvalidRequest, NotFound, too_much_queued
 from geomatch_core.models import Job, JobPair, Project, Tenant, new_id
 from geomatch_core.store import MetadataStore
 from service import ids, validation

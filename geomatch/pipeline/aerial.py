@@ -1,6 +1,6 @@
-"""How each image of a project was taken, aerial or ground: as the caller says (a list, a glob)
-or, left to the image, by its metadata, and for a drone survey whose photos say nothing by the
-track of their GPS fixes."""
+"""Which images of a project are aerial and which were taken on the ground: as the caller says (a
+list, a glob) or, left to the image, by its metadata, and for a drone survey whose photos say
+nothing by the track of their GPS fixes."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .geo import survey
-from .imagefolder import PipelineError
-from .metadata import ImageMeta
+from ..geo import survey
+from ..imagefolder import PipelineError
+from ..metadata import ImageMeta
 
 
 def captures(

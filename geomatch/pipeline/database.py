@@ -1,19 +1,69 @@
-"""A project's COLMAP database as the pipeline's stages write it: its images registered, the
-planned pairs not matched yet, and a matched pair written (consolidated, verified, one
-transaction)."""
+"""A project's COLMAP database as the pipeline's stages fill it: its images registered, the
+planned pairs not matched yet, and a matched pair (:class:`PairMatches`) written: consolidated,
+verified, one transaction."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
-from .imageio import snap_radius
-from .metadata import ImageMeta
-from .sfm.colmapdb import ColmapDatabase, PairWrite, PreparedPair, seeded_verification
-from .sfm.pairs import Pair
+import numpy as np
 
-if TYPE_CHECKING:
-    from .pairstep import PairMatches
+from ..geometry import fundamental_from_matches
+from ..imagefolder import PhotoScale
+from ..imageio import snap_radius
+from ..matching.config import MatchResult
+from ..matching.tiling import TiledMatches
+from ..metadata import ImageMeta
+from ..sfm.colmapdb import ColmapDatabase, PairWrite, PreparedPair, seeded_verification
+from .pair_sources import Pair
+
+
+@dataclass
+class PairMatches:
+    """One pair's matches, in each image's original pixels (pixel centres at integers): what the
+    match step hands the write."""
+
+    keypoints0: np.ndarray
+    keypoints1: np.ndarray
+    scores: np.ndarray
+    sizes: tuple[tuple[int, int], tuple[int, int]]  # (width, height) of image0 and image1
+    tiled: bool = False
+    # None: an image was matched turned (the source's F is in the turned frames), or the matches
+    # were read back from where a caller stored them
+    source: MatchResult | TiledMatches | None = None
+    crops: int = 0  # aerial crops matched (tiled pairs; 0 when the matches were read back)
+
+    def __len__(self) -> int:
+        return int(self.keypoints0.shape[0])
+
+    def in_photo_pixels(self, photo0: PhotoScale | None, photo1: PhotoScale | None) -> PairMatches:
+        """The matches of images read at a working size (imagefolder.Images.to_photo: x and y
+        scale to the photo, its size; None: read as stored) in the photos' own pixels, which
+        the database and the mapper speak. The source goes: its F is in working pixels."""
+        if photo0 is None and photo1 is None:
+            return self
+        k0, k1 = self.keypoints0, self.keypoints1
+        sizes = list(self.sizes)
+        if photo0 is not None:
+            k0, sizes[0] = _to_photo(k0, photo0[:2]), photo0[2]
+        if photo1 is not None:
+            k1, sizes[1] = _to_photo(k1, photo1[:2]), photo1[2]
+        return PairMatches(k0, k1, self.scores, (sizes[0], sizes[1]), self.tiled, None, self.crops)
+
+    @property
+    def F(self) -> np.ndarray:
+        """x1^T F x0 = 0 in original pixels: the matcher's (a tiled pair's is fitted over its
+        merged matches on first use); without a source, fitted over the matches."""
+        if self.source is None:
+            return fundamental_from_matches(self.keypoints0, self.keypoints1)
+        return self.source.F
+
+
+def _to_photo(points: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
+    """Working pixels to photo pixels, pixel centres at integers on both."""
+    s = np.asarray(scale, np.float64)
+    return ((np.asarray(points, np.float64) + 0.5) * s - 0.5).astype(points.dtype, copy=False)
 
 
 def register(

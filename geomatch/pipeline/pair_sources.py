@@ -1,4 +1,5 @@
-"""Pair planning: which image pairs to match, and which of them to tile.
+"""The pairs a plan draws from, and the planned pair itself: which image pairs to match, and
+which of them to tile.
 
 Specs: ``exhaustive``; ``sequential:K`` (each image with the next K in name order, as video or a
 flight line is numbered); ``retrieval:K`` (each image with its K nearest neighbours by a global
@@ -17,10 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..options import TILING
-from ..options import PairSpecError as PairSpecError  # the grammar lives with the other options
-from ..options import parse_plan as parse_plan
-from ..options import parse_spec as parse_spec
+from ..options import TILING, PairSpecError
 
 
 @dataclass(frozen=True)
@@ -33,7 +31,7 @@ class Pair:
     # turn (geomatch.matching.rotation)
     rotate: bool = False
     # each image's quarter turn (np.rot90) into the project's frame when the plan decided both
-    # (planning.image_turns, a survey): the pair is matched with both turned so, unprobed
+    # (plan.image_turns, a survey): the pair is matched with both turned so, unprobed
     turns: tuple[int, int] | None = None
 
     @property

@@ -1,8 +1,8 @@
-"""One planned pair, step by step: its images' features (:func:`extract`), the pair matched
+"""The match step: one planned pair's images' features (:func:`extract`), the pair matched
 (:func:`match`: tiled and turned as the plan says) and written into the project's COLMAP database
-(:func:`run_pair`, through ``geomatch.dbwrite.write``). ``geomatch run``, a worker's extract and
-pair steps and the service's two-image match all go through these functions, so a pair is matched
-the same way wherever it runs.
+(:func:`run_pair`, through :func:`geomatch.pipeline.database.write`). ``geomatch run``, a
+worker's pair step and the service's two-image match all go through these functions, so a pair is
+matched the same way wherever it runs.
 """
 
 from __future__ import annotations
@@ -14,15 +14,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dbwrite import commit, prepare, write
-from .geometry import fundamental_from_matches
-from .matching.matcher import Matcher, MatchResult
-from .matching.probes import pair_turn, tiled_turn
-from .matching.rotation import points_back, quarter_turn
-from .matching.tiling import TiledMatches, five_crops, match_tiled
-from .matching.variants import for_pair
-from .sfm.colmapdb import ColmapDatabase, PairWrite
-from .sfm.pairs import Pair
+from ..imagefolder import PhotoScale
+from ..matching.matcher import Matcher, MatchResult
+from ..matching.probes import pair_turn, tiled_turn
+from ..matching.rotation import points_back, quarter_turn
+from ..matching.tiling import TiledMatches, five_crops, match_tiled
+from ..matching.variants import for_pair
+from ..sfm.colmapdb import ColmapDatabase, PairWrite
+from .database import PairMatches, commit, prepare, write
+from .pair_sources import Pair
 
 
 def extract(matcher: Matcher, image: np.ndarray, full: bool = True, crops: bool = False) -> int:
@@ -45,56 +45,6 @@ def extract(matcher: Matcher, image: np.ndarray, full: bool = True, crops: bool 
             crop_matcher.features(crop.cut(image))
             n += 1
     return n
-
-
-@dataclass
-class PairMatches:
-    """One pair's matches, in each image's original pixels (pixel centres at integers)."""
-
-    keypoints0: np.ndarray
-    keypoints1: np.ndarray
-    scores: np.ndarray
-    sizes: tuple[tuple[int, int], tuple[int, int]]  # (width, height) of image0 and image1
-    tiled: bool = False
-    # None: an image was matched turned (the source's F is in the turned frames), or the matches
-    # were read back from where a caller stored them
-    source: MatchResult | TiledMatches | None = None
-    crops: int = 0  # aerial crops matched (tiled pairs; 0 when the matches were read back)
-
-    def __len__(self) -> int:
-        return int(self.keypoints0.shape[0])
-
-    def in_photo_pixels(
-        self,
-        photo0: tuple[float, float, tuple[int, int]] | None,
-        photo1: tuple[float, float, tuple[int, int]] | None,
-    ) -> PairMatches:
-        """The matches of images read at a working size (imagefolder.Images.to_photo: x and y
-        scale to the photo, its size; None: read as stored) in the photos' own pixels, which
-        the database and the mapper speak. The source goes: its F is in working pixels."""
-        if photo0 is None and photo1 is None:
-            return self
-        k0, k1 = self.keypoints0, self.keypoints1
-        sizes = list(self.sizes)
-        if photo0 is not None:
-            k0, sizes[0] = _to_photo(k0, photo0[:2]), photo0[2]
-        if photo1 is not None:
-            k1, sizes[1] = _to_photo(k1, photo1[:2]), photo1[2]
-        return PairMatches(k0, k1, self.scores, (sizes[0], sizes[1]), self.tiled, None, self.crops)
-
-    @property
-    def F(self) -> np.ndarray:
-        """x1^T F x0 = 0 in original pixels: the matcher's (a tiled pair's is fitted over its
-        merged matches on first use); without a source, fitted over the matches."""
-        if self.source is None:
-            return fundamental_from_matches(self.keypoints0, self.keypoints1)
-        return self.source.F
-
-
-def _to_photo(points: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
-    """Working pixels to photo pixels, pixel centres at integers on both."""
-    s = np.asarray(scale, np.float64)
-    return ((np.asarray(points, np.float64) + 0.5) * s - 0.5).astype(points.dtype, copy=False)
 
 
 # how ``geomatch run`` matches a pair (:func:`match`'s signature): matcher, pair, image0, image1,
@@ -176,6 +126,9 @@ class PairTarget:
     id1: int
     radius: float
     read: Callable[[], AbstractContextManager[ColmapDatabase]] | None = None
+    # images matched below their photos' size (imagefolder.to_photo): the matches are written in
+    # the photos' own pixels, which the database and the mapper speak
+    photos: tuple[PhotoScale | None, PhotoScale | None] = (None, None)
 
 
 @dataclass
@@ -195,7 +148,7 @@ def run_pair(
     aerial_project: bool = False,
     survey: bool = False,
 ) -> PairRun:
-    """One planned pair matched (:func:`match`) and written into ``target`` (``geomatch.dbwrite.write``, at
+    """One planned pair matched (:func:`match`) and written into ``target`` (:func:`database.write`, at
     the matcher's working size): the sequence of ``geomatch run``, a worker's pair step and the
     service's two-image match (no target: nothing is kept)."""
     t0 = time.perf_counter()
@@ -203,6 +156,7 @@ def run_pair(
     t1 = time.perf_counter()
     written = None
     if target is not None:
+        m = m.in_photo_pixels(*target.photos)
         resize = matcher.config.resize
         prepared = None
         if target.read is not None:

@@ -1,0 +1,106 @@
+"""Prepare a project for matching: read its photos (metadata, GPS fixes), decide which are aerial,
+plan its pairs, and register its images (with their pose priors) in its COLMAP database. Both
+runners (``geomatch run`` and a match job's plan step) do exactly this before any pair is matched.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..geo import gps
+from ..geo.gps import GpsFixes
+from ..imagefolder import Images
+from ..imageio import WORKING_SIDE
+from ..matching.matcher import Matcher
+from ..metadata import ImageMeta, read_metadata
+from ..options import plan_needs_matcher
+from ..sfm.colmapdb import ColmapDatabase
+from . import database
+from .aerial import aerial_set
+from .plan import Plan, plan, plan_in_words
+
+
+@dataclass(frozen=True)
+class ProjectImages:
+    """A project's photos as every stage after reading them sees them: their names (relative to
+    ``folder``, in order), each one's metadata, and the GPS fixes (None: not georeferenced, or too
+    few photos with a fix: geo.gps.fixes)."""
+
+    folder: Path
+    names: list[str]
+    metas: dict[str, ImageMeta]
+    fixes: GpsFixes | None
+
+    @classmethod
+    def read(cls, folder: Path, names: Sequence[str], georeference: bool = True) -> ProjectImages:
+        metas = {n: read_metadata(folder / n) for n in names}
+        fixes = gps.fixes(list(names), metas) if georeference else None
+        return cls(folder, list(names), metas, fixes)
+
+    def sizes(self) -> dict[str, tuple[int, int]]:
+        """(width, height) of each photo."""
+        return {n: (m.width, m.height) for n, m in self.metas.items()}
+
+
+@dataclass(frozen=True)
+class PlanRequest:
+    """What a run or a match job asks of the plan: ``spec`` (options.PAIR_KINDS; ignored with
+    ``pairs_list``), an explicit pair list, and ``tiling`` (auto | on | off)."""
+
+    spec: str
+    pairs_list: Sequence[Sequence[str]] | None
+    tiling: str
+
+
+def frames(folder: Path, budget_mb: float) -> Images:
+    """The project's decoded photos as the matcher reads them: at most the working size
+    (imageio.WORKING_SIDE; matches are written in the photos' own pixels) within ``budget_mb``."""
+    return Images(folder, budget_mb, WORKING_SIDE)
+
+
+def plan_project(
+    images: ProjectImages,
+    captures: Mapping[str, str],
+    request: PlanRequest,
+    matcher: Callable[[], Matcher],
+    decoded: Images,
+    progress: bool = False,
+) -> Plan:
+    """The project's plan: its aerial images (``captures``: aerial | ground | auto per image,
+    aerial.aerial_set), its pairs (plan.plan) and the plan in words. ``matcher`` is called only
+    when the plan reads the images' features (retrieval's global descriptors, a survey's quarter
+    turns), so a plan that does not loads no network."""
+    enu = images.fixes.enu if images.fixes is not None else None
+    aerial = aerial_set(captures, images.metas, enu)
+    survey = bool(images.names) and aerial >= set(images.names)
+    explicit = request.pairs_list is not None
+    needs = (not explicit and plan_needs_matcher(request.spec)) or survey
+    pairs = plan(
+        images.folder,
+        images.names,
+        aerial,
+        request.spec,
+        request.pairs_list,
+        request.tiling,
+        matcher() if needs else None,
+        decoded,
+        progress,
+        fixes=images.fixes,
+        metas=images.metas,
+    )
+    words = (
+        "explicit list" if explicit else plan_in_words(request.spec, images.names, images.fixes, images.metas)
+    )
+    return Plan(pairs, sorted(aerial), words, survey)
+
+
+def register(path: Path, images: ProjectImages, share_camera: bool | None) -> dict[str, int]:
+    """Every image in the project's COLMAP database at ``path`` (a no-op for those there), with
+    its GPS fix as a pose prior; their ids by name."""
+    with ColmapDatabase(path) as db:
+        ids = database.register(db, images.names, images.metas, share_camera)
+    if images.fixes is not None:
+        gps.write_pose_priors(path, ids, images.fixes)
+    return ids

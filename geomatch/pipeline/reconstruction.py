@@ -1,0 +1,151 @@
+"""Map a project: its COLMAP database to a model (geomatch.sfm.mapping), moved into the frame of
+its ground control points where it has some (geomatch.geo.gcp), with its survey report, written
+once as summary.json (outputs.finish). Both runners (``geomatch run`` and a reconstruct job) map
+through :func:`map_project` with settings from :func:`mapping_settings`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..geo import gcp as gcpgeo
+from ..geo.gcpfile import GcpError, GcpFile, read_gcp_file
+from ..options import DEFAULTS
+from ..sfm import mapping
+from ..sfm.colmapdb import ColmapDatabase
+from ..sfm.upright import image_up
+from .plan import Plan
+from .prepare import ProjectImages
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MappingSettings:
+    """How a project is mapped (geomatch.sfm.mapping.reconstruct). ``min_pose_inliers`` 0 is
+    COLMAP's 30, or 20 where the project has tiled aerial x ground pairs (``tiled``), which also
+    keeps two-view tracks and runs the leftover passes and re-maps. ``loop_check`` /
+    ``tree_check``: the view graph's checks; ``track_refine``: each track's points aligned on the
+    photos; ``survey``: every photo aerial (the survey's track refinement). ``verbose`` lets
+    COLMAP's own log through, ``progress`` shows a bar: neither changes the model."""
+
+    mapper: str = "auto"
+    min_model_size: int = 3
+    min_pose_inliers: int = 0
+    loop_check: bool = True
+    tree_check: bool = True
+    track_refine: bool = True
+    tiled: bool = False
+    survey: bool = False
+    seed: int = 0
+    verbose: bool = field(default=False, compare=False)
+    progress: bool = field(default=False, compare=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The settings that shape the model, as the summary records them."""
+        return {k: v for k, v in asdict(self).items() if k not in ("verbose", "progress")}
+
+
+@dataclass(frozen=True)
+class ControlPoints:
+    """A project's ground control points: the text of its file (OpenDroneMap's gcp_list.txt), the
+    points held out of the fit to judge it (by name, or how many), and how a fit that failed is
+    told in the summary (the service takes its server's paths out)."""
+
+    text: str
+    checkpoints: Sequence[str] | int = 0
+    explain: Callable[[Exception], str] = field(default=repr, compare=False)
+
+
+def mapping_settings(
+    values: Mapping[str, Any], plan: Plan, verbose: bool = False, progress: bool = False
+) -> MappingSettings:
+    """The mapper's settings from option values by name (a run's options, a reconstruct job's) and
+    the project's plan, which says whether it has tiled pairs and is a survey: the one place
+    either runner gets them, so a project is mapped alike whichever runs it."""
+    base = MappingSettings()
+    return MappingSettings(
+        mapper=str(values.get("mapper", DEFAULTS["mapper"])),
+        min_model_size=int(values.get("min_model_size", base.min_model_size)),
+        min_pose_inliers=int(values.get("min_pose_inliers", DEFAULTS["min_pose_inliers"])),
+        loop_check=bool(values.get("loop_check", base.loop_check)),
+        tree_check=bool(values.get("tree_check", base.tree_check)),
+        track_refine=bool(values.get("track_refine", base.track_refine)),
+        tiled=plan.tiled,
+        survey=plan.survey,
+        verbose=verbose,
+        progress=progress,
+    )
+
+
+def map_project(
+    db_path: Path,
+    images: ProjectImages,
+    plan: Plan,
+    out: Path,
+    settings: MappingSettings,
+    control: ControlPoints | None = None,
+    fields: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Map the project whose database is ``db_path`` into ``out`` (sparse/, points.ply) and return
+    its summary, which outputs.finish writes. ``fields``: what the runner adds to the summary (a
+    run's options and timings, a job's id); a ``timings`` there gets ``mapping``."""
+    t0 = time.perf_counter()
+    with ColmapDatabase(db_path) as db:
+        stats, priors = db.stats(), db.pose_priors()
+    summary = mapping.reconstruct(
+        db_path,
+        images.folder,
+        out,
+        settings.mapper,
+        settings.min_model_size,
+        settings.seed,
+        settings.verbose,
+        settings.progress,
+        settings.min_pose_inliers,
+        settings.loop_check,
+        images.fixes,
+        settings.tree_check,
+        settings.track_refine,
+        settings.tiled,
+        # each photo's up where it is known (its gimbal, a survey's nadir camera): the view graph
+        # holds the pairs' rotations to it
+        image_up(images.metas, plan.survey),
+        settings.survey,
+    )
+    summary["mapping_settings"] = settings.as_dict()
+    summary["database"] = stats
+    summary["pose_priors"] = priors
+    summary.update(plan.summary_fields())
+    if control is not None:
+        georeference_by_gcps(summary, out, control, images)
+    extra = dict(fields or {})
+    timings = {**extra.pop("timings", {}), "mapping": time.perf_counter() - t0}
+    summary.update(extra, timings=timings)
+    return summary
+
+
+def georeference_by_gcps(
+    summary: dict[str, Any], out: Path, control: ControlPoints, images: ProjectImages
+) -> None:
+    """Move the model in ``out`` into the frame of the control points (read against the project's
+    images as they are now) and judge it at the check points (geomatch.geo.gcp). Whatever keeps
+    the points from being used (a file that no longer fits the images, too few points placed in
+    the model, numbers the fit cannot take) leaves the model in the frame the mapping gave it and
+    goes into the summary's ``gcp`` as ``error``: the reconstruction itself succeeded."""
+    # the model keeps the file it was georeferenced by: its exports place the points by it
+    (out / "gcp_list.txt").write_text(control.text, encoding="utf-8")
+    gcps: GcpFile | None = None
+    try:
+        gcps = read_gcp_file(control.text, images.sizes())
+        gcpgeo.georeference_summary(summary, out, gcps, control.checkpoints)
+    except GcpError as e:
+        summary["gcp"] = gcpgeo.failed(gcps, f"the project's GCP file: {e}")
+    except Exception as e:  # numbers the fit cannot take: the model stays as mapped
+        log.warning("GCP georeferencing failed: %r", e)
+        summary["gcp"] = gcpgeo.failed(gcps, f"the GCP georeferencing failed ({control.explain(e)})")

@@ -1,0 +1,67 @@
+"""`geomatch run` and the service run one orchestration: a small mixed project (one aerial photo,
+three street-level ones) matched and mapped both ways gets the same plan, the same mapper settings
+and a summary with the same fields, with tiling off and with the defaults."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from geomatch.pipeline import RunOptions, run
+
+from .harness import Deployment, upload, wait_job
+
+pytestmark = pytest.mark.service
+
+AERIAL = ["aerial_00.png"]
+GROUND = ["ground_00.png", "ground_01.png", "ground_02.png"]
+# the service is under test here, not the matcher: the sparse method at 320 px keeps both runs short
+MATCHING = {"method": "sparse", "resize": 320}
+
+
+def served(d: Deployment, key: str, scene: Path, tiling: str) -> tuple[dict[str, Any], Path]:
+    """The reconstruct job's summary of the project matched through the service, and its folder."""
+    with d.client(key) as c:
+        pid = c.post("/v1/projects", json={"name": f"parity-{tiling}"}).json()["id"]
+        assert upload(c, pid, [scene / "images" / n for n in AERIAL], "aerial").status_code == 201
+        assert upload(c, pid, [scene / "images" / n for n in GROUND], "ground").status_code == 201
+        body = {**MATCHING, "tiling": tiling, "reconstruct": True}
+        accepted = c.post(f"/v1/projects/{pid}/match", json=body).json()
+        match = wait_job(c, accepted["job_id"])
+        assert match["state"] == "succeeded", (match, d.logs())
+        recon = wait_job(c, accepted["reconstruct_job_id"])
+        assert recon["state"] == "succeeded", (recon, d.logs())
+        return dict(recon["result"]), d.home / "projects" / pid
+
+
+def ran(scene: Path, out: Path, tiling: str) -> dict[str, Any]:
+    images = out.parent / f"images-{tiling}"
+    images.mkdir()
+    for n in AERIAL + GROUND:
+        shutil.copy(scene / "images" / n, images / n)
+    opts = RunOptions(**MATCHING, tiling=tiling, aerial_names=AERIAL, progress=False)
+    return run(images, out, opts)
+
+
+@pytest.mark.parametrize("tiling", ["off", "auto"])
+def test_service_and_run_plan_and_map_alike(
+    deployment: Deployment, key_a: str, scene: Path, tmp_path: Path, tiling: str
+) -> None:
+    by_run = ran(scene, tmp_path / "run", tiling)
+    by_service, project = served(deployment, key_a, scene, tiling)
+
+    # tiling off: no pair tiled, and the mapper takes the plain project's settings both ways
+    assert by_run["mapping_settings"]["tiled"] is (tiling != "off")
+    assert by_service["mapping_settings"] == by_run["mapping_settings"]
+    assert by_service["plan"] == by_run["plan"]
+    assert by_run["plan"]["tiled_pairs"] == (0 if tiling == "off" else len(GROUND))
+    plan_run = json.loads((tmp_path / "run" / "plan.json").read_text())
+    plan_service = json.loads((project / "plan.json").read_text())
+    assert plan_service == plan_run
+    # the fields a client reads (the console, the report) are there both ways
+    assert set(by_service) == set(by_run)
+    assert by_service["report"].keys() == by_run["report"].keys()
