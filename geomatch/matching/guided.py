@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 CPU_BLOCK_BYTES = 2 * 2**20
 BLOCK_BYTES = 64 * 2**20
 # On a CPU with bfloat16 units (AVX512-BF16, AMX) the similarity blocks are computed from bfloat16
-# descriptors (on 4096 x 4096 points 2.2x faster than float32 unguided, 1.4x guided), and each row's best
+# descriptors (faster than float32, guided or not: docs/benchmarks.md, drone surveys), and each row's best
 # LOW_CANDIDATES are ranked again by their float32 similarity: the ratio test and the similarity
 # returned are float32's; a column's best is compared in the block's rounding (ties there go to
 # the row most similar in float32), so a match can differ only where two rows' similarities to
@@ -54,8 +54,8 @@ LOW_PRECISION = True
 # The guided pass keeps a candidate within tau (10 px^2) of the seed's F; of those, the ones more
 # than 2 px (Sampson, at the network's size) off the F the guided matches themselves fit would not
 # pass COLMAP's verification (4 px on the photo, ~1.3 px at 640 px on a 2000 px photo) and only make
-# its RANSAC long: 43 % of brighton's guided matches were off COLMAP's F, and its verification took
-# 19 s of a 72 s run beside the matching. Passed on: the matches within KEEP_SAMPSON px^2 of it.
+# its RANSAC long (on the drone surveys a large share of the guided matches were off COLMAP's F:
+# docs/benchmarks.md, drone surveys). Passed on: the matches within KEEP_SAMPSON px^2 of it.
 KEEP_SAMPSON = 4.0
 
 

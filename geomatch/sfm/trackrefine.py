@@ -65,8 +65,7 @@ class TrackRefineOptions:
     # working pixels then): the matcher finds its points at the network's 640 px, so at 2000 a
     # point is already placed to a fraction of a network pixel, and a 12 MP original costs four
     # times the decoding, smoothing and memory of its half-size copy for no gain in the cameras
-    # (brighton_beach: the originals and their 2000 px copies give the same GPS residuals;
-    # docs/benchmarks.md, "Drone surveys beside COLMAP SIFT")
+    # (docs/benchmarks.md, "Drone surveys beside COLMAP SIFT")
     max_side: int | None = WORKING_SIDE
     workers: int = 0  # pairs aligned at once; 0: sfm.pair_threads()
 
@@ -74,11 +73,10 @@ class TrackRefineOptions:
 # A survey's photos (every one aerial) see the ground from one height, so two views of a point differ
 # by little more than a turn and a shift in the image plane: a point may come from farther (the coarse
 # pass, max_shift) and a lower correlation still means the same spot; six steps a pass keep the cost
-# near the ground settings'. On brighton_beach this aligns 13,600 of 21,000 observations instead of
-# 6,100 and brings the camera centres' rms residual to the GPS from 0.45 to 0.44 m (median 0.41 to
-# 0.37); on the ground scenes, whose pairs are wide-baseline perspective views, such settings lose
-# 0.5-1 AUC@3 on Herz-Jesus-P8 and entry-P10 and 2-6 on sacre_coeur, so they keep the defaults
-# (docs/benchmarks.md, "Drone surveys beside COLMAP SIFT").
+# near the ground settings'. On the drone surveys this aligns about twice the observations and brings
+# the cameras closer to their GPS fixes; on the ground scenes, whose pairs are wide-baseline
+# perspective views, such settings lose pose accuracy, so they keep the defaults (the figures:
+# docs/benchmarks.md, "Drone surveys beside COLMAP SIFT").
 SURVEY = TrackRefineOptions(max_shift=4.0, min_ncc=0.6, iterations=6, coarse_sigma=3.0)
 
 
