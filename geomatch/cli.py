@@ -107,6 +107,36 @@ def cmd_run(args: argparse.Namespace) -> int:
     if "gcp" in summary:
         print(format_gcp(summary["gcp"]))
     print(f"model: {args.out}/sparse/0 (binary + text), {args.out}/points.ply, {args.out}/summary.json")
+    if "ortho" in summary:
+        print(format_map(summary["ortho"], args.out))
+    return 0
+
+
+def format_map(record: Mapping[str, Any], out: Path) -> str:
+    """The map's lines (geomatch.ortho's record), or why there is none."""
+    if record.get("skipped"):
+        return f"map: none: {record['skipped']}"
+    w, h = record["size_px"]
+    ew, eh = record["extent_m"]
+    return (
+        f"map: orthophoto {w} x {h} px at {100 * record['gsd_m']:.1f} cm ({ew:.0f} x {eh:.0f} m), "
+        f"DSM {record['dsm_cell_m']:.2f} m cells, {record['crs']}\n"
+        f"  {out}/{record['orthophoto']}, {out}/{record['dsm']}"
+    )
+
+
+def cmd_ortho(args: argparse.Namespace) -> int:
+    from .ortho import MapOptions, OrthoError, make_map
+
+    try:
+        result = make_map(args.out, images=args.images, options=MapOptions(gsd=args.ortho_gsd or None))
+    except (OrthoError, OSError) as e:
+        print(f"geomatch: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(format_map(result.record, args.out))
+    print(
+        f"  {result.record['seconds']['total']:.1f} s; preview: {args.out}/{result.record['preview']['path']}"
+    )
     return 0
 
 
@@ -455,6 +485,16 @@ def register(sub: Any) -> None:
         "--images", type=Path, default=None, help="the run's images (default: the folder the run read)"
     )
     x.set_defaults(func=cmd_export)
+
+    om = sub.add_parser(
+        "ortho", help="a run's map: DSM and orthophoto (Cloud-Optimized GeoTIFFs) of a georeferenced model"
+    )
+    om.add_argument("out", type=Path, help="the run's output folder (of geomatch run)")
+    options.add_arguments(om, ("ortho_gsd",))
+    om.add_argument(
+        "--images", type=Path, default=None, help="the run's images (default: the folder the run read)"
+    )
+    om.set_defaults(func=cmd_ortho)
 
     rp = sub.add_parser("report", help="a run's survey report (photos, points, GPS, GCP and check points)")
     rp.add_argument("out", type=Path, help="the run's output folder, or a summary.json")

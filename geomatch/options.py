@@ -347,7 +347,7 @@ DEFAULTS: dict[str, Any] = {o.name: o.default for o in _OPTIONS}
 # which surface offers which options (each a subset of OPTIONS, in this order)
 MATCH_OPTIONS = ("method", "resize", "device", "sparse", "dense", "loftr_weights")
 OPTIMIZER_OPTIONS = ("tau", "iterations", "w", "theta_iter", "theta_c", "memory_budget_mb")
-RUN_OPTIONS = ("pairs", "tiling", "snap_radius", "mapper", "min_pose_inliers", "camera")
+RUN_OPTIONS = ("pairs", "tiling", "snap_radius", "mapper", "min_pose_inliers", "camera", "ortho", "ortho_gsd")
 # a project's configuration and a match job's options (REST, gRPC, the use cases)
 PROJECT_OPTIONS = (
     "pairs",
@@ -383,6 +383,8 @@ def add_arguments(parser: Any, names: Iterable[str], server: bool = False, **hel
         kw: dict[str, Any] = {"type": o.type, "default": None if server else o.default}
         if o.choices:
             kw["choices"] = o.choices
+        if o.choices == ORTHO:  # a switch: the flag alone turns it on (geomatch run --ortho)
+            kw["nargs"], kw["const"] = "?", "on"
         if server:
             text += f" (default: the server's, {o.default})"
         parser.add_argument(o.flag, help=text, **kw)

@@ -269,3 +269,37 @@ def test_model_coordinates_between_nodes_are_exact(flat: OrthoScene, flat_map: d
     got = model_grid(survey, ee, nn, z)
     want = survey.model_from_projected(np.column_stack([ee.ravel(), nn.ravel(), z.ravel()]))
     assert np.abs(got.reshape(-1, 3) - want).max() < 1e-4
+
+
+def test_the_map_as_a_stage_and_as_a_command(flat: OrthoScene, tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from geomatch.pipeline.orthomap import add_map
+
+    run = tmp_path / "run"
+    shutil.copytree(flat.run / "sparse", run / "sparse")
+    summary = {**json.loads((flat.run / "summary.json").read_text()), "timings": {"mapping": 1.0}}
+    summary.pop("ortho", None)
+    assert add_map(run, dict(summary), flat.images, "off") == summary  # off: nothing, not even a file
+    assert not (run / "summary.json").exists()
+    done = add_map(run, dict(summary), flat.images, "on", 2 * flat.gsd)
+    assert done["ortho"]["gsd_m"] == pytest.approx(2 * flat.gsd) and done["timings"]["map"] > 0
+    assert is_cog(run / ORTHO_PATH)[0]
+    broken = tmp_path / "broken"  # photos that do not decode: the map fails, the model stands
+    broken.mkdir()
+    for cam in flat.cams:
+        (broken / cam.name).write_bytes(b"not a photo")
+    failed = add_map(run, dict(summary), broken, "on", explain=lambda e: type(e).__name__)
+    assert failed["ortho"] == {"skipped": "the map failed (ImageReadError)"}
+    assert failed["registered"] == summary["registered"]
+
+    cmd = [sys.executable, "-m", "geomatch_app", "ortho", str(run), "--ortho-gsd", str(3 * flat.gsd)]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith("map: orthophoto ") and "odm_orthophoto.tif" in res.stdout
+    assert json.loads((run / "summary.json").read_text())["ortho"]["gsd_m"] == pytest.approx(3 * flat.gsd)
+    bare = tmp_path / "bare"
+    (bare / "sparse").mkdir(parents=True)
+    res = subprocess.run([*cmd[:4], str(bare)], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2 and res.stderr.startswith("geomatch: error: ") and "run folder" in res.stderr

@@ -287,6 +287,7 @@ def _image_id(db: Any, name: str) -> int:
 def reconstruct(ctx: Context, job_id: str) -> str:
     """The project mapped as ``geomatch run`` maps it (geomatch.pipeline.reconstruction), from a
     snapshot of its database and the plan its match job kept, into a fresh folder swapped in whole."""
+    from geomatch.pipeline.orthomap import add_map
     from geomatch.pipeline.outputs import finish
     from geomatch.pipeline.plan import Plan
     from geomatch.pipeline.prepare import ProjectImages
@@ -316,8 +317,18 @@ def reconstruct(ctx: Context, job_id: str) -> str:
         images = ProjectImages.read(image_dir, names)
         settings = mapping_settings(runtime.job_options(job.options), plan)
         out = work / "model"
+        options = runtime.job_options(job.options)
         summary = map_project(
             snapshot, images, plan, out, settings, _control_points(ctx, job), {"job_id": job_id}
+        )
+        root, folder = ctx.storage.root, ctx.storage.project_dir(pid)
+        summary = add_map(
+            out,
+            summary,
+            image_dir,
+            options["ortho"],
+            options["ortho_gsd"],
+            lambda e: redact.client_message(e, root, folder),
         )
         summary = finish(out, summary, archive=True)
         g = summary.get("gcp")

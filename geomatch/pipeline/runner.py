@@ -32,6 +32,7 @@ from ..options import DEFAULTS, cache_budget, parse_plan, resolve
 from ..sfm.colmapdb import ColmapDatabase, PairWrite
 from . import aerial, database, match_pairs
 from .database import PairMatches
+from .orthomap import add_map
 from .outputs import finish
 from .prepare import PlanRequest, ProjectImages, frames, plan_project, register
 from .reconstruction import ControlPoints, map_project, mapping_settings
@@ -68,6 +69,9 @@ class RunOptions:
     # fit to judge it, by name, or how many (0: none)
     gcp: str | None = None
     checkpoints: list[str] | int = 0
+    # the map after mapping (geomatch.ortho): on / off, and its pixel in metres (0: the survey's GSD)
+    ortho: str = DEFAULTS["ortho"]
+    ortho_gsd: float = DEFAULTS["ortho_gsd"]
     matcher: dict[str, Any] = field(default_factory=dict)  # further MatcherConfig / optimizer options
     progress: bool = True
     verbose: bool = False  # COLMAP's own log (glog) on stderr; off: a progress bar per stage only
@@ -213,6 +217,7 @@ def run(
     }
     settings = mapping_settings(asdict(opts), plan, opts.verbose, opts.progress)
     summary = map_project(out / "database.db", images, plan, out, settings, control, fields)
+    summary = add_map(out, summary, image_dir, opts.ortho, opts.ortho_gsd)
     summary["timings"]["total"] = time.perf_counter() - t_start
     return finish(out, summary)
 
