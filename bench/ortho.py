@@ -331,8 +331,10 @@ def seam_pictures(run: Path, pictures: Path, name: str, crop: int = 320, count: 
     edge[:, 1:] |= lab[:, 1:] != lab[:, :-1]
     edge[1:, :] |= lab[1:, :] != lab[:-1, :]
     edge &= lab >= 0
+    edge[:, 1:] &= lab[:, :-1] >= 0  # not the map's own border
+    edge[1:, :] &= lab[:-1, :] >= 0
     with rasterio.open(run / "odm_orthophoto" / "odm_orthophoto.tif") as src:
-        f = min(1.0, 1200 / max(src.width, src.height))
+        f = min(1.0, 1000 / max(src.width, src.height))
         small = np.moveaxis(
             src.read(
                 out_shape=(4, round(src.height * f), round(src.width * f)),
