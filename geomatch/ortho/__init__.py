@@ -14,7 +14,10 @@ from the sparse points and the cameras, without a dense reconstruction. One modu
 - ``mosaic.py``: one tile of the orthophoto (the photo that sees each place best, visibility
   on the DSM, feathered seams);
 - ``cog.py``: Cloud-Optimized GeoTIFFs (rasterio + rio-cogeo);
-- ``make.py``: the whole map of a run folder, tile by tile (``make_map``).
+- ``overlay.py``: the cameras and GCPs placed on the map's preview (the console's map);
+- ``accuracy.py``: an orthophoto's position error against a reference (tests, bench/ortho.py);
+- ``make.py``: the whole map of a run folder, tile by tile (``make_map``; ``map_step`` as a
+  stage of a run or a reconstruct job).
 """
 
 from __future__ import annotations
