@@ -25,7 +25,7 @@ from ..geo.similarity import umeyama
 
 
 @dataclass(frozen=True)
-class Alignment:
+class TruthAlignment:
     scale: float
     rotation: np.ndarray  # 3x3, gt_from_model
     translation: np.ndarray  # (3,)
@@ -49,14 +49,16 @@ def _fit(
     C_gt: np.ndarray,
     max_rotation_deg: float,
     max_position: float,
-) -> Alignment | None:
+) -> TruthAlignment | None:
     """The similarity that maps ``src`` centres onto ``dst`` (least squares), judged on every camera."""
     sim = umeyama(src, dst)  # gt_from_model
     if not np.isfinite(sim.scale) or sim.scale <= 0:
         return None
     pos = np.linalg.norm(sim.apply(C_model) - C_gt, axis=1)
     rot = _angles_deg(R_model @ sim.R.T, R_gt)  # cam_from_gt = cam_from_model @ model_from_gt
-    return Alignment(sim.scale, sim.R, sim.t, rot, pos, (rot <= max_rotation_deg) & (pos <= max_position))
+    return TruthAlignment(
+        sim.scale, sim.R, sim.t, rot, pos, (rot <= max_rotation_deg) & (pos <= max_position)
+    )
 
 
 def align(
@@ -68,7 +70,7 @@ def align(
     max_position: float,
     max_hypotheses: int = 2000,
     seed: int = 0,
-) -> Alignment | None:
+) -> TruthAlignment | None:
     """Align cameras (cam_from_world rotations (N, 3, 3) and centres (N, 3), same order in the model
     and the ground truth); None for fewer than 3 cameras or when no similarity can be fitted."""
     n = len(C_model)
@@ -79,7 +81,7 @@ def align(
     if len(triples) > max_hypotheses:
         rng = np.random.default_rng(seed)
         triples = [tuple(rng.choice(n, 3, replace=False)) for _ in range(max_hypotheses)]
-    best: Alignment | None = None
+    best: TruthAlignment | None = None
     best_score = (-1, 0.0)
     for tri in triples:
         idx = list(tri)

@@ -35,7 +35,7 @@ import pycolmap
 
 from ..sfm.mapping import sfm_stats
 from ..sfm.pairrotations import rotation_angle
-from .alignment import Alignment, align
+from .alignment import TruthAlignment, align
 
 AUC_THRESHOLDS = (3.0, 5.0, 10.0)
 MAX_ROTATION_ERROR_DEG = 3.0
@@ -107,7 +107,7 @@ def align_cameras(
     max_rotation_deg: float,
     max_position: float,
     leave_out: Collection[str] = (),
-) -> tuple[list[str], Alignment] | None:
+) -> tuple[list[str], TruthAlignment] | None:
     """The robust alignment (alignment.py) of the registered cameras the ground truth knows, but
     those in ``leave_out``, with their names in its order; None for fewer than three or no fit.
     Leaving a camera out keeps it from pulling the alignment it is judged by."""

@@ -18,7 +18,7 @@ from geomatch.options import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_UNREACHABLE
 
 from ..grpcapi.pb import pb2
 from .grpc_client import GrpcClient, ImageSource, to_dict
-from .submit import JobView
+from .submit import JobStatus
 
 BATCH_BYTES = 64 * 1024 * 1024
 BATCH_IMAGES = 16
@@ -92,10 +92,10 @@ class GrpcSubmitClient:
     def follow_hint(self, job_id: str) -> str:
         return f"WatchJob {{job_id: {job_id}}} on {self.target}"
 
-    def wait(self, job_id: str, on_update: Callable[[JobView], object]) -> JobView:
-        def view(job: Any) -> JobView:
+    def wait(self, job_id: str, on_update: Callable[[JobStatus], object]) -> JobStatus:
+        def view(job: Any) -> JobStatus:
             result = to_dict(job.result) if job.state == pb2.JOB_STATE_SUCCEEDED else {}
-            return JobView(STATE[job.state], job.progress.done, job.progress.total, job.error, result)
+            return JobStatus(STATE[job.state], job.progress.done, job.progress.total, job.error, result)
 
         return view(self.client.wait(job_id, lambda job: on_update(view(job))))
 

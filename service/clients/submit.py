@@ -72,7 +72,7 @@ def _captures(files: list[Path], folder: Path, args: argparse.Namespace) -> dict
 
 # -- the client interface --------------------------------------------------------------------------
 @dataclass(frozen=True)
-class JobView:
+class JobStatus:
     """A job as the flow reads it, whatever the transport: state is the API's word (``running``,
     ``succeeded``, ``failed`` ...), result the job's result as plain JSON values."""
 
@@ -103,7 +103,7 @@ class SubmitClient(Protocol):
 
     def follow_hint(self, job_id: str) -> str: ...
 
-    def wait(self, job_id: str, on_update: Callable[[JobView], object]) -> JobView: ...
+    def wait(self, job_id: str, on_update: Callable[[JobStatus], object]) -> JobStatus: ...
 
     def download(self, project_id: str, dest: Path) -> Path:
         """The model as a zip at ``dest``."""
@@ -142,7 +142,7 @@ def submit(args: argparse.Namespace, connect: Callable[[], SubmitClient]) -> int
         for job_id, desc in ((match_id, "match"), (recon_id, "reconstruct")):
             with tqdm(total=0, unit="pair" if desc == "match" else "step", desc=desc, disable=quiet) as bar:
 
-                def show(job: JobView, bar: Any = bar) -> None:
+                def show(job: JobStatus, bar: Any = bar) -> None:
                     bar.total, bar.n = job.total, job.done
                     bar.set_postfix_str(job.state)
                     bar.refresh()
@@ -209,10 +209,10 @@ class HttpSubmitClient:
     def follow_hint(self, job_id: str) -> str:
         return f"curl -N -H 'Authorization: Bearer ...' {self.where}/v1/jobs/{job_id}/events"
 
-    def wait(self, job_id: str, on_update: Callable[[JobView], object]) -> JobView:
-        def view(job: dict[str, Any]) -> JobView:
+    def wait(self, job_id: str, on_update: Callable[[JobStatus], object]) -> JobStatus:
+        def view(job: dict[str, Any]) -> JobStatus:
             progress = job["progress"]
-            return JobView(
+            return JobStatus(
                 job["state"], progress["done"], progress["total"], job.get("error"), job.get("result") or {}
             )
 

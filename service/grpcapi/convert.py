@@ -14,7 +14,7 @@ from geomatch import options
 from geomatch.export.formats import FORMATS, ExportFormat
 
 from ..usecases.outputs import model_formats
-from ..usecases.views import GcpView, ImageView, JobView, MatchRequest, PairMatches, ProjectView
+from ..usecases.views import GcpView, ImageView, JobView, MatchRequest, PairMatchView, ProjectView
 from .framing import CAPTURES
 from .pb import pb2
 
@@ -189,7 +189,7 @@ def model_summary(summary: dict[str, Any]) -> pb2.ModelSummary:
     )
 
 
-def pair_matches(m: PairMatches) -> pb2.MatchPairResponse:
+def pair_matches(m: PairMatchView) -> pb2.MatchPairResponse:
     return pb2.MatchPairResponse(
         keypoints0=m.keypoints0.reshape(-1).tolist(),
         keypoints1=m.keypoints1.reshape(-1).tolist(),

@@ -19,7 +19,7 @@ from geomatch_core.queue import MATCH_TWO
 
 from ..validation import check_name
 from .base import DEFAULTS, UseCases, check_config, choice
-from .views import PairMatches, Upload
+from .views import PairMatchView, Upload
 
 
 class PairToolUseCases(UseCases):
@@ -29,7 +29,7 @@ class PairToolUseCases(UseCases):
         uploads: Iterable[Upload],
         options: dict[str, Any] | None = None,
         timeout_s: float = 600.0,
-    ) -> PairMatches:
+    ) -> PairMatchView:
         """Two images in, matches out, nothing kept. The images pass the upload checks, then the
         queue's interactive path matches them where heavy work runs (a worker, or the embedded
         runner), so this process never loads a network. ``timeout_s`` also reaches the worker,
@@ -59,7 +59,7 @@ class PairToolUseCases(UseCases):
             if out.get("error"):
                 raise Unavailable(f"matching the pair failed: {out['error']}")
             with np.load(work / out["file"]) as z:
-                return PairMatches(
+                return PairMatchView(
                     keypoints0=z["keypoints0"],
                     keypoints1=z["keypoints1"],
                     scores=z["scores"],

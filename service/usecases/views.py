@@ -104,7 +104,7 @@ class MatchRequest:
 
 
 @dataclass(frozen=True)
-class PairMatches:
+class PairMatchView:
     """Matches of two images in their original pixels, as ``geomatch.matching.matcher.MatchResult``."""
 
     keypoints0: np.ndarray  # (N, 2) float32
