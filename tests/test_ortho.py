@@ -303,3 +303,25 @@ def test_the_map_as_a_stage_and_as_a_command(flat: OrthoScene, tmp_path: Path) -
     (bare / "sparse").mkdir(parents=True)
     res = subprocess.run([*cmd[:4], str(bare)], capture_output=True, text=True, timeout=300)
     assert res.returncode == 2 and res.stderr.startswith("geomatch: error: ") and "run folder" in res.stderr
+
+
+def test_photos_that_do_not_look_down_get_no_map(flat: OrthoScene, tmp_path: Path) -> None:
+    """A ground project (photos looking along the street) is georeferenced but has no map."""
+    import dataclasses
+
+    from geomatch.synth.camera import look_at
+    from geomatch.synth.groundtruth import write_gt
+
+    cams = []
+    for c in flat.cams:
+        R, t = look_at(c.centre, c.centre + np.array([1.0, 0.0, -0.1]))
+        cams.append(dataclasses.replace(c, R=R, t=t))
+    text = tmp_path / "text"
+    write_gt(cams, text)
+    shutil.copy(flat.run.parent / "model_text" / "points3D.txt", text / "points3D.txt")
+    run = tmp_path / "run"
+    (run / "sparse" / "0").mkdir(parents=True)
+    pycolmap.Reconstruction(str(text)).write(str(run / "sparse" / "0"))
+    shutil.copy(flat.run / "summary.json", run / "summary.json")
+    with pytest.raises(OrthoError, match="do not look down"):
+        make_map(run)

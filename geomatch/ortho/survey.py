@@ -23,6 +23,9 @@ import pyproj
 from ..export.georef import WGS84, ModelFrame, model_frame
 
 
+MIN_DOWN = 0.5  # sin(30 deg): a photo looking at least this far below the horizon sees the ground
+
+
 class OrthoError(ValueError):
     """The run cannot give a map (no model, no georeferencing, no photos, no points)."""
 
@@ -114,6 +117,12 @@ def read_survey(model: Path, summary: dict[str, object]) -> Survey:
         views.append(View(im.name, R, t, rec.cameras[im.camera_id], centre))
     if not views:
         raise OrthoError("the model has no registered photo")
+    down = np.array([-v.R[2, 2] for v in views])  # the optical axis' downward share (model z: up)
+    if np.mean(down > MIN_DOWN) < 0.5:
+        raise OrthoError(
+            "the photos do not look down (fewer than half point 30 degrees or more below the "
+            "horizon): a map needs an aerial survey"
+        )
     xyz, rgb = good_points(rec)
     if len(xyz) < 3:
         raise OrthoError(f"the model has {len(xyz)} 3D points: too few for a surface")
