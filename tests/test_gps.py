@@ -32,6 +32,7 @@ from geomatch.geo.similarity import umeyama_upright, upright_with_heights
 from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata, up_in_camera
 from geomatch.options import PairSpecError, check, parse_plan
 from geomatch.pipeline import pair_sources as pairs
+from geomatch.pipeline.prepare import ProjectImages
 from geomatch.sfm.colmapdb import ColmapDatabase
 from geomatch.synth.aerial import Scene, write_scene
 from geomatch.synth.groundtruth import write_gt
@@ -534,8 +535,9 @@ def test_pose_priors_are_written_and_replaced(tmp_path: Path) -> None:
     finally:
         db.close()
     assert len(priors) == 3 and ids["3.png"] not in priors
-    # a reconstruct job finds the same fixes from the database and the folder
-    again = gps.fixes_of_database(tmp_path / "db.db", tmp_path)
+    # a reconstruct job finds the same fixes from the database's images and the folder
+    with ColmapDatabase(tmp_path / "db.db") as db:
+        again = ProjectImages.read(tmp_path, db.image_names()).fixes
     assert again is not None and again.frame == fixes.frame and set(again.enu) == set(fixes.enu)
     p2 = np.ravel(priors[ids["2.png"]].position)
     np.testing.assert_allclose(p2, fixes.enu["2.png"], atol=1e-9)

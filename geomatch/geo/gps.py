@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..metadata import ImageMeta, camera_from_gimbal, read_metadata, up_in_camera
+from ..metadata import ImageMeta, camera_from_gimbal, up_in_camera
 from .geodesy import EnuFrame
 
 
@@ -169,21 +169,3 @@ def footprints(gps: GpsFixes, metas: Mapping[str, ImageMeta]) -> dict[str, np.nd
 def plan_points(gps: GpsFixes, metas: Mapping[str, ImageMeta]) -> dict[str, np.ndarray]:
     """The east-north point each located image is paired by (its look point)."""
     return {n: look_point(p, metas[n]) for n, p in gps.enu.items()}
-
-
-def metadata_of_database(database: Path, image_dir: Path) -> dict[str, ImageMeta]:
-    """The metadata of the images a COLMAP database holds, read from their files in ``image_dir``
-    (a reconstruct job has the database and the folder, not the run's metadata), in the
-    database's order; files gone from the folder are left out."""
-    db = pycolmap.Database.open(str(database))
-    try:
-        names = [im.name for im in db.read_all_images()]
-    finally:
-        db.close()
-    return {n: read_metadata(image_dir / n) for n in names if (image_dir / n).is_file()}
-
-
-def fixes_of_database(database: Path, image_dir: Path) -> GpsFixes | None:
-    """:func:`fixes` of the images a COLMAP database holds (:func:`metadata_of_database`)."""
-    metas = metadata_of_database(database, image_dir)
-    return fixes(list(metas), metas)
