@@ -239,6 +239,9 @@ def test_schema_says_what_the_server_takes(server: tuple[Deployment, httpx.Clien
         "openmvs",
         "odm",
         "laz",
+        "orthophoto",
+        "dsm",
+        "map-preview",
     ]
     r = c.get("/v1/projects/0123/model", params={"format": "tar"})
     assert r.status_code == 422 and "format" in r.json()["detail"], r.text
