@@ -101,10 +101,9 @@ def typing_args(annotation: object) -> tuple[object, ...]:
 
 def test_use_case_defaults_are_the_options() -> None:
     from service.grpcapi import convert
-    from service.usecases import base, pairtools
+    from service.usecases import base
 
     assert {n: DEFAULTS[n] for n in PROJECT_OPTIONS} == base.DEFAULTS
-    assert pairtools.PAIR_OPTIONS == PAIR_OPTIONS
     assert tuple(convert.CONFIG_FIELDS) == PROJECT_OPTIONS
 
 

@@ -12,8 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from geomatch.options import CAPTURES
-from geomatch.options import PAIR_OPTIONS as PAIR_OPTIONS  # what match_two accepts of DEFAULTS
+from geomatch.options import (
+    CAPTURES,
+    PAIR_OPTIONS,  # what match_two accepts of DEFAULTS
+)
 from geomatch_core.errors import InvalidRequest, Unavailable
 from geomatch_core.queue import MATCH_TWO
 
