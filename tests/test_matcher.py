@@ -173,3 +173,17 @@ def test_the_method_flags_are_the_old_name_tests() -> None:
         assert (not cfg.flags.optimise) == (method in ("sparse", "dense", "concat", "auto")), method
         assert cfg.flags.anchor_init == (method == "geo"), method
         assert (cfg.flags.optimise and cfg.uses_anchors) == (method == "geo"), method
+
+
+@pytest.mark.unit
+def test_a_stored_matcher_derives_stored_matchers(tmp_path) -> None:
+    """A matcher derived from one over a feature store (a method per pair, the light-first pair)
+    reads and writes the same store and shares the in-memory cache: features once per image."""
+    from geomatch.features.store import FeatureStore
+    from geomatch.matching.stored import StoredFeaturesMatcher, build_matcher
+
+    m = build_matcher(FeatureStore(tmp_path), method="geo", resize=320, device="cpu")
+    d = for_pair(m, tiled=True, aerial_project=True)
+    assert isinstance(m, StoredFeaturesMatcher) and isinstance(d, StoredFeaturesMatcher)
+    assert d.store is m.store and d.feature_cache is m.feature_cache
+    assert d.config.anchors_suffice == 0 and m.config.anchors_suffice != 0

@@ -91,6 +91,11 @@ class Matcher:
         # the matchers derived for its pairs (geomatch.matching.variants), each derived once
         self.variants: dict[str, Matcher] = {}
 
+    def sibling(self, **overrides: Any) -> Matcher:
+        """A new matcher of this kind with other options, sharing nothing yet (:meth:`derive`
+        shares what it may): a subclass that keeps more than the options returns its own kind."""
+        return Matcher(self.config, **overrides)
+
     def derive(self, **overrides: Any) -> Matcher:
         """A matcher with other options that shares this one's networks and feature cache.
 
@@ -98,7 +103,7 @@ class Matcher:
         the resolution, all part of the cache key; the sparse matcher is shared only when its
         own options are unchanged.
         """
-        other = Matcher(self.config, **overrides)
+        other = self.sibling(**overrides)
 
         def same(*names: str) -> bool:
             return all(getattr(self.config, n) == getattr(other.config, n) for n in names)

@@ -4,6 +4,7 @@ and the matchers the pipeline, the workers and localization build from options."
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -25,13 +26,10 @@ class StoredFeaturesMatcher(Matcher):
         super().__init__(config)
         self.store = store
 
-    def derive(self, **overrides: Any) -> Matcher:
-        """As :meth:`Matcher.derive`, still reading and writing the same store."""
-        other = super().derive(**overrides)
-        stored = StoredFeaturesMatcher.__new__(StoredFeaturesMatcher)
-        stored.__dict__.update(other.__dict__)
-        stored.store = self.store
-        return stored
+    def sibling(self, **overrides: Any) -> Matcher:
+        """As :meth:`Matcher.sibling`, reading and writing the same store (so does every matcher
+        :meth:`Matcher.derive` makes of it)."""
+        return StoredFeaturesMatcher(replace(self.config, **overrides), self.store)
 
     def features(self, image: np.ndarray, key: str | None = None) -> dict[str, ImageFeatures]:
         key = key or image_key(image)
