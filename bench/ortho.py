@@ -334,7 +334,7 @@ def seam_pictures(run: Path, pictures: Path, name: str, crop: int = 320, count: 
     edge[:, 1:] &= lab[:, :-1] >= 0  # not the map's own border
     edge[1:, :] &= lab[:-1, :] >= 0
     with rasterio.open(run / "odm_orthophoto" / "odm_orthophoto.tif") as src:
-        f = min(1.0, 1000 / max(src.width, src.height))
+        f = min(1.0, 900 / max(src.width, src.height))
         small = np.moveaxis(
             src.read(
                 out_shape=(4, round(src.height * f), round(src.width * f)),
@@ -368,11 +368,12 @@ def seam_pictures(run: Path, pictures: Path, name: str, crop: int = 320, count: 
     ys, xs = np.nonzero(edge)
     for y, x in zip(ys, xs, strict=True):
         cv2.circle(small, (round(x * step * f), round(y * step * f)), 1, (255, 0, 0, 255), -1)
-    Image.fromarray(small).save(pictures / f"ortho_{name}.png", optimize=True)
+    # docs pictures as JPEG (photographs: a fraction of a PNG's bytes), the transparent part white
+    rgb = np.where(small[..., 3:4] > 0, small[..., :3], 255).astype(np.uint8)
+    Image.fromarray(rgb).save(pictures / f"ortho_{name}.jpg", quality=85, optimize=True)
     if crops:
-        Image.fromarray(np.concatenate(crops, axis=1)).save(
-            pictures / f"ortho_{name}_seams.png", optimize=True
-        )
+        strip = Image.fromarray(np.concatenate(crops, axis=1))
+        strip.save(pictures / f"ortho_{name}_seams.jpg", quality=90, optimize=True)
 
 
 def main() -> None:

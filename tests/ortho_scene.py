@@ -60,6 +60,8 @@ def make_scene(
         world.terrain.phase[0] = 0.0
     cams, _ = aerial_cameras(plan, seed)
     images = root / "images"
+    if (root / "run" / "summary.json").is_file():  # made before with these arguments: kept
+        return OrthoScene(root / "run", images, world, cams, gsd)
     images.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     lines = []
