@@ -30,14 +30,12 @@ def match(
     image0: np.ndarray,
     image1: np.ndarray,
     cache: str | Path | None,
-    aerial_project: bool = False,
-    survey: bool = False,
 ) -> PairMatches:
     """``geomatch.pipeline.match_pairs.match``, read back from the folder ``cache`` when the pair is there
     (None: no cache)."""
     if not cache:
-        return match_pairs.match(matcher, pair, image0, image1, aerial_project, survey)
-    config = match_pairs.pair_matcher(matcher, pair, aerial_project, survey).config
+        return match_pairs.match(matcher, pair, image0, image1)
+    config = match_pairs.pair_matcher(matcher, pair).config
     sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
     h = hashlib.sha256(
         repr(
@@ -56,7 +54,7 @@ def match(
     if path.is_file():
         with np.load(path) as z:
             return PairMatches(z["k0"], z["k1"], z["scores"], sizes, pair.tiled)
-    out = match_pairs.match(matcher, pair, image0, image1, aerial_project, survey)
+    out = match_pairs.match(matcher, pair, image0, image1)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
     np.savez(tmp, k0=out.keypoints0, k1=out.keypoints1, scores=out.scores)
@@ -75,9 +73,7 @@ def cached(cache: str | Path | None) -> MatchPair:
         pair: Pair,
         image0: np.ndarray,
         image1: np.ndarray,
-        aerial_project: bool,
-        survey: bool,
     ) -> PairMatches:
-        return match(matcher, pair, image0, image1, cache, aerial_project, survey)
+        return match(matcher, pair, image0, image1, cache)
 
     return match_cached

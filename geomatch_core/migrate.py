@@ -9,7 +9,7 @@ needed; a change that rewrites a table needs Alembic.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import cast
+from typing import Any, cast
 
 from sqlalchemy import Column, Executable, inspect, select, text, update
 from sqlalchemy.engine import Connection, Engine
@@ -18,7 +18,7 @@ from sqlalchemy.exc import DBAPIError
 from .models import Image, Job, JobPair
 
 
-def _rotate_backfill() -> Executable:
+def _rotate_backfill(conn: Connection) -> Executable | None:
     """A pair not done yet turns when a side is aerial, as the plan decides (planning.plan)."""
     aerial_side = (
         select(Image.id)
@@ -33,17 +33,51 @@ def _rotate_backfill() -> Executable:
     return update(JobPair).where(JobPair.done.is_(False), aerial_side).values(rotate=True)
 
 
-def _dispatched_backfill() -> Executable:
+def _project_has(aerial: bool) -> Any:
+    """Whether the pair's project has an image of that kind (as its plan step marked them)."""
+    return (
+        select(Image.id)
+        .join(Job, Job.project_id == Image.project_id)
+        .where(Job.id == JobPair.job_id, Image.aerial.is_(aerial))
+        .exists()
+    )
+
+
+def _aerial_project_backfill(conn: Connection) -> Executable | None:
+    """A pair not done yet of a project with aerial images, as the plan records it now."""
+    return update(JobPair).where(JobPair.done.is_(False), _project_has(True)).values(aerial_project=True)
+
+
+def _survey_backfill(conn: Connection) -> Executable | None:
+    """A pair not done yet of a project whose every image is aerial."""
+    survey = _project_has(True) & ~_project_has(False)
+    return update(JobPair).where(JobPair.done.is_(False), survey).values(survey=True)
+
+
+def _turns_backfill(conn: Connection) -> Executable | None:
+    """Pairs planned while both turns were one column (4 * turn0 + turn1; -1: probed) get them
+    apart; pairs planned before the plan decided turns keep their probe (-1)."""
+    if "turn" not in {c["name"] for c in inspect(conn).get_columns(JobPair.__tablename__)}:
+        return None
+    return text(
+        "UPDATE job_pairs SET turn0 = CASE WHEN turn < 0 THEN -1 ELSE turn / 4 END, "
+        "turn1 = CASE WHEN turn < 0 THEN -1 ELSE turn % 4 END"
+    )
+
+
+def _dispatched_backfill(conn: Connection) -> Executable | None:
     """A job planned before the window queued every pair it had at once."""
     return update(Job).where(Job.planned.is_(True)).values(dispatched=Job.total)
 
 
 # the table's columns are typed loosely by SQLAlchemy's declarative stubs
-ADDED: tuple[tuple[Column[object], Callable[[], Executable] | None], ...] = (
+ADDED: tuple[tuple[Column[object], Callable[[Connection], Executable | None] | None], ...] = (
     (cast("Column[object]", JobPair.__table__.c.rotate), _rotate_backfill),
-    # pairs planned before headings were read keep their probe (-1)
-    (cast("Column[object]", JobPair.__table__.c.turn), None),
+    (cast("Column[object]", JobPair.__table__.c.turn1), None),  # filled with turn0, next
+    (cast("Column[object]", JobPair.__table__.c.turn0), _turns_backfill),
     (cast("Column[object]", Job.__table__.c.dispatched), _dispatched_backfill),
+    (cast("Column[object]", JobPair.__table__.c.aerial_project), _aerial_project_backfill),
+    (cast("Column[object]", JobPair.__table__.c.survey), _survey_backfill),
 )
 
 
@@ -69,8 +103,9 @@ def _add(engine: Engine) -> list[str]:
             conn.execute(
                 text(f"ALTER TABLE {table} ADD COLUMN {column.name} {kind} NOT NULL DEFAULT {default}")
             )
-            if backfill is not None:
-                conn.execute(backfill())
+            statement = backfill(conn) if backfill is not None else None
+            if statement is not None:
+                conn.execute(statement)
             added.append(f"{table}.{column.name}")
     return added
 

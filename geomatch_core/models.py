@@ -141,9 +141,14 @@ class JobPair(Base):
     # a side is aerial: matched at its best quarter turn (geomatch.matching.rotation); decided by
     # the plan, with the pair (migrate.py fills it in for rows planned before it was stored)
     rotate: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
-    # a survey's pair: both images' quarter turns into the project's frame (planning.image_turns) as
-    # 4 * turn0 + turn1; -1 where the pair probes its own turn. Decided by the plan, with the pair
-    turn: Mapped[int] = mapped_column(Integer, default=-1, server_default=text("-1"))
+    # a survey's pair: each image's quarter turn into the project's frame (pipeline.turns); -1 where
+    # the pair probes its own turn. Decided by the plan, with the pair
+    turn0: Mapped[int] = mapped_column(Integer, default=-1, server_default=text("-1"))
+    turn1: Mapped[int] = mapped_column(Integer, default=-1, server_default=text("-1"))
+    # what the pair's matcher depends on besides the pair (pipeline.pair_sources.Pair): the project
+    # has aerial images; every image of it is aerial. Decided by the plan, with the pair
+    aerial_project: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    survey: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     done: Mapped[bool] = mapped_column(Boolean, default=False)
     matches: Mapped[int | None] = mapped_column(Integer, default=None)
     inliers: Mapped[int | None] = mapped_column(Integer, default=None)

@@ -15,12 +15,12 @@ from geomatch_core.store import MetadataStore
 pytestmark = pytest.mark.unit
 
 
-def test_job_pairs_get_rotate_from_the_aerial_images(tmp_path: Path) -> None:
+def test_job_pairs_get_rotate_and_their_project_from_the_aerial_images(tmp_path: Path) -> None:
     store = MetadataStore(f"sqlite:///{tmp_path / 'meta.sqlite'}")
     store.create_all()
-    with store.engine.begin() as c:  # the table as a release before the column made it
-        c.execute(text("ALTER TABLE job_pairs DROP COLUMN rotate"))
-        c.execute(text("ALTER TABLE job_pairs DROP COLUMN turn"))
+    with store.engine.begin() as c:  # the table as a release before the columns made it
+        for column in ("rotate", "turn0", "turn1", "aerial_project", "survey"):
+            c.execute(text(f"ALTER TABLE job_pairs DROP COLUMN {column}"))
     with store.session() as s:
         tenant = Tenant(name="t")
         s.add(tenant)
@@ -60,7 +60,44 @@ def test_job_pairs_get_rotate_from_the_aerial_images(tmp_path: Path) -> None:
         rotate = dict(s.execute(select(JobPair.idx, JobPair.rotate).order_by(JobPair.idx)).all())
     assert rotate == {0: True, 1: False, 2: False}  # a pair done already is never matched again
     with store.session() as s:
-        turns = set(s.scalars(select(JobPair.turn)).all())
-    assert turns == {-1}  # planned before the plan decided turns: each pair probes its own
+        rows = s.execute(select(JobPair.turn0, JobPair.turn1, JobPair.aerial_project, JobPair.survey)).all()
+    # planned before the plan decided turns: each pair probes its own; the project has an aerial
+    # image (a pair done already is never matched again) and ground ones: no survey
+    assert sorted(rows) == [(-1, -1, False, False), (-1, -1, True, False), (-1, -1, True, False)]
     assert add_missing_columns(store.engine) == []  # there now: nothing to add
+    store.dispose()
+
+
+def test_turns_stored_as_one_column_come_apart(tmp_path: Path) -> None:
+    """Pairs planned while a survey pair's turns were one column (4 * turn0 + turn1) keep them."""
+    store = MetadataStore(f"sqlite:///{tmp_path / 'meta.sqlite'}")
+    store.create_all()
+    with store.engine.begin() as c:
+        c.execute(text("ALTER TABLE job_pairs DROP COLUMN turn0"))
+        c.execute(text("ALTER TABLE job_pairs DROP COLUMN turn1"))
+        c.execute(text("ALTER TABLE job_pairs ADD COLUMN turn INTEGER NOT NULL DEFAULT -1"))
+    with store.session() as s:
+        tenant = Tenant(name="t")
+        s.add(tenant)
+        s.flush()
+        project = Project(tenant_id=tenant.id, name="p")
+        s.add(project)
+        s.flush()
+        job = Job(project_id=project.id, tenant_id=tenant.id, kind="match")
+        s.add(job)
+        s.flush()
+        job_id = job.id
+    with store.engine.begin() as c:
+        for idx, turn in enumerate((-1, 0, 7, 14)):
+            c.execute(
+                text(
+                    "INSERT INTO job_pairs (job_id, idx, name0, name1, tiled, aerial_first, rotate, turn, "
+                    "done, aerial_project, survey) VALUES (:j, :i, 'a', 'b', 0, 1, 1, :t, 0, 1, 1)"
+                ),
+                {"j": job_id, "i": idx, "t": turn},
+            )
+    assert add_missing_columns(store.engine) == ["job_pairs.turn1", "job_pairs.turn0"]
+    with store.session() as s:
+        turns = s.execute(select(JobPair.turn0, JobPair.turn1).order_by(JobPair.idx)).all()
+    assert [tuple(t) for t in turns] == [(-1, -1), (0, 0), (1, 3), (3, 2)]
     store.dispose()

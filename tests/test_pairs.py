@@ -133,3 +133,32 @@ def test_auto_leaves_out_small_pairs_whose_footprints_do_not_meet() -> None:
     assert ("0.jpg", "1.jpg") in raw and ("0.jpg", "5.jpg") not in raw
     # every image keeps its nearest partners however little they share
     assert all(sum(n in p for p in raw) >= pairs.AUTO_NEAREST for n in names)
+
+
+def test_the_plan_records_what_each_pair_is_matched_by() -> None:
+    """Tiling, turns and the project's kind are the pair's fields, kept in plan.json whole."""
+    from geomatch.pipeline.match_pairs import pair_matcher
+    from geomatch.pipeline.plan import Plan
+
+    mixed = pairs.finalize([("a", "g"), ("g", "h")], {"a"}, "auto")
+    assert [(p.tiled, p.aerial_project, p.survey) for p in mixed] == [
+        (True, True, False),
+        (False, True, False),
+    ]
+    survey = pairs.with_turns(pairs.finalize([("a", "b")], {"a", "b"}, "auto", survey=True), {"a": 1, "b": 3})
+    assert survey[0].turns == (1, 3) and survey[0].survey and survey[0].aerial_project
+    ground = pairs.finalize([("g", "h")], set(), "auto")
+    assert not ground[0].aerial_project
+    plan = Plan(mixed + survey, ["a", "b"], "exhaustive", False)
+    again = Plan.from_json(plan.to_json())
+    assert [(p.key, p.tiled, p.aerial_first, p.rotate, p.turns) for p in again.pairs] == [
+        (p.key, p.tiled, p.aerial_first, p.rotate, p.turns) for p in plan.pairs
+    ]
+    assert again.tiled and again.summary_fields()["tiled_pairs"] == 1
+    # under auto the fields choose the pair's matcher: geo for a mixed project's pairs, the light
+    # anchors for a ground-only project's
+    from geomatch.matching.matcher import Matcher
+
+    m = Matcher(method="auto")
+    assert pair_matcher(m, mixed[1]).config.method == "geo"
+    assert pair_matcher(m, ground[0]).config.method == "sparse"

@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import exists, select, update
+from sqlalchemy import select, update
 
 from geomatch.options import (
     DEFAULTS,
@@ -123,7 +123,10 @@ def _plan(ctx: Context, job: Job) -> None:
                 tiled=p.tiled,
                 aerial_first=p.aerial_first,
                 rotate=p.rotate,
-                turn=-1 if p.turns is None else 4 * p.turns[0] + p.turns[1],
+                turn0=-1 if p.turns is None else p.turns[0],
+                turn1=-1 if p.turns is None else p.turns[1],
+                aerial_project=p.aerial_project,
+                survey=p.survey,
             )
             for i, p in enumerate(todo)
         )
@@ -185,15 +188,6 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         return "skipped"
     with ctx.store.session() as s:
         p = s.get(JobPair, (job_id, idx))
-        # the plan step marked the aerial images: under ``auto`` a project with any aerial image
-        # matches every pair with ``geo``
-        aerial_project = bool(
-            s.scalar(select(exists().where(Image.project_id == job.project_id, Image.aerial.is_(True))))
-        )
-        # a survey (every image aerial): its aerial pairs take the guided matcher (match_pairs.match)
-        survey = aerial_project and not s.scalar(
-            select(exists().where(Image.project_id == job.project_id, Image.aerial.is_(False)))
-        )
     if p is None:
         return "skipped"
     pid, opts = job.project_id, runtime.job_options(job.options)
@@ -206,8 +200,10 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
         if not present:
             a, photo0 = runtime.frame(ctx, ctx.storage.image_path(pid, p.name0))
             b, photo1 = runtime.frame(ctx, ctx.storage.image_path(pid, p.name1))
-            turns = None if p.turn < 0 else divmod(p.turn, 4)
-            pair = Pair(p.name0, p.name1, p.tiled, p.aerial_first, p.rotate, turns)
+            turns = None if p.turn0 < 0 else (p.turn0, p.turn1)
+            pair = Pair(
+                p.name0, p.name1, p.tiled, p.aerial_first, p.rotate, turns, p.aerial_project, p.survey
+            )
             target = match_pairs.PairTarget(
                 lambda: _writable(ctx, job_id, pid, db_path),
                 id0,
@@ -216,9 +212,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
                 read=lambda: _readable(ctx, pid, db_path),
                 photos=(photo0, photo1),
             )
-            r = match_pairs.run_pair(
-                runtime.matcher(ctx, opts), pair, a, b, target, aerial_project=aerial_project, survey=survey
-            )
+            r = match_pairs.run_pair(runtime.matcher(ctx, opts), pair, a, b, target)
             if r.written is None:
                 return "cancelled"
             w = r.written

@@ -82,7 +82,7 @@ def _match(
         timings[f"features{name}"] = time.perf_counter() - t1
         t1 = time.perf_counter()
     check()
-    m = match_pairs.run_pair(matcher, pair, a, b, aerial_project=bool(aerial)).matches
+    m = match_pairs.run_pair(matcher, pair, a, b).matches
     k0, k1, sc, F = m.keypoints0, m.keypoints1, m.scores, m.F
     timings["match"] = time.perf_counter() - t1
     out = folder / "result.npz"

@@ -166,7 +166,7 @@ class Localizer:
         for pair in planned:
             name = pair.name1
             model_image = self.images[name]
-            m = match(self.matcher, pair, image, model_image, aerial_project=bool(aerial))
+            m = match(self.matcher, pair, image, model_image)
             pairs[name] = m
             order = np.argsort(-np.asarray(m.scores), kind="stable")
             radius = snap_radius(self.options.lift_radius, resize, max(model_image.shape[:2]))

@@ -47,29 +47,21 @@ def extract(matcher: Matcher, image: np.ndarray, full: bool = True, crops: bool 
     return n
 
 
-# how ``geomatch run`` matches a pair (:func:`match`'s signature): matcher, pair, image0, image1,
-# whether the project has aerial images, whether it is a survey (every image aerial)
-MatchPair = Callable[[Matcher, Pair, np.ndarray, np.ndarray, bool, bool], PairMatches]
+# how ``geomatch run`` matches a pair (:func:`match`'s signature): matcher, pair, image0, image1
+MatchPair = Callable[[Matcher, Pair, np.ndarray, np.ndarray], PairMatches]
 
 
-def pair_matcher(matcher: Matcher, pair: Pair, aerial_project: bool = False, survey: bool = False) -> Matcher:
-    """The matcher a planned pair is matched with: under ``auto`` the pair and whether its project
-    has aerial images decide the method (:func:`geomatch.matching.variants.for_pair`)."""
+def pair_matcher(matcher: Matcher, pair: Pair) -> Matcher:
+    """The matcher a planned pair is matched with: under ``auto`` the pair and what the plan
+    recorded of its project decide the method (:func:`geomatch.matching.variants.for_pair`)."""
     # two aerial photos of a survey (every image aerial): the guided matcher, turned or not yet
-    aerial_pair = pair.rotate and not pair.tiled and (survey or pair.turns is not None)
-    return for_pair(matcher, pair.tiled, aerial_project, aerial_pair=aerial_pair)
+    aerial_pair = pair.rotate and not pair.tiled and (pair.survey or pair.turns is not None)
+    return for_pair(matcher, pair.tiled, pair.aerial_project, aerial_pair=aerial_pair)
 
 
-def match(
-    matcher: Matcher,
-    pair: Pair,
-    image0: np.ndarray,
-    image1: np.ndarray,
-    aerial_project: bool = False,
-    survey: bool = False,
-) -> PairMatches:
-    """One planned pair, tiled when the plan says so, by its :func:`pair_matcher`."""
-    matcher = pair_matcher(matcher, pair, aerial_project, survey)
+def match(matcher: Matcher, pair: Pair, image0: np.ndarray, image1: np.ndarray) -> PairMatches:
+    """One planned pair, tiled and turned as the plan says, by its :func:`pair_matcher`."""
+    matcher = pair_matcher(matcher, pair)
     sizes = ((image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]))
     k0, k1, scores, source, crops = _match_turned(matcher, pair, image0, image1)
     return PairMatches(k0, k1, scores, sizes, pair.tiled, source, crops)
@@ -145,14 +137,12 @@ def run_pair(
     image0: np.ndarray,
     image1: np.ndarray,
     target: PairTarget | None = None,
-    aerial_project: bool = False,
-    survey: bool = False,
 ) -> PairRun:
     """One planned pair matched (:func:`match`) and written into ``target`` (:func:`database.write`, at
     the matcher's working size): the sequence of ``geomatch run``, a worker's pair step and the
     service's two-image match (no target: nothing is kept)."""
     t0 = time.perf_counter()
-    m = match(matcher, pair, image0, image1, aerial_project, survey)
+    m = match(matcher, pair, image0, image1)
     t1 = time.perf_counter()
     written = None
     if target is not None:

@@ -31,8 +31,12 @@ class Pair:
     # turn (geomatch.matching.rotation)
     rotate: bool = False
     # each image's quarter turn (np.rot90) into the project's frame when the plan decided both
-    # (plan.image_turns, a survey): the pair is matched with both turned so, unprobed
+    # (turns.image_turns, a survey): the pair is matched with both turned so, unprobed
     turns: tuple[int, int] | None = None
+    # what the pair's matcher depends on besides the pair (matching.variants.for_pair), decided by
+    # the plan with it: the project has aerial images; every image of it is aerial (a survey)
+    aerial_project: bool = False
+    survey: bool = False
 
     @property
     def key(self) -> tuple[str, str]:
@@ -191,11 +195,14 @@ def read_pairs_file(text: str) -> list[list[str]]:
     return rows
 
 
-def finalize(raw: Iterable[tuple[str, str]], aerial: set[str], tiling: str = "auto") -> list[Pair]:
+def finalize(
+    raw: Iterable[tuple[str, str]], aerial: set[str], tiling: str = "auto", survey: bool = False
+) -> list[Pair]:
     """Drop duplicates (either order), mark tiled pairs. ``tiling``: auto | on | off.
 
     ``on`` tiles the first image of every pair that has no aerial side designated (forced);
-    ``auto`` tiles exactly the aerial x ground pairs.
+    ``auto`` tiles exactly the aerial x ground pairs. Every pair records whether its project has
+    aerial images (``aerial``: the project's) and is a ``survey`` (every image aerial).
     """
 
     if tiling not in TILING:
@@ -210,13 +217,14 @@ def finalize(raw: Iterable[tuple[str, str]], aerial: set[str], tiling: str = "au
         a_air, b_air = a in aerial, b in aerial
         turn = a_air or b_air
         if tiling == "off":
-            out.append(Pair(a, b, rotate=turn))
+            pair = Pair(a, b, rotate=turn)
         elif a_air != b_air:
-            out.append(Pair(a, b, tiled=True, aerial_first=a_air, rotate=turn))
+            pair = Pair(a, b, tiled=True, aerial_first=a_air, rotate=turn)
         elif tiling == "on":
-            out.append(Pair(a, b, tiled=True, aerial_first=True, rotate=turn))
+            pair = Pair(a, b, tiled=True, aerial_first=True, rotate=turn)
         else:
-            out.append(Pair(a, b, rotate=turn))
+            pair = Pair(a, b, rotate=turn)
+        out.append(replace(pair, aerial_project=bool(aerial), survey=survey))
     return out
 
 

@@ -119,10 +119,11 @@ def plan(
         )
         for kind, k in parts:
             raw += PLANNERS[kind](inputs, k)
-    planned = pairing.finalize(raw, aerial, tiling)
+    survey = bool(names) and aerial >= set(names)
+    planned = pairing.finalize(raw, aerial, tiling, survey)
     # a survey (every image aerial) gets its turns once per image and its pairs the guided matcher;
     # a project with ground images keeps the per-pair probe and geo (matching.variants.for_pair)
-    if matcher is not None and aerial >= set(names) and any(p.rotate and not p.tiled for p in planned):
+    if matcher is not None and survey and any(p.rotate and not p.tiled for p in planned):
         # ranked as a plain pair of two aerial photos is first matched (auto: the guided seed)
         probe = for_pair(matcher, tiled=False, aerial_project=True, aerial_pair=True)
         guided = probe.config.light_first and probe.config.guided_keypoints > 0
@@ -217,6 +218,8 @@ class Plan:
                 bool(p["aerial_first"]),
                 bool(p["rotate"]),
                 (int(p["turns"][0]), int(p["turns"][1])) if p["turns"] is not None else None,
+                aerial_project=bool(data["aerial"]),
+                survey=bool(data["survey"]),
             )
             for p in data["pairs"]
         ]

@@ -192,7 +192,7 @@ def run(
     with PairWriter(out / "database.db", opts.snap_radius, matcher.config.resize) as writer:
         for p in bar:
             t0 = time.perf_counter()
-            m = match(matcher, p, decoded[p.name0], decoded[p.name1], bool(plan.aerial), plan.survey)
+            m = match(matcher, p, decoded[p.name0], decoded[p.name1])
             m = m.in_photo_pixels(decoded.to_photo(p.name0), decoded.to_photo(p.name1))
             match_s = time.perf_counter() - t0
             timings["matching"] += match_s
