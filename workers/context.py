@@ -17,7 +17,7 @@ class PermanentError(Exception):
 
 
 @dataclass
-class Context:
+class StepContext:
     settings: Settings
     store: MetadataStore
     storage: Storage

@@ -41,13 +41,13 @@ from geomatch_core.models import Image, Job, JobPair
 from geomatch_core.queue import LOCALIZE, MATCH_PAIR, RENDER_PAIR
 
 from . import redact, runtime
-from .context import Context, PermanentError
+from .context import PermanentError, StepContext
 
 log = logging.getLogger("geomatch.workers")
 
 
 # -- match jobs ---------------------------------------------------------------------------------
-def plan_match(ctx: Context, job_id: str) -> str:
+def plan_match(ctx: StepContext, job_id: str) -> str:
     job = jobstate.claim(ctx.store, job_id)
     if job is None:
         return "skipped"
@@ -56,7 +56,7 @@ def plan_match(ctx: Context, job_id: str) -> str:
     return _dispatch(ctx, job_id)
 
 
-def _plan(ctx: Context, job: Job) -> None:
+def _plan(ctx: StepContext, job: Job) -> None:
     """The project prepared as ``geomatch run`` prepares it (geomatch.pipeline.prepare): its
     photos read, its aerial images and plan decided, its images registered; the plan kept beside
     the database (plan.json) for the reconstruct job, the pairs not matched yet as the job's rows."""
@@ -142,7 +142,7 @@ def _plan(ctx: Context, job: Job) -> None:
     )
 
 
-def _dispatch(ctx: Context, job_id: str) -> str:
+def _dispatch(ctx: StepContext, job_id: str) -> str:
     """Queue the pair steps the job's window holds: again those handed out before and not done
     (after a redelivery or a restart that lost the queue: duplicates skip), then new ones up to
     the window. Each pair step queues the next as it ends (:func:`_next_pairs`), so a job of
@@ -169,7 +169,7 @@ def _dispatch(ctx: Context, job_id: str) -> str:
     return f"dispatched {len(pending) + fresh} pairs"
 
 
-def _next_pairs(ctx: Context, job_id: str) -> int:
+def _next_pairs(ctx: StepContext, job_id: str) -> int:
     """Hand the queue the job's next pairs while its window has room; how many."""
     window = ctx.settings.pairs_in_flight or ctx.queue.slots()
     claimed = jobstate.claim_pairs(ctx.store, job_id, max(1, window))
@@ -178,7 +178,7 @@ def _next_pairs(ctx: Context, job_id: str) -> int:
     return len(claimed)
 
 
-def match_pair(ctx: Context, job_id: str, idx: int) -> str:
+def match_pair(ctx: StepContext, job_id: str, idx: int) -> str:
     from geomatch.pipeline import match_pairs
     from geomatch.pipeline.pair_sources import Pair
     from geomatch.sfm.colmapdb import ColmapDatabase
@@ -238,7 +238,7 @@ def match_pair(ctx: Context, job_id: str, idx: int) -> str:
 
 
 @contextmanager
-def _readable(ctx: Context, pid: str, db_path: Path) -> Iterator[Any]:
+def _readable(ctx: StepContext, pid: str, db_path: Path) -> Iterator[Any]:
     """The project's COLMAP database for reading beside its writers: read without the writer lock
     (SQLite's WAL mode lets a reader see the last commit while a writer works), opened and closed
     under it (opening creates COLMAP's tables where missing, and the last connection to close
@@ -256,7 +256,7 @@ def _readable(ctx: Context, pid: str, db_path: Path) -> Iterator[Any]:
 
 
 @contextmanager
-def _writable(ctx: Context, job_id: str, pid: str, db_path: Path) -> Iterator[Any]:
+def _writable(ctx: StepContext, job_id: str, pid: str, db_path: Path) -> Iterator[Any]:
     """The project's COLMAP database under its writer lock, or None when the job was cancelled
     while its pair was matched (nothing is written then)."""
     from geomatch.sfm.colmapdb import ColmapDatabase
@@ -278,7 +278,7 @@ def _image_id(db: Any, name: str) -> int:
 
 
 # -- reconstruct jobs ---------------------------------------------------------------------------
-def reconstruct(ctx: Context, job_id: str) -> str:
+def reconstruct(ctx: StepContext, job_id: str) -> str:
     """The project mapped as ``geomatch run`` maps it (geomatch.pipeline.reconstruction), from a
     snapshot of its database and the plan its match job kept, into a fresh folder swapped in whole."""
     from geomatch.pipeline.orthomap import add_map
@@ -347,7 +347,7 @@ def reconstruct(ctx: Context, job_id: str) -> str:
     return "done"
 
 
-def _control_points(ctx: Context, job: Job) -> Any:
+def _control_points(ctx: StepContext, job: Job) -> Any:
     """The project's ground control points (``Storage.gcp_path``), held out at the job's check
     points; None when it has none. A failed fit is told without the server's paths."""
     from geomatch.pipeline.reconstruction import ControlPoints
@@ -364,7 +364,7 @@ def _control_points(ctx: Context, job: Job) -> Any:
 
 
 # -- localize jobs ------------------------------------------------------------------------------
-def localize(ctx: Context, job_id: str) -> str:
+def localize(ctx: StepContext, job_id: str) -> str:
     """Pose the job's photos against the project's model (``geomatch.localize``) and store one
     answer per photo as the job's result.
 
@@ -425,7 +425,7 @@ def localize(ctx: Context, job_id: str) -> str:
     return "done"
 
 
-def _drop_photos(ctx: Context, job_id: str) -> None:
+def _drop_photos(ctx: StepContext, job_id: str) -> None:
     """Remove a localize job's own photos (none for a job that added them to the project)."""
     job = jobstate.get(ctx.store, job_id)
     if job is not None:
@@ -433,7 +433,7 @@ def _drop_photos(ctx: Context, job_id: str) -> None:
 
 
 # -- interactive --------------------------------------------------------------------------------
-def render_pair(ctx: Context, project_id: str, name0: str, name1: str) -> dict[str, Any]:
+def render_pair(ctx: StepContext, project_id: str, name0: str, name1: str) -> dict[str, Any]:
     """Draw a matched pair from the COLMAP database: verified inliers red, other matches blue."""
     import numpy as np
 
@@ -472,7 +472,7 @@ def render_pair(ctx: Context, project_id: str, name0: str, name1: str) -> dict[s
 
 
 # -- failures -----------------------------------------------------------------------------------
-def on_failure(ctx: Context, step: str, args: tuple[Any, ...], exc: BaseException) -> None:
+def on_failure(ctx: StepContext, step: str, args: tuple[Any, ...], exc: BaseException) -> None:
     """A step gave up (permanent error or retries exhausted): its job fails with the reason."""
     if step == RENDER_PAIR or not args:
         return
@@ -491,7 +491,7 @@ def on_failure(ctx: Context, step: str, args: tuple[Any, ...], exc: BaseExceptio
             log.warning("could not remove the photos of job %s (%s)", job_id, e)
 
 
-def _project_dir(ctx: Context, job_id: str) -> Path | None:
+def _project_dir(ctx: StepContext, job_id: str) -> Path | None:
     """The failed job's project folder, for its error's relative names; None when the store
     cannot say (the root's prefix still goes)."""
     try:

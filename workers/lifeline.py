@@ -32,7 +32,7 @@ from kombu import Connection
 
 from geomatch_core.config import Settings
 
-from .context import Context
+from .context import StepContext
 from .leases import Leases
 from .liveness import Registry, beat_period, new_worker_id
 from .sweep import Sweep
@@ -42,7 +42,7 @@ log = logging.getLogger("geomatch.workers")
 
 class Lifeline:
     def __init__(
-        self, app: Celery, settings: Settings, hostname: str, context: Callable[[], Context] | None = None
+        self, app: Celery, settings: Settings, hostname: str, context: Callable[[], StepContext] | None = None
     ) -> None:
         assert settings.redis_url is not None
         self.app = app
@@ -155,7 +155,7 @@ def held_tags() -> set[str] | None:
     return tags
 
 
-def install(app: Celery, settings: Settings, context: Callable[[], Context] | None = None) -> None:
+def install(app: Celery, settings: Settings, context: Callable[[], StepContext] | None = None) -> None:
     """Connect the lifeline to this app's worker signals (a no-op outside ``celery worker``)."""
     line: list[Lifeline] = []
 

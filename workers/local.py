@@ -24,7 +24,7 @@ from geomatch_core.storage import Storage
 from geomatch_core.store import MetadataStore
 
 from . import jobs
-from .context import Context, is_permanent
+from .context import StepContext, is_permanent
 from .steps import STEPS
 
 log = logging.getLogger("geomatch.workers")
@@ -35,7 +35,7 @@ class LocalQueue:
     def __init__(
         self, settings: Settings, store: MetadataStore, storage: Storage, locks: LockFactory
     ) -> None:
-        self.ctx = Context(settings, store, storage, locks, self)
+        self.ctx = StepContext(settings, store, storage, locks, self)
         self._pool = ThreadPoolExecutor(settings.embedded_threads, thread_name_prefix="geomatch-job")
         self._interactive = ThreadPoolExecutor(1, thread_name_prefix="geomatch-render")
         self._closed = threading.Event()

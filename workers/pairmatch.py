@@ -20,7 +20,7 @@ import time
 from typing import Any
 
 from . import redact, runtime
-from .context import Context
+from .context import StepContext
 
 log = logging.getLogger("geomatch.workers")
 _WORK = re.compile(r"pair-[0-9a-f]{32}")
@@ -31,7 +31,7 @@ class DeadlinePassed(Exception):
 
 
 def match_two(
-    ctx: Context, work: str, captures: list[str], options: dict[str, Any], deadline: float
+    ctx: StepContext, work: str, captures: list[str], options: dict[str, Any], deadline: float
 ) -> dict[str, Any]:
     """``{"file": "result.npz", "matches": N, "timings": {...}}``, or ``{"error": reason}``."""
     if not _WORK.fullmatch(work):
@@ -49,7 +49,7 @@ def match_two(
 
 
 def _match(
-    ctx: Context, folder: Any, captures: list[str], options: dict[str, Any], deadline: float
+    ctx: StepContext, folder: Any, captures: list[str], options: dict[str, Any], deadline: float
 ) -> dict[str, Any]:
     import numpy as np
 

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from geomatch.matching.matcher import Matcher
     from geomatch.options import CacheBudget
 
-    from .context import Context
+    from .context import StepContext
 
 _local = threading.local()
 MAX_MATCHERS = 2  # distinct option sets kept per thread (each holds its own feature LRU)
@@ -32,7 +32,7 @@ def job_options(stored: Mapping[str, Any]) -> dict[str, Any]:
     return resolve(stored, PROJECT_OPTIONS)
 
 
-def matcher(ctx: Context, options: Mapping[str, Any]) -> Matcher:
+def matcher(ctx: StepContext, options: Mapping[str, Any]) -> Matcher:
     """The thread's matcher for resolved ``options`` (:func:`job_options`)."""
     from geomatch.features.store import FeatureStore
     from geomatch.matching.stored import build_matcher
@@ -75,7 +75,7 @@ def release() -> None:
     return_freed_memory()
 
 
-def image(ctx: Context, path: Path, max_side: int | None = None) -> np.ndarray:
+def image(ctx: StepContext, path: Path, max_side: int | None = None) -> np.ndarray:
     """A decoded image (``max_side``: a larger photo at that size), from the thread's byte-bounded
     LRU when it was read lately (a tiled aerial image meets all its ground partners in a row)."""
     from geomatch.imageio import read_image
@@ -92,7 +92,7 @@ def image(ctx: Context, path: Path, max_side: int | None = None) -> np.ndarray:
     return img
 
 
-def frame(ctx: Context, path: Path) -> tuple[np.ndarray, PhotoScale | None]:
+def frame(ctx: StepContext, path: Path) -> tuple[np.ndarray, PhotoScale | None]:
     """A photo as the pipeline matches it, at most the working size (imageio.WORKING_SIDE, as
     ``geomatch run`` reads it), and how its matches map back to the photo's own pixels."""
     from geomatch.imagefolder import photo_size, to_photo
@@ -101,12 +101,12 @@ def frame(ctx: Context, path: Path) -> tuple[np.ndarray, PhotoScale | None]:
     return image(ctx, path, WORKING_SIDE), to_photo(photo_size(path), WORKING_SIDE)
 
 
-def images_mb(ctx: Context) -> float:
+def images_mb(ctx: StepContext) -> float:
     """The thread's budget of decoded images (part of GEOMATCH_CACHE_MB), for a plan's reads."""
     return _budget(ctx).images_mb
 
 
-def _budget(ctx: Context) -> CacheBudget:
+def _budget(ctx: StepContext) -> CacheBudget:
     from geomatch.options import cache_budget
 
     return cache_budget(ctx.settings.cache_mb, MAX_MATCHERS)

@@ -24,7 +24,7 @@ from typing import Any
 from geomatch_core.queue import ENTRY_STEP
 
 from . import recovery
-from .context import Context
+from .context import StepContext
 
 log = logging.getLogger("geomatch.workers")
 
@@ -59,7 +59,12 @@ def live_jobs(client: Any, prefix: str, channel: Any, queues: Iterable[str]) -> 
 
 class Sweep:
     def __init__(
-        self, context: Callable[[], Context], prefix: str, queues: list[str], period_s: float, worker_id: str
+        self,
+        context: Callable[[], StepContext],
+        prefix: str,
+        queues: list[str],
+        period_s: float,
+        worker_id: str,
     ) -> None:
         self.context = context
         self.prefix = prefix

@@ -24,13 +24,13 @@ from geomatch_core.store import MetadataStore
 from . import jobs, lifeline, recovery
 from .celery_queue import CeleryQueue
 from .celery_transport import FAILOVER_ERRORS
-from .context import Context, PermanentError, is_permanent
+from .context import PermanentError, StepContext, is_permanent
 from .steps import ANSWERED, ONE_SHOT, STEPS
 
-_context: tuple[int, Context] | None = None
+_context: tuple[int, StepContext] | None = None
 
 
-def context(app: Celery) -> Context:
+def context(app: Celery) -> StepContext:
     global _context
     if _context is None or _context[0] != os.getpid():
         settings = Settings.from_env()
@@ -48,7 +48,7 @@ def context(app: Celery) -> Context:
         locks = RedisLocks(client, settings.redis_prefix, settings.lock_timeout_s)
         _context = (
             os.getpid(),
-            Context(settings, store, Storage(settings.home), locks, CeleryQueue(settings, app)),
+            StepContext(settings, store, Storage(settings.home), locks, CeleryQueue(settings, app)),
         )
     return _context[1]
 
