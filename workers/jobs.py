@@ -459,14 +459,14 @@ def render_pair(ctx: StepContext, project_id: str, name0: str, name1: str) -> di
         keypoints1=kp1[m[:, 1]].astype(np.float32),
         scores=scores,
         F=np.zeros((3, 3)),
-        method=f"{len(inl)} verified (red) of",
+        method="stored",
         image_sizes=((a.shape[1], a.shape[0]), (b.shape[1], b.shape[0])),
     )
     pictures = ctx.storage.pictures_dir(project_id)
     pictures.mkdir(parents=True, exist_ok=True)
     path = ctx.storage.picture_path(project_id, name0, name1)
     tmp = path.with_suffix(f".{time.monotonic_ns()}.png")
-    save_matches(tmp, a, b, result)
+    save_matches(tmp, a, b, result, caption=f"{len(inl)} verified (red) of {len(m)} matches")
     tmp.replace(path)
     return {"path": str(path), "matches": len(m), "inliers": len(inl)}
 
