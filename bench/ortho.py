@@ -282,6 +282,62 @@ def gcp_targets(ortho: Path, run: Path, half_m: float = 1.5) -> list[dict[str, A
     return rows
 
 
+# -- time and memory against photo count, without rendering ---------------------------------------
+def scale_scene(folder: Path, photos: int, seed: int = 1, width: int = 640, height: int = 480) -> Path:
+    """A survey of ``photos`` photos whose model is exact (the flight plan's cameras, points where
+    rays of random pixels meet the rolling terrain) and whose photos are smoothed noise, not
+    renders: the map's cost depends on the pixels and the geometry, not on what the photos show,
+    and rendering a thousand photos would take an hour here. For time and memory only."""
+    import cv2
+    import pycolmap
+
+    from geomatch.synth.flightplan import FlightPlan, aerial_cameras
+    from geomatch.synth.groundtruth import write_gt
+    from geomatch.synth.sensors import GPS_ORIGIN
+    from geomatch.synth.world import Terrain
+
+    run = folder / "run"
+    if (run / "summary.json").is_file():
+        return run
+    plan = FlightPlan.make(photos, width, height, 80.0)
+    cams, _ = aerial_cameras(plan, seed)
+    terrain = Terrain(seed)
+    rng = np.random.default_rng(seed)
+    images = folder / "images"
+    images.mkdir(parents=True, exist_ok=True)
+    lines = []
+    for cam in cams:
+        noise = rng.integers(0, 256, (height // 4, width // 4, 3), dtype=np.uint8)
+        img = cv2.GaussianBlur(cv2.resize(noise, (width, height), interpolation=cv2.INTER_CUBIC), (0, 0), 1.0)
+        cv2.imwrite(str(images / cam.name), img, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        uv = np.column_stack([rng.uniform(0, width, 300), rng.uniform(0, height, 300), np.ones(300)])
+        d = (uv @ np.linalg.inv(cam.K).T) @ cam.R  # world directions
+        o = cam.centre
+        t = o[2] / -d[:, 2]
+        for _ in range(8):
+            t = (o[2] - terrain.height(o[0] + t * d[:, 0], o[1] + t * d[:, 1])) / -d[:, 2]
+        for x, y, z in o + t[:, None] * d:
+            lines.append(f"{len(lines) + 1} {x:.4f} {y:.4f} {z:.4f} 128 128 128 0.5\n")
+    text = folder / "model_text"
+    write_gt(cams, text)
+    (text / "points3D.txt").write_text("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n" + "".join(lines))
+    (run / "sparse" / "0").mkdir(parents=True, exist_ok=True)
+    pycolmap.Reconstruction(str(text)).write(str(run / "sparse" / "0"))
+    summary = {
+        "image_dir": str(images),
+        "georeferenced": True,
+        "frame": "ENU",
+        "origin": GPS_ORIGIN.as_dict(),
+    }
+    (run / "summary.json").write_text(json.dumps({**summary, "registered": len(cams), "images": len(cams)}))
+    return run
+
+
+def scale(photos: int) -> dict[str, Any]:
+    rec = run_map(scale_scene(OUT / f"scale-{photos}", photos))
+    return row(f"noise photos, exact model {photos}", photos, photos, {}, {}, rec, {})
+
+
 # -- a real run: the picture and the seams -------------------------------------------------------------
 def real(run: Path, pictures: Path | None, name: str) -> dict[str, Any]:
     rec = run_map(run)
@@ -383,6 +439,9 @@ def main() -> None:
     ap.add_argument(
         "--exact", type=int, nargs="?", const=30, default=0, help="exact-model scenes of N photos"
     )
+    ap.add_argument(
+        "--scale", default="", help="time and memory on exact models of N noise photos, e.g. 100,1000"
+    )
     ap.add_argument("--real", type=Path, help="a real run folder to map")
     ap.add_argument("--pictures", type=Path, help="with --real: where the pictures go")
     ap.add_argument("--name", default="real")
@@ -393,6 +452,8 @@ def main() -> None:
         rows += exact(args.exact)
     for size in [int(s) for s in args.sizes.split(",") if s]:
         rows.append(flight(size, args.seed))
+    for size in [int(s) for s in args.scale.split(",") if s]:
+        rows.append(scale(size))
     if rows:
         print_table("Orthophoto: time, memory and position error against the truth", COLUMNS, rows)
         (OUT / "rows.json").write_text(json.dumps(rows, indent=1))
