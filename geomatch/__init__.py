@@ -19,7 +19,7 @@ _EXPORTS = {
     "match_pair": "matching.matcher",
     "GeoOptions": "matching.optimizer",
     "RefineOptions": "features.refine",
-    "WeightsNotFoundError": "weights",
+    "WeightsNotFoundError": "features.weights",
     "localize_photos": "localize",
     "Localization": "localize",
     "LocalizeOptions": "localize",

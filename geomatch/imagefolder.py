@@ -9,7 +9,7 @@ import numpy as np
 from PIL import Image
 
 from .imageio import read_image, working_size
-from .lru import ByteLRU
+from .memory import ByteLRU
 from .options import IMAGE_SUFFIXES
 
 

@@ -5,7 +5,7 @@ import pycolmap
 import pytest
 import torch
 
-from geomatch.geometry import SampsonGrid, eight_point, estimate_fundamental, sampson_distance
+from geomatch.epipolar.geometry import SampsonGrid, eight_point, estimate_fundamental, sampson_distance
 
 pytestmark = pytest.mark.unit
 
@@ -71,7 +71,7 @@ def test_degenerate_input_does_not_raise() -> None:
     """OpenCV's USAC asserts on some degenerate sets (seen on tiny crops' matches): fall back, never crash."""
     import torch
 
-    from geomatch.geometry import estimate_fundamental
+    from geomatch.epipolar.geometry import estimate_fundamental
 
     pa = torch.tensor([[float(i), 2.0 * i] for i in range(12)], dtype=torch.float64)  # collinear
     F, mask = estimate_fundamental(pa, pa.clone(), "magsac", 1.0)

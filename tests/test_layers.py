@@ -26,16 +26,14 @@ LAYERS = {"geomatch": 0, "geomatch_core": 1, "service": 2, "workers": 2, "geomat
 PACKAGES = tuple(LAYERS)
 
 RANKS = {
-    # the utilities: options, images, metadata, caches, weight files, epipolar geometry
+    # the utilities: options, images, metadata, memory (byte-bounded caches), the survey report
     "geomatch.options": 0,
     "geomatch.imageio": 0,
     "geomatch.metadata": 0,
-    "geomatch.lru": 0,
     "geomatch.memory": 0,
-    "geomatch.weights": 0,
-    "geomatch.geometry": 0,
     "geomatch.report": 0,
-    "geomatch.robust_f": 0,
+    # epipolar geometry: Sampson distances, fundamental matrices
+    "geomatch.epipolar": 0,
     # a run's image folder: its files and their decoded pixels
     "geomatch.imagefolder": 0,
     # backbones (whose dense head refines on the epipolar prior); geodesy, GPS, georeferencing

@@ -9,8 +9,8 @@ import pytest
 from PIL import Image
 
 from geomatch.imagefolder import Images
-from geomatch.lru import ByteLRU
 from geomatch.matching.matcher import MatcherConfig
+from geomatch.memory import ByteLRU
 from geomatch.options import OptionError, cache_budget
 
 pytestmark = pytest.mark.unit

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from geomatch.geometry import estimate_fundamental, sampson_distance
+from geomatch.epipolar.geometry import estimate_fundamental, sampson_distance
 from geomatch.matching.optimizer import (
     GeoOptions,
     dense_mutual_nn,

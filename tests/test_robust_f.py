@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from geomatch.geometry import estimate_fundamental, sampson_distance
-from geomatch.robust_f import ransac_fundamental
+from geomatch.epipolar.geometry import estimate_fundamental, sampson_distance
+from geomatch.epipolar.robust_f import ransac_fundamental
 
 pytestmark = pytest.mark.unit
 

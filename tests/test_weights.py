@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from geomatch.features.disk import DiskExtractor
-from geomatch.weights import ENV_DIR, WeightsNotFoundError, package_weights_dir, weight_path
+from geomatch.features.weights import ENV_DIR, WeightsNotFoundError, package_weights_dir, weight_path
 
 
 @pytest.mark.unit

@@ -79,7 +79,7 @@ def image(ctx: StepContext, path: Path, max_side: int | None = None) -> np.ndarr
     """A decoded image (``max_side``: a larger photo at that size), from the thread's byte-bounded
     LRU when it was read lately (a tiled aerial image meets all its ground partners in a row)."""
     from geomatch.imageio import read_image
-    from geomatch.lru import ByteLRU
+    from geomatch.memory import ByteLRU
 
     cache: ByteLRU[tuple[str, float, int | None], np.ndarray] | None = getattr(_local, "images", None)
     if cache is None:

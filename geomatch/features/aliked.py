@@ -6,10 +6,10 @@ import torch
 import torch.nn.functional as F
 from kornia.feature import ALIKED
 
-from ..weights import load_state_dict
 from .aliked_strips import aliked_maps, sddh_descriptors
 from .base import DenseFeatures, Extractor, ImageFeatures, SparseFeatures
 from .pooling import FINE_DTYPE, pool_to_grid
+from .weights import load_state_dict
 
 
 class AlikedExtractor(Extractor):

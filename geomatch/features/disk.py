@@ -7,10 +7,10 @@ import torch.nn.functional as F
 from kornia.feature import DISK
 from kornia.feature.disk.detector import heatmap_to_keypoints
 
-from ..weights import load_state_dict
 from .base import DenseFeatures, Extractor, ImageFeatures, SparseFeatures
 from .disk_strips import disk_maps
 from .pooling import FINE_DTYPE
+from .weights import load_state_dict
 
 
 class DiskExtractor(Extractor):

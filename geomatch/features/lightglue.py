@@ -22,9 +22,9 @@ from kornia.feature.lightglue import CrossBlock
 from torch import nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from ..weights import load_state_dict
 from .base import SparseFeatures, SparseMatch, SparseMatcher
 from .lightglue_batch import DEFAULT_BUDGET_BYTES, forward_batch, plan_batches
+from .weights import load_state_dict
 
 CHECKPOINTS = {"aliked": "aliked_lightglue.pth", "disk": "disk_lightglue.pth"}
 

@@ -14,9 +14,9 @@ import torch
 import torch.nn.functional as F
 from kornia.feature import LoFTR
 
-from ..weights import weight_path
 from .base import CoarsePair, DenseFeatures, DenseHead, Extractor, ImageFeatures, Refined
 from .pooling import cell_centres
+from .weights import weight_path
 
 DEFAULT_FILE = "loftr_outdoor.ckpt"
 ENV_FILE = "GEOMATCH_LOFTR_WEIGHTS"

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..geometry import sampson_distance
+from ..epipolar.geometry import sampson_distance
 from .base import Refined
 
 

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..epipolar.geometry import scale_fundamental
 from ..features.refine import RefineOptions
-from ..geometry import scale_fundamental
 from ..imageio import Prepared
 from ..options import DEFAULTS, DENSE_BACKBONES, METHOD_FLAGS, METHODS, SPARSE_BACKBONES, Method
 from .optimizer import GeoOptions

@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 from ..features.base import ImageFeatures, SparseMatch
 from ..imageio import Prepared
-from ..lru import trim_lru
+from ..memory import trim_lru
 
 FeatureKey = tuple[str, str, int | None]  # (pixel hash, backbone[+dense], resize)
 AnchorKey = tuple[str, str, int | None, str | None]  # (hash A, hash B, resize, dense detector)

@@ -26,8 +26,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from ..epipolar.geometry import estimate_fundamental, homogeneous, sampson_distance
 from ..features.base import SparseFeatures
-from ..geometry import estimate_fundamental, homogeneous, sampson_distance
 from ..imageio import image_key
 from .config import GUIDED_LIGHTGLUE_POINTS, GUIDED_RATIO, SEED_RATIO, MatchResult, StageTimer, pair_result
 

@@ -26,10 +26,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..epipolar.geometry import estimate_fundamental, sampson_distance
 from ..features.base import DenseHead, Extractor, ImageFeatures, SparseFeatures, SparseMatch, SparseMatcher
 from ..features.registry import build_dense_head, build_extractor, build_sparse_matcher
 from ..features.subpixel import refine_points
-from ..geometry import estimate_fundamental, sampson_distance
 from ..imageio import Prepared, image_key, prepare, read_image
 from .config import (
     DEDUP_RADIUS,

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..geometry import SampsonGrid, estimate_fundamental, sampson_distance
+from ..epipolar.geometry import SampsonGrid, estimate_fundamental, sampson_distance
 from ..options import DEFAULTS
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,7 @@ from functools import partial
 import numpy as np
 import torch
 
-from ..geometry import estimate_fundamental
+from ..epipolar.geometry import estimate_fundamental
 from ..imageio import snap_radius
 from .matcher import Matcher
 from .rotation import best_turn, probe_points, quarter_turn, turn_score

@@ -19,7 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..geometry import fundamental_from_matches
+from ..epipolar.geometry import fundamental_from_matches
 
 
 @dataclass(frozen=True)

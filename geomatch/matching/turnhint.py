@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..lru import ByteLRU
+from ..memory import ByteLRU
 
 # SIFT points per photo and the long side they are found at: the hint needs the relative rotation
 # and whether a pair overlaps, not accuracy

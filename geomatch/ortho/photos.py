@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..imageio import read_image
-from ..lru import ByteLRU
+from ..memory import ByteLRU
 from .survey import OrthoError, View
 
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import fundamental_from_matches
+from ..epipolar.geometry import fundamental_from_matches
 from ..imagefolder import PhotoScale
 from ..imageio import snap_radius
 from ..matching.config import MatchResult

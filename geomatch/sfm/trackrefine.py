@@ -38,7 +38,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ..features.subpixel import SubpixelOptions, gradient_maps, refine_on_maps
 from ..imageio import WORKING_SIDE, read_gray
-from ..lru import ByteLRU
+from ..memory import ByteLRU
 from . import pair_threads
 from .colmapdb import COLMAP_OFFSET
 

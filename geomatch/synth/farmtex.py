@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from ..lru import ByteLRU
+from ..memory import ByteLRU
 from .groundtex import TILE, GroundTiles, seed_key
 
 PARCEL_M = 200.0  # one field per cell of this side, on average

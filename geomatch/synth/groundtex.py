@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..lru import ByteLRU
+from ..memory import ByteLRU
 from .photos import photo
 from .texture import TEXTURES, sample_texture
 

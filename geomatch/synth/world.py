@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..lru import ByteLRU
+from ..memory import ByteLRU
 from .camera import Camera
 from .groundtex import GroundTiles, seed_key
 from .texture import SKY, sample_texture, unique_texture

@@ -444,8 +444,8 @@ def test_terminal_states_are_final(store: MetadataStore) -> None:
 @pytest.mark.unit
 def test_retry_policy() -> None:
     """Bad data, bad options and missing weights fail a job at once; I/O and the like are retried."""
+    from geomatch.features.weights import WeightsNotFoundError
     from geomatch.imageio import ImageReadError
-    from geomatch.weights import WeightsNotFoundError
     from workers.context import PermanentError, is_permanent
 
     for exc in (

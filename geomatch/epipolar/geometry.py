@@ -93,7 +93,7 @@ def estimate_fundamental(
     """F with x_b^T F x_a = 0 and the inlier mask, or (None, None) with fewer than 8 matches.
 
     ``magsac`` wraps OpenCV's USAC MAGSAC++ around the minimal solver and finishes with a
-    least-squares fit on the inliers; ``torch`` is :mod:`geomatch.robust_f` on the tensors' own
+    least-squares fit on the inliers; ``torch`` is :mod:`geomatch.epipolar.robust_f` on the tensors' own
     device (no host round trip); ``auto`` is ``torch`` for CUDA tensors and ``magsac`` otherwise;
     ``8point`` is the plain normalised 8-point fit on all matches.
     """
