@@ -7,12 +7,24 @@ from pathlib import Path
 
 import pytest
 from sqlalchemy import select, text
+from sqlalchemy.orm import Session
 
 from geomatch_core.migrate import add_missing_columns
 from geomatch_core.models import Image, Job, JobPair, Project, Tenant
 from geomatch_core.store import MetadataStore
 
 pytestmark = pytest.mark.unit
+
+
+def _project(s: Session) -> Project:
+    """A tenant's project in the store, flushed (its id known)."""
+    tenant = Tenant(name="t")
+    s.add(tenant)
+    s.flush()
+    project = Project(tenant_id=tenant.id, name="p")
+    s.add(project)
+    s.flush()
+    return project
 
 
 def test_job_pairs_get_rotate_and_their_project_from_the_aerial_images(tmp_path: Path) -> None:
@@ -22,12 +34,7 @@ def test_job_pairs_get_rotate_and_their_project_from_the_aerial_images(tmp_path:
         for column in ("rotate", "turn0", "turn1", "aerial_project", "survey"):
             c.execute(text(f"ALTER TABLE job_pairs DROP COLUMN {column}"))
     with store.session() as s:
-        tenant = Tenant(name="t")
-        s.add(tenant)
-        s.flush()
-        project = Project(tenant_id=tenant.id, name="p")
-        s.add(project)
-        s.flush()
+        project = _project(s)
         s.add_all(
             Image(
                 project_id=project.id,
@@ -42,7 +49,7 @@ def test_job_pairs_get_rotate_and_their_project_from_the_aerial_images(tmp_path:
             )
             for name in ("air", "g1", "g2")
         )
-        job = Job(project_id=project.id, tenant_id=tenant.id, kind="match")
+        job = Job(project_id=project.id, tenant_id=project.tenant_id, kind="match")
         s.add(job)
         s.flush()
         job_id = job.id
@@ -77,13 +84,8 @@ def test_turns_stored_as_one_column_come_apart(tmp_path: Path) -> None:
         c.execute(text("ALTER TABLE job_pairs DROP COLUMN turn1"))
         c.execute(text("ALTER TABLE job_pairs ADD COLUMN turn INTEGER NOT NULL DEFAULT -1"))
     with store.session() as s:
-        tenant = Tenant(name="t")
-        s.add(tenant)
-        s.flush()
-        project = Project(tenant_id=tenant.id, name="p")
-        s.add(project)
-        s.flush()
-        job = Job(project_id=project.id, tenant_id=tenant.id, kind="match")
+        project = _project(s)
+        job = Job(project_id=project.id, tenant_id=project.tenant_id, kind="match")
         s.add(job)
         s.flush()
         job_id = job.id
