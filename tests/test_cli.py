@@ -100,7 +100,8 @@ def test_export_of_a_folder_without_a_model_is_a_one_line_error(tmp_path) -> Non
         f"geomatch: error: {tmp_path} is not a run folder (no summary.json): make one with `geomatch run`"
     ]
     assert not (tmp_path / "export").exists()
-    assert "{nerfstudio,colmap-text,ply,hloc,openmvs,odm,laz,orthophoto,dsm,map-preview}" in run("export", "--help").stdout
+    formats = "{nerfstudio,colmap-text,ply,hloc,openmvs,odm,laz,orthophoto,dsm,map-preview}"
+    assert formats in run("export", "--help").stdout
 
 
 @pytest.mark.unit

@@ -22,7 +22,6 @@ import pyproj
 
 from ..export.georef import WGS84, ModelFrame, model_frame
 
-
 MIN_DOWN = 0.5  # sin(30 deg): a photo looking at least this far below the horizon sees the ground
 
 
