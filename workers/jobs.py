@@ -1,4 +1,5 @@
-"""The steps of a job, whatever runs them (Celery worker processes or the embedded threads).
+"""The steps of match and reconstruct jobs, whatever runs them (Celery worker processes or the
+embedded threads), and what a job's failure records (a localize job's step: localize.py).
 
 A match job is ``plan_match`` -> ``match_pair`` per pair, a window of them at a time (each pair
 step makes the features it needs and queues the next pair); a reconstruct job is one
@@ -20,7 +21,6 @@ steps only, so importing this module does not import torch.
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -31,7 +31,6 @@ from sqlalchemy import select, update
 
 from geomatch.options import (
     DEFAULTS,
-    PROJECT_OPTIONS,
     fewest_pairs,
 )
 from geomatch.sfm.sqlitecopy import snapshot_sqlite
@@ -42,6 +41,7 @@ from geomatch_core.queue import LOCALIZE, MATCH_PAIR, RENDER_PAIR
 
 from . import redact, runtime
 from .context import PermanentError, StepContext
+from .localize import drop_photos
 
 log = logging.getLogger("geomatch.workers")
 
@@ -363,114 +363,6 @@ def _control_points(ctx: StepContext, job: Job) -> Any:
     )
 
 
-# -- localize jobs ------------------------------------------------------------------------------
-def localize(ctx: StepContext, job_id: str) -> str:
-    """Pose the job's photos against the project's model (``geomatch.localize``) and store one
-    answer per photo as the job's result.
-
-    Photos that are not added to the project live in the job's own folder, removed when the job
-    ends however it ends (here, or in ``on_failure``). Added ones were stored as project images by
-    the request; each is written with its matches into the COLMAP database under the project's
-    writer lock, held for that write only (the matching before it takes seconds a photo, and a
-    Redis lock expires after GEOMATCH_LOCK_TIMEOUT). Without ``add`` the step only reads the
-    project, so it runs beside match and reconstruct jobs. A rerun after a redelivery starts over:
-    the answers are the same, and an added photo's rows are written once (``add_to_project``
-    leaves what the database holds)."""
-    from geomatch.localize import LocalizeOptions, Localizer, Project, add_to_project
-
-    job = jobstate.claim(ctx.store, job_id)
-    if job is None:
-        _drop_photos(ctx, job_id)
-        return "skipped"
-    pid, stored = job.project_id, dict(job.options)
-    add = bool(stored.get("add"))
-    names = [str(n) for n in stored.get("photos", [])]
-    folder = ctx.storage.images_dir(pid) if add else ctx.storage.localize_dir(pid, job_id)
-    missing = [n for n in names if not (folder / n).is_file()]
-    if missing:
-        raise PermanentError(f"the photos {', '.join(missing)} are gone (deleted from the project meanwhile)")
-    opts = runtime.job_options({k: v for k, v in stored.items() if k in PROJECT_OPTIONS})
-    with ctx.store.session() as s:  # resolved by the match jobs: the model's aerial images
-        aerial = set(s.scalars(select(Image.name).where(Image.project_id == pid, Image.aerial.is_(True))))
-    t0 = time.perf_counter()
-    project = Project.find(
-        ctx.storage.project_dir(pid),
-        model_dir=ctx.storage.model_dir(pid) / "sparse" / "0",
-        images_dir=ctx.storage.images_dir(pid),
-    )
-    localizer = Localizer(project, LocalizeOptions(), runtime.matcher(ctx, opts), aerial)
-    answers: list[dict[str, Any]] = []
-    for k, name in enumerate(names):
-        if not jobstate.is_active(ctx.store, job_id):
-            _drop_photos(ctx, job_id)
-            return "cancelled"
-        result, evidence = localizer.localize(folder / name)
-        if add and evidence is not None:
-            with ctx.locks.project(pid):
-                add_to_project(
-                    project, folder / name, evidence, localizer.matcher, float(opts["snap_radius"])
-                )
-        answers.append(result.to_json())
-        jobstate.set_progress(ctx.store, job_id, k + 1)
-    jobstate.succeed(ctx.store, job_id, {"localizations": answers})
-    _drop_photos(ctx, job_id)
-    log.info(
-        "localized %d of %d photos in %.1fs (add=%s)",
-        sum(bool(a.get("localized")) for a in answers),
-        len(answers),
-        time.perf_counter() - t0,
-        add,
-        extra={"job_id": job_id, "project_id": pid},
-    )
-    return "done"
-
-
-def _drop_photos(ctx: StepContext, job_id: str) -> None:
-    """Remove a localize job's own photos (none for a job that added them to the project)."""
-    job = jobstate.get(ctx.store, job_id)
-    if job is not None:
-        shutil.rmtree(ctx.storage.localize_dir(job.project_id, job_id), ignore_errors=True)
-
-
-# -- interactive --------------------------------------------------------------------------------
-def render_pair(ctx: StepContext, project_id: str, name0: str, name1: str) -> dict[str, Any]:
-    """Draw a matched pair from the COLMAP database: verified inliers red, other matches blue."""
-    import numpy as np
-
-    from geomatch.matching.matcher import MatchResult
-    from geomatch.sfm.colmapdb import ColmapDatabase
-    from geomatch.viz import save_matches
-
-    db_path = ctx.storage.database_path(project_id)
-    if not db_path.is_file():
-        return {"error": "not_matched"}
-    with ctx.locks.project(project_id), ColmapDatabase(db_path) as db:
-        id0, id1 = db.image_id(name0), db.image_id(name1)
-        if id0 is None or id1 is None or not db.has_pair(id0, id1):
-            return {"error": "not_matched"}
-        kp0, kp1 = db.keypoints(id0), db.keypoints(id1)
-        m, inl = db.matches(id0, id1), db.inlier_matches(id0, id1)
-    is_inlier = {(int(a), int(b)) for a, b in inl}
-    scores = np.array([1.0 if (int(a), int(b)) in is_inlier else 0.0 for a, b in m], np.float32)
-    a = runtime.image(ctx, ctx.storage.image_path(project_id, name0))
-    b = runtime.image(ctx, ctx.storage.image_path(project_id, name1))
-    result = MatchResult(
-        keypoints0=kp0[m[:, 0]].astype(np.float32),
-        keypoints1=kp1[m[:, 1]].astype(np.float32),
-        scores=scores,
-        F=np.zeros((3, 3)),
-        method="stored",
-        image_sizes=((a.shape[1], a.shape[0]), (b.shape[1], b.shape[0])),
-    )
-    pictures = ctx.storage.pictures_dir(project_id)
-    pictures.mkdir(parents=True, exist_ok=True)
-    path = ctx.storage.picture_path(project_id, name0, name1)
-    tmp = path.with_suffix(f".{time.monotonic_ns()}.png")
-    save_matches(tmp, a, b, result, caption=f"{len(inl)} verified (red) of {len(m)} matches")
-    tmp.replace(path)
-    return {"path": str(path), "matches": len(m), "inliers": len(inl)}
-
-
 # -- failures -----------------------------------------------------------------------------------
 def on_failure(ctx: StepContext, step: str, args: tuple[Any, ...], exc: BaseException) -> None:
     """A step gave up (permanent error or retries exhausted): its job fails with the reason."""
@@ -486,7 +378,7 @@ def on_failure(ctx: StepContext, step: str, args: tuple[Any, ...], exc: BaseExce
         jobstate.release_followers(ctx.store, ctx.queue, job_id)
     if step == LOCALIZE:
         try:
-            _drop_photos(ctx, job_id)
+            drop_photos(ctx, job_id)
         except Exception as e:  # the store may be what failed the step
             log.warning("could not remove the photos of job %s (%s)", job_id, e)
 

@@ -1,7 +1,9 @@
-"""The interactive step behind gRPC MatchPair: match two images that belong to no project.
+"""The interactive steps, whose answers go back to a waiting caller: gRPC MatchPair's, two images
+that belong to no project matched (:func:`match_two`), and a project's matched pair drawn
+(:func:`render_pair`).
 
-The API stages both images (validated like uploads) in ``GEOMATCH_HOME/tmp/<work>/`` as ``0`` and
-``1``; this step matches them with the worker's cached networks (``runtime.matcher``: the same
+For MatchPair the API stages both images (validated like uploads) in ``GEOMATCH_HOME/tmp/<work>/``
+as ``0`` and ``1``; the step matches them with the worker's cached networks (``runtime.matcher``: the same
 matcher, feature cache and device as job steps) and writes ``result.npz`` beside them. Paths travel
 as the folder's name, not as absolute paths, because a worker on another host may mount the storage
 root elsewhere. Nothing is retried or redelivered: the caller waits with a deadline, and work
@@ -102,3 +104,41 @@ def _match(
     timings["total"] = time.perf_counter() - t0
     log.info("match_two %s: %d matches, tiled=%s, %.2fs", folder.name, len(sc), pair.tiled, timings["total"])
     return {"file": out.name, "matches": len(sc), "timings": timings}
+
+
+def render_pair(ctx: StepContext, project_id: str, name0: str, name1: str) -> dict[str, Any]:
+    """Draw a matched pair from the COLMAP database: verified inliers red, other matches blue."""
+    import numpy as np
+
+    from geomatch.matching.matcher import MatchResult
+    from geomatch.sfm.colmapdb import ColmapDatabase
+    from geomatch.viz import save_matches
+
+    db_path = ctx.storage.database_path(project_id)
+    if not db_path.is_file():
+        return {"error": "not_matched"}
+    with ctx.locks.project(project_id), ColmapDatabase(db_path) as db:
+        id0, id1 = db.image_id(name0), db.image_id(name1)
+        if id0 is None or id1 is None or not db.has_pair(id0, id1):
+            return {"error": "not_matched"}
+        kp0, kp1 = db.keypoints(id0), db.keypoints(id1)
+        m, inl = db.matches(id0, id1), db.inlier_matches(id0, id1)
+    is_inlier = {(int(a), int(b)) for a, b in inl}
+    scores = np.array([1.0 if (int(a), int(b)) in is_inlier else 0.0 for a, b in m], np.float32)
+    a = runtime.image(ctx, ctx.storage.image_path(project_id, name0))
+    b = runtime.image(ctx, ctx.storage.image_path(project_id, name1))
+    result = MatchResult(
+        keypoints0=kp0[m[:, 0]].astype(np.float32),
+        keypoints1=kp1[m[:, 1]].astype(np.float32),
+        scores=scores,
+        F=np.zeros((3, 3)),
+        method="stored",
+        image_sizes=((a.shape[1], a.shape[0]), (b.shape[1], b.shape[0])),
+    )
+    pictures = ctx.storage.pictures_dir(project_id)
+    pictures.mkdir(parents=True, exist_ok=True)
+    path = ctx.storage.picture_path(project_id, name0, name1)
+    tmp = path.with_suffix(f".{time.monotonic_ns()}.png")
+    save_matches(tmp, a, b, result, caption=f"{len(inl)} verified (red) of {len(m)} matches")
+    tmp.replace(path)
+    return {"path": str(path), "matches": len(m), "inliers": len(inl)}

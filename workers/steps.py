@@ -15,14 +15,14 @@ from geomatch_core.queue import (
     RENDER_PAIR,
 )
 
-from . import jobs, pairmatch
+from . import jobs, localize, pairmatch
 
 STEPS: dict[str, Callable[..., Any]] = {
     PLAN_MATCH: jobs.plan_match,
     MATCH_PAIR: jobs.match_pair,
     RECONSTRUCT: jobs.reconstruct,
-    LOCALIZE: jobs.localize,
-    RENDER_PAIR: jobs.render_pair,
+    LOCALIZE: localize.localize,
+    RENDER_PAIR: pairmatch.render_pair,
     MATCH_TWO: pairmatch.match_two,
 }
 ANSWERED = frozenset({RENDER_PAIR, MATCH_TWO})  # their results go back to a waiting caller

@@ -6,7 +6,7 @@ added (the default), they are staged into the job's own folder inside the projec
 worker removes when the job ends; with ``add`` they are uploaded to the project as any image is
 (all or none, quotas, the same name with other bytes a conflict) and the job writes them and their
 matches into the COLMAP database, so a later reconstruct uses them. Either way the work is one
-``localize`` job run by the workers (``workers.jobs.localize``), so it is queued, retried, resumed
+``localize`` job run by the workers (``workers.localize.localize``), so it is queued, retried, resumed
 after a restart and read like every other job; the request waits for it for a while
 (``Settings.localize_wait_s``, or less when the client asks) and answers with the finished job
 when it can.
