@@ -65,3 +65,20 @@ def test_service_and_run_plan_and_map_alike(
     # the fields a client reads (the console, the report) are there both ways
     assert set(by_service) == set(by_run)
     assert by_service["report"].keys() == by_run["report"].keys()
+
+
+def test_a_mixed_project_matched_untiled_is_mapped_untiled(
+    deployment: Deployment, key_a: str, scene: Path
+) -> None:
+    """The reconstruct job maps by what its match job planned: one aerial x ground pair matched with
+    tiling off is no tiled pair, and the mapping gets the plain project's settings (it once decided
+    "tiled" from the image kinds and the reconstruct job's own options, which never hold tiling)."""
+    with deployment.client(key_a) as c:
+        pid = c.post("/v1/projects", json={"name": "untiled"}).json()["id"]
+        assert upload(c, pid, [scene / "images" / AERIAL[0]], "aerial").status_code == 201
+        assert upload(c, pid, [scene / "images" / GROUND[0]], "ground").status_code == 201
+        body = {**MATCHING, "tiling": "off", "pairs": [[AERIAL[0], GROUND[0]]], "reconstruct": True}
+        accepted = c.post(f"/v1/projects/{pid}/match", json=body).json()
+        recon = wait_job(c, accepted["reconstruct_job_id"])
+    assert recon["state"] == "succeeded", (recon, deployment.logs())
+    assert recon["result"]["mapping_settings"]["tiled"] is False
