@@ -217,71 +217,6 @@ def exact(photos: int) -> list[dict[str, Any]]:
     return rows
 
 
-def gcp_targets(ortho: Path, run: Path, half_m: float = 1.5) -> list[dict[str, Any]]:
-    """The GCP targets (black squares with a white cross) found in the orthophoto within
-    ``half_m`` of where the model put each point (its surveyed place plus its residual in
-    summary.json): how far the map puts them from the model, and from the survey."""
-    import cv2
-    import rasterio
-    from PIL import Image
-
-    from geomatch.geo.gcpfile import read_gcp_file
-
-    summary = json.loads((Path(run) / "summary.json").read_text())
-    g = summary["gcp"]
-    imgs = Path(summary["image_dir"])
-    sizes = {f.name: Image.open(f).size for f in imgs.iterdir() if f.is_file()}
-    gcps = read_gcp_file((Path(run) / "gcp_list.txt").read_text(), sizes)
-    rows = []
-    with rasterio.open(ortho) as src:
-        t = src.transform
-        for p in g["points"]:
-            if p["name"] not in gcps.points or "dx_m" not in p:
-                continue
-            sx, sy = gcps.points[p["name"]].xyz[:2]
-            mx, my = sx + p["dx_m"], sy + p["dy_m"]  # where the model put it
-            col, row = (mx - t.c) / t.a, (my - t.f) / t.e
-            half = int(half_m / t.a)
-            win = rasterio.windows.Window(int(col) - half, int(row) - half, 2 * half, 2 * half)
-            a = np.moveaxis(src.read(window=win, boundless=True), 0, -1)
-            grey = cv2.cvtColor(a[..., :3], cv2.COLOR_RGB2GRAY)
-            dark = ((grey < 45) & (a[..., 3] > 0)).astype(np.uint8)
-            k = max(3, int(0.12 / t.a))
-            closed = cv2.morphologyEx(dark, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))
-            n, _, stats, cents = cv2.connectedComponentsWithStats(closed)
-            side = 0.4 / t.a
-            best = None
-            for i in range(1, n):
-                x, y, w, h, area = stats[i]
-                if not (
-                    0.4 * side < w < 2.0 * side and 0.4 * side < h < 2.0 * side and area > 0.25 * side * side
-                ):
-                    continue
-                box = grey[y : y + h, x : x + w]
-                if (box > 170).mean() < 0.03:  # the white cross
-                    continue
-                d = np.hypot(cents[i][0] - half, cents[i][1] - half)
-                if best is None or d < best[0]:
-                    best = (d, cents[i])
-            if best is None:
-                rows.append({"name": p["name"], "role": p["role"], "found": False})
-                continue
-            cx, cy = best[1]
-            fe = t.c + (int(col) - half + cx + 0.5) * t.a
-            fn = t.f + (int(row) - half + cy + 0.5) * t.e
-            rows.append(
-                {
-                    "name": p["name"],
-                    "role": p["role"],
-                    "found": True,
-                    "vs_model_m": float(np.hypot(fe - mx, fn - my)),
-                    "vs_survey_m": float(np.hypot(fe - sx, fn - sy)),
-                    "model_residual_m": float(np.hypot(p["dx_m"], p["dy_m"])),
-                }
-            )
-    return rows
-
-
 # -- time and memory against photo count, without rendering ---------------------------------------
 def scale_scene(folder: Path, photos: int, seed: int = 1, width: int = 640, height: int = 480) -> Path:
     """A survey of ``photos`` photos whose model is exact (the flight plan's cameras, points where
@@ -341,29 +276,24 @@ def scale(photos: int) -> dict[str, Any]:
 # -- a real run: the picture and the seams -------------------------------------------------------------
 def real(run: Path, pictures: Path | None, name: str) -> dict[str, Any]:
     rec = run_map(run)
-    summary = json.loads((run / "summary.json").read_text())
-    if summary.get("gcp") and (run / "gcp_list.txt").is_file():
-        rows = gcp_targets(run / "odm_orthophoto" / "odm_orthophoto.tif", run)
+    targets = rec.get("gcp_targets")
+    if targets:  # a GCP model: its targets found on the orthophoto (geomatch/ortho/targets.py)
+        rows = targets["points"]
         found = [r for r in rows if r["found"]]
         print_table(
             f"GCP targets located in the orthophoto ({len(found)} of {len(rows)} found)",
             [
                 ("point", "name", "s"),
                 ("role", "role", "s"),
-                ("map vs model m", "vs_model_m", ".3f"),
-                ("map vs survey m", "vs_survey_m", ".3f"),
-                ("model vs survey m", "model_residual_m", ".3f"),
+                ("map vs model m", "map_vs_model_m", ".3f"),
+                ("map vs survey m", "map_vs_survey_m", ".3f"),
             ],
             found,
         )
-        check = [r for r in found if r["role"] == "check"]
-        if check:
-            rmse = float(np.sqrt(np.mean([r["vs_survey_m"] ** 2 for r in check])))
-            model = summary["gcp"].get("check_rmse_horizontal_m")
-            print(
-                f"\ncheck points: map RMSE {rmse:.3f} m against the model's {model} m ({rmse / model:.2f}x)"
-            )
-            rec["check_rmse_map_m"], rec["check_rmse_model_m"] = rmse, model
+        print(
+            f"\ncheck points: map RMSE {targets.get('check_rmse_horizontal_m')} m against the model's "
+            f"{targets.get('model_check_rmse_horizontal_m')} m"
+        )
     if pictures is not None:
         pictures.mkdir(parents=True, exist_ok=True)
         seam_pictures(run, pictures, name)

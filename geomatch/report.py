@@ -71,6 +71,19 @@ def _map(o: Mapping[str, Any]) -> dict[str, Any]:
         "seconds": (o.get("seconds") or {}).get("total"),
         # the preview's size, the cameras and GCPs on it (fractions of it): the console's map
         "preview": o.get("preview") if isinstance(o.get("preview"), dict) else None,
+        "gcp_targets": _targets(o.get("gcp_targets")),
+    }
+
+
+def _targets(t: Any) -> dict[str, Any] | None:
+    """The GCP targets found on the orthophoto: how many, and the check points' RMSE on it."""
+    if not isinstance(t, Mapping):
+        return None
+    return {
+        "found": t.get("found"),
+        "points": len(t.get("points") or []),
+        "check_rmse_horizontal_m": t.get("check_rmse_horizontal_m"),
+        "model_check_rmse_horizontal_m": t.get("model_check_rmse_horizontal_m"),
     }
 
 
@@ -256,7 +269,20 @@ def _map_markdown(m: Mapping[str, Any]) -> list[str]:
         f"{ext[0]} x {ext[1]} m, {m['area_ha']} ha mapped",
         f"- surface model (DSM): {m['dsm_cell_m']} m cells, from the sparse points",
         f"- coordinate system: {e(m['crs'])}",
+        *_targets_markdown(m.get("gcp_targets")),
     ]
+
+
+def _targets_markdown(t: Mapping[str, Any] | None) -> list[str]:
+    if not t:
+        return []
+    line = f"- GCP targets found on the orthophoto: {t['found']} of {t['points']}"
+    if t.get("check_rmse_horizontal_m") is not None:
+        line += (
+            f"; check points measured on it: RMSE {t['check_rmse_horizontal_m']} m horizontal "
+            f"(the model's: {t['model_check_rmse_horizontal_m']} m)"
+        )
+    return [line]
 
 
 def _gps_check_markdown(g: Mapping[str, Any]) -> list[str]:

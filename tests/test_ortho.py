@@ -325,3 +325,24 @@ def test_photos_that_do_not_look_down_get_no_map(flat: OrthoScene, tmp_path: Pat
     shutil.copy(flat.run / "summary.json", run / "summary.json")
     with pytest.raises(OrthoError, match="do not look down"):
         make_map(run)
+
+
+def test_a_gcp_target_is_found_and_a_dark_bush_is_not() -> None:
+    import cv2
+
+    from geomatch.ortho.targets import find_target
+
+    res = 0.01  # 1 cm a pixel
+    rng = np.random.default_rng(0)
+    sand = np.clip(rng.normal(150, 12, (300, 300)), 0, 255).astype(np.uint8)
+    img = np.dstack([sand, sand, sand, np.full_like(sand, 255)])
+    cv2.circle(img, (70, 80), 30, (35, 40, 30, 255), -1)  # a dark bush, no cross
+    assert find_target(img, res) is None
+    cx, cy = 181.5, 162.5  # a 50 cm black square with a 6 cm white cross, centred here
+    cv2.rectangle(img, (157, 138), (206, 187), (10, 10, 10, 255), -1)
+    cv2.line(img, (159, 140), (204, 185), (250, 250, 250, 255), 6)
+    cv2.line(img, (204, 140), (159, 185), (250, 250, 250, 255), 6)
+    found = find_target(img, res)
+    assert found is not None and abs(found[0] - cx) < 1.5 and abs(found[1] - cy) < 1.5, found
+    img[..., 3] = 0  # outside the map: nothing
+    assert find_target(img, res) is None

@@ -34,9 +34,10 @@ from .dsm import NODATA, build_dsm
 from .gains import exposure_gains
 from .grid import Grid
 from .mosaic import Mosaic, footprint, render_tile
-from .overlay import overlay
+from .overlay import GCP_FILE, overlay
 from .photos import PhotoCache
 from .survey import OrthoError, Survey, open_survey
+from .targets import measure
 
 ORTHO_PATH, DSM_PATH = ORTHOPHOTO, DSM  # where ODM has them (export.mapfiles)
 PREVIEW_PATH = PREVIEW
@@ -179,6 +180,7 @@ def make_map(
     t_ortho = time.perf_counter()
     preview_size = write_preview(ortho_path, preview_path)
 
+    targets = measure_targets(run, survey, ortho_path)
     lonlat = survey.frame.to_wgs84(survey.model_from_projected(np.array([[w, s, 0.0], [e, n, 0.0]])))
     record: dict[str, Any] = {
         "orthophoto": ORTHO_PATH.as_posix(),
@@ -192,7 +194,7 @@ def make_map(
         "gsd_m": gsd,
         "gsd_auto_m": auto_gsd,
         "dsm_cell_m": dsm.cell,
-        "crs": survey.crs.to_string(),
+        "crs": crs_name(survey.crs),
         "frame": survey.frame.kind,
         "size_px": [grid.width, grid.height],
         "bounds": [w, s, e, n],
@@ -212,9 +214,27 @@ def make_map(
             "total": round(time.perf_counter() - t0, 3),
         },
     }
+    if targets is not None:
+        record["gcp_targets"] = targets
     if dest == run:
         record_in_summary(run, record)
     return MapResult(ortho_path, dsm_path, preview_path, record)
+
+
+def crs_name(crs: Any) -> str:
+    """``EPSG:n`` where PROJ knows the system by a code (what the GeoTIFF records), else its text."""
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg else str(crs.to_string())
+
+
+def measure_targets(run: Path, survey: Survey, ortho: Path) -> dict[str, Any] | None:
+    """A GCP model's targets found on its orthophoto (targets.py), or None without GCPs."""
+    gcp_file = run / GCP_FILE
+    fit = json.loads((run / "summary.json").read_text()).get("gcp") or {}
+    if survey.frame.kind != "GCP" or not gcp_file.is_file() or not fit.get("points"):
+        return None
+    sizes = {v.name: (v.width, v.height) for v in survey.views}
+    return measure(ortho, gcp_file.read_text(), sizes, fit)
 
 
 def record_in_summary(run: Path, record: dict[str, Any]) -> None:
