@@ -229,6 +229,12 @@ class ReconstructIn(_Strict):
     mapper: option_type("mapper") | None = Field(  # type: ignore[valid-type]
         None, examples=[options.DEFAULTS["mapper"]], description=" | ".join(options.MAPPERS)
     )
+    ortho: option_type("ortho") | None = Field(  # type: ignore[valid-type]
+        None, examples=["on"], description=" | ".join(options.ORTHO) + ": " + options.OPTIONS["ortho"].help
+    )
+    ortho_gsd: option_type("ortho_gsd") | None = Field(  # type: ignore[valid-type]
+        None, examples=[0.05], description=options.OPTIONS["ortho_gsd"].help
+    )
     checkpoints: CheckpointCount | CheckpointNames | None = Field(
         None,
         examples=[2, ["gcp03", "gcp07"]],

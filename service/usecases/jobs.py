@@ -102,9 +102,11 @@ class JobUseCases(UseCases):
         project_id: str,
         mapper: str | None = None,
         checkpoints: list[str] | int | None = None,
+        mapping: dict[str, Any] | None = None,
     ) -> JobView:
         """``checkpoints``: ground control points held out of the fit to judge it (names, or how
-        many, spread over the points' sorted names), checked against the project's GCP file."""
+        many, spread over the points' sorted names), checked against the project's GCP file;
+        ``mapping``: ``ortho`` / ``ortho_gsd`` for this job (else the project's)."""
         with self._unless_deleted(tenant_id, project_id), self.ctx.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             mapper = check_option("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"])
@@ -120,7 +122,7 @@ class JobUseCases(UseCases):
                 )
             check_open_jobs(s, self.ctx.settings, tenant_id)
             held_out = check_checkpoints(s, self.ctx.storage, project_id, checkpoints)
-            config = {**DEFAULTS, **check_config(dict(p.config))}
+            config = {**DEFAULTS, **check_config(dict(p.config)), **check_config(dict(mapping or {}))}
             mapping = {k: config[k] for k in RECONSTRUCT_OPTIONS if k != "mapper"}
             job = _reconstruct_job(s, project_id, tenant_id, mapper, checkpoints=held_out, mapping=mapping)
             view = job_view(job)

@@ -41,7 +41,8 @@ def reconstruct(
     project_id: str, svc: Svc, tenant_id: Tenant, body: ReconstructIn | None = None
 ) -> JobAccepted:
     mapper, checkpoints = (body.mapper, body.checkpoints) if body else (None, None)
-    job = svc.jobs.start_reconstruct(tenant_id, project_id, mapper, checkpoints)
+    mapping = {k: getattr(body, k) for k in ("ortho", "ortho_gsd") if body and getattr(body, k) is not None}
+    job = svc.jobs.start_reconstruct(tenant_id, project_id, mapper, checkpoints, mapping)
     return JobAccepted(job_id=job.id)
 
 
