@@ -82,8 +82,7 @@ def project_matcher(project: Project, features: Path | None = None) -> Any:
     the defaults for a project that recorded none; it reads the features in ``features`` (default:
     the run folder's own ``features/``) and writes none."""
     from ..features.store import run_feature_store
-    from ..matching.matcher import config_from_options
-    from ..matching.stored import stored
+    from ..matching.stored import build_matcher
     from ..options import cache_budget
 
     recorded = project.run_options
@@ -96,9 +95,8 @@ def project_matcher(project: Project, features: Path | None = None) -> Any:
         "cache_anchors_mb": budget.anchors_mb,
         **dict(recorded.get("matcher") or {}),  # the run's further matcher and optimizer options
     }
-    config = config_from_options(**options)
     # a run's folder keeps its features: the model images are read, not extracted again (and
     # the folder is left as it is: a photo's own features are not written into it)
     folder = Path(features) if features is not None else project.database.parent / "features"
     store = run_feature_store(folder, writable=False) if folder.is_dir() else None
-    return stored(config, store)
+    return build_matcher(store, **options)

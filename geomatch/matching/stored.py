@@ -49,10 +49,9 @@ class StoredFeaturesMatcher(Matcher):
         return out
 
 
-def stored(config: MatcherConfig, store: FeatureStore | None) -> Matcher:
-    return StoredFeaturesMatcher(config, store) if store is not None else Matcher(config)
-
-
 def build_matcher(store: FeatureStore | None = None, **options: Any) -> Matcher:
-    """A matcher from pipeline-style options (``method``, ``resize``, ``device``, optimizer fields)."""
-    return stored(config_from_options(**options), store)
+    """A matcher from pipeline-style options (``method``, ``resize``, ``device``, optimizer fields)
+    over ``store`` (None: features in memory only): how ``geomatch run``, a worker and a
+    localization build theirs."""
+    config = config_from_options(**options)
+    return StoredFeaturesMatcher(config, store) if store is not None else Matcher(config)
