@@ -7,7 +7,8 @@ call: ``geomatch run`` in one process (runner.py) and the service's job steps, q
   images registered;
 - match_pairs.py: one planned pair's features, matches and write; database.py: the project's
   COLMAP database as the stages fill it;
-- reconstruction.py: the model, georeferenced; outputs.py: summary.json and the model's archive.
+- reconstruction.py: the model, georeferenced; orthomap.py: a survey's map; outputs.py:
+  summary.json (its fields: summary.py) and the model's archive.
 
 ``run`` and ``RunOptions`` load on first use: importing a stage does not load the runner's
 dependencies.
