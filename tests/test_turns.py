@@ -12,8 +12,8 @@ import torch
 from PIL import Image
 
 from geomatch import Matcher
-from geomatch.eval.homography import reprojection_errors
 from geomatch.epipolar.geometry import sampson_distance
+from geomatch.eval.homography import reprojection_errors
 from geomatch.imagefolder import Images
 from geomatch.matching.guided import KEEP_SAMPSON
 from geomatch.matching.matcher import MatcherConfig
