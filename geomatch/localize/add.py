@@ -32,9 +32,8 @@ def add_to_project(project: Project, photo: Path, evidence: Evidence, matcher: A
     with ColmapDatabase(project.database) as db:
         photo_id = db.add_image(photo.name, meta, share if isinstance(share, bool) else None)
         for name, m in evidence.pairs.items():
-            image = db.db.read_image_with_name(name) if db.db.exists_image(name) else None
-            if image is None or name == photo.name:
+            other = db.image_id(name)
+            if other is None or name == photo.name:
                 continue
-            other = int(image.image_id)
             write(db, photo_id, other, m, snap, matcher.config.resize)
     return photo_id
