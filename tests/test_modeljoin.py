@@ -236,3 +236,34 @@ def test_joined_models_keep_a_join_its_cross_pairs_hold_and_undo_one_they_break(
         assert joins[0].pairs_held > 0 and joins[0].pairs_contradicted == 0
         for name, i in (("im3", 3), ("im4", 4)):
             assert centre_error(models[0], name, i) < 0.05 * 15
+
+
+@pytest.mark.parametrize("tiled", [False, True])
+def test_a_join_nothing_but_its_shared_image_holds_stands_only_through_a_tiled_image(
+    tmp_path: Path, tiled: bool
+) -> None:
+    """No pair between the placed cameras and the first model's others: the join rests on the
+    shared image's pose in both models alone. That is what a tiled aerial image's crop keypoints
+    leave (the ground photos reach the rest only through it), so through such an image it
+    stands; through any other image it is refused and its block left apart, named."""
+    rng = np.random.default_rng(7)
+    first = model([0, 1, 2], plane_points(rng, 400))
+    second = model([2, 3, 4], plane_points(rng, 300))
+    pairs = [(0, 1), (0, 2), (1, 2), (2, 3), (2, 4), (3, 4)]
+    db = database(tmp_path / "database.db", pairs, plane_points(rng, 400))
+    (tmp_path / "images").mkdir()
+    bridges = {"im2"} if tiled else {"im0"}
+
+    models, joins = join_models(
+        [first, second],
+        db,
+        tmp_path / "images",
+        tmp_path / "work",
+        pycolmap.IncrementalPipelineOptions(),
+        bridges,
+    )
+
+    assert len(joins) == 1 and joins[0].pairs_held == joins[0].pairs_contradicted == 0
+    assert joins[0].refused is not tiled
+    assert len(models) == (1 if tiled else 2)
+    assert ("reason" in joins[0].as_dict()) is not tiled

@@ -162,3 +162,16 @@ def test_the_plan_records_what_each_pair_is_matched_by() -> None:
     m = Matcher(method="auto")
     assert pair_matcher(m, mixed[1]).config.method == "geo"
     assert pair_matcher(m, ground[0]).config.method == "sparse"
+
+
+def test_the_tiled_images_are_the_aerial_sides_of_tiled_pairs_only() -> None:
+    """What a join of two models may rest on alone: an aerial image matched by crops against a
+    ground photo, on whichever side of the pair it is; not an aerial image only ever paired with
+    other aerial images, and nothing when tiling is off."""
+    from geomatch.pipeline.plan import Plan
+
+    aerial = {"a0", "a1", "a2"}
+    planned = pairs.finalize([("g0", "a1"), ("a0", "g1"), ("a1", "a2"), ("g0", "g1")], aerial, "auto")
+    assert Plan(planned, sorted(aerial), "exhaustive", False).tiled_images == ("a0", "a1")
+    untiled = pairs.finalize([("g0", "a1"), ("a0", "g1")], aerial, "off")
+    assert Plan(untiled, sorted(aerial), "exhaustive", False).tiled_images == ()

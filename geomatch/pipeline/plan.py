@@ -181,6 +181,14 @@ class Plan:
         tracks, a lower PnP floor and the leftover passes (geomatch.sfm.mapping)."""
         return any(p.tiled for p in self.pairs)
 
+    @property
+    def tiled_images(self) -> tuple[str, ...]:
+        """The aerial sides of the tiled pairs, sorted: matched against ground photos through crops,
+        so their keypoints there are not those of their other pairs, and two right models can
+        share such an image and no point (the only join of models that may rest on one image:
+        geomatch.sfm.modeljoin)."""
+        return tuple(sorted({p.name0 if p.aerial_first else p.name1 for p in self.pairs if p.tiled}))
+
     def summary_fields(self) -> dict[str, Any]:
         """What summary.json says of the plan."""
         return {

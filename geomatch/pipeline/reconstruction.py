@@ -31,7 +31,8 @@ class MappingSettings:
     COLMAP's 30, or 20 where the project has tiled aerial x ground pairs (``tiled``), which also
     keeps two-view tracks and runs the leftover passes and re-maps. ``loop_check`` /
     ``tree_check``: the view graph's checks; ``track_refine``: each track's points aligned on the
-    photos; ``survey``: every photo aerial (the survey's track refinement). ``verbose`` lets
+    photos; ``survey``: every photo aerial (the survey's track refinement); ``bridges``: the plan's
+    tiled images, the only ones a join of two models may rest on alone. ``verbose`` lets
     COLMAP's own log through, ``progress`` shows a bar: neither changes the model."""
 
     mapper: str = "auto"
@@ -42,6 +43,7 @@ class MappingSettings:
     track_refine: bool = True
     tiled: bool = False
     survey: bool = False
+    bridges: tuple[str, ...] = ()
     seed: int = 0
     verbose: bool = field(default=False, compare=False)
     progress: bool = field(default=False, compare=False)
@@ -78,6 +80,7 @@ def mapping_settings(
         track_refine=bool(values.get("track_refine", base.track_refine)),
         tiled=plan.tiled,
         survey=plan.survey,
+        bridges=plan.tiled_images,
         verbose=verbose,
         progress=progress,
     )
@@ -117,6 +120,7 @@ def map_project(
         # holds the pairs' rotations to it
         image_up(images.metas, plan.survey),
         settings.survey,
+        settings.bridges,
     )
     summary["mapping_settings"] = settings.as_dict()
     summary["database"] = stats

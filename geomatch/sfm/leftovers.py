@@ -30,12 +30,14 @@ from .viewgraph import ViewGraphReport
 @dataclass(frozen=True)
 class Continuation:
     """What carrying the mapper on from a model needs: the mapper's database copy, the photos,
-    the mapper's options and the project's image count."""
+    the mapper's options, the project's image count and the images a join may rest on alone
+    (modeljoin.join_models)."""
 
     database: Path
     image_dir: Path
     options: pycolmap.IncrementalPipelineOptions
     n_images: int
+    bridges: frozenset[str] | None = None
 
 
 def _deregister(model: pycolmap.Reconstruction, names: set[str]) -> None:
@@ -74,7 +76,7 @@ def rejoin_blocks(
     _deregister(trimmed, out)
     trimmed = _posed_only(trimmed, work / "trimmed")
     joined, joins = join_models(
-        [trimmed, *models[1:]], more.database, more.image_dir, work / "joined", more.options
+        [trimmed, *models[1:]], more.database, more.image_dir, work / "joined", more.options, more.bridges
     )
     back = {im.name for im in joined[0].images.values() if im.has_pose}
     before = agreement(first, report.kept_rotations, report.kept_inliers)

@@ -15,7 +15,7 @@ import json
 import shutil
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -200,6 +200,7 @@ def reconstruct(
     tiled: bool = False,
     up: Mapping[str, np.ndarray] | None = None,
     survey: bool = False,
+    bridges: Collection[str] | None = None,
 ) -> dict[str, Any]:
     """Map, export the largest model and return (and write) the summary.
 
@@ -222,7 +223,9 @@ def reconstruct(
     the project has tiled aerial x ground pairs (``tiled``; options.TILED_MIN_POSE_INLIERS).
     ``up``: each photo's up in its camera frame where the photo knows it (upright.image_up), which
     the view graph holds a pair's rotation to. ``survey``: every photo is aerial, and the track
-    refinement takes the settings of such projects (trackrefine.SURVEY).
+    refinement takes the settings of such projects (trackrefine.SURVEY). ``bridges``: the images
+    the project tiled, the only ones a join of two models may rest on alone
+    (modeljoin.join_models; None: any image).
     """
     if mapper not in MAPPERS:
         raise ValueError(f"unknown mapper {mapper!r}; choose from {', '.join(MAPPERS)}")
@@ -238,6 +241,7 @@ def reconstruct(
 
     verify(database, verbose)
     lap("verify")
+    bridge_names = frozenset(bridges) if bridges is not None else None
     work = out / ".mapping"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
@@ -289,10 +293,12 @@ def reconstruct(
                     next_image_callback=lambda: bar.update(1),
                 )
                 ordered = sorted(found.values(), key=_size, reverse=True)
-                found_list, joins = join_models(ordered, mapped, image_dir, into / "joined", options)
+                found_list, joins = join_models(
+                    ordered, mapped, image_dir, into / "joined", options, bridge_names
+                )
                 placements: list[Placement] = []
                 if tiled and found_list:
-                    more = Continuation(mapped, image_dir, options, n_images)
+                    more = Continuation(mapped, image_dir, options, n_images, bridge_names)
                     if report is not None:
                         found_list, rejoined = rejoin_blocks(found_list, report, more, into / "rejoined")
                         joins = joins + rejoined

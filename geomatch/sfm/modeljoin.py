@@ -20,6 +20,7 @@ the whole. A join those pairs refuse leaves the second model as it was, and the 
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -53,13 +54,25 @@ class Join:
     # shared image's) that the placed poses hold, and that they break
     pairs_held: int = 0
     pairs_contradicted: int = 0
+    # no such pair either way, and the shared image is not one the project tiled: nothing but
+    # that one image's pose in two models holds the join (join_models says why that is not enough)
+    alone: bool = False
 
     @property
     def refused(self) -> bool:
-        return CrossPairs(self.pairs_held, self.pairs_contradicted).refuse
+        return self.alone or CrossPairs(self.pairs_held, self.pairs_contradicted).refuse
+
+    @property
+    def reason(self) -> str | None:
+        """Why the join was refused, in words for the summary; None when it was not."""
+        if self.alone:
+            return f"only {self.via} ties these cameras to the rest, and no pair of theirs checks it"
+        if self.refused:
+            return "their pairs with the rest do not meet their epipolar lines at the joined poses"
+        return None
 
     def as_dict(self) -> dict[str, object]:
-        return {
+        out: dict[str, object] = {
             "via": self.via,
             "scale": round(self.scale, 4),
             "neighbours": self.neighbours,
@@ -68,6 +81,9 @@ class Join:
             "pairs_held": self.pairs_held,
             "pairs_contradicted": self.pairs_contradicted,
         }
+        if self.reason is not None:
+            out["reason"] = self.reason
+        return out
 
 
 def _depths(rec: pycolmap.Reconstruction, image: pycolmap.Image) -> tuple[np.ndarray, np.ndarray]:
@@ -152,12 +168,20 @@ def place(first: pycolmap.Reconstruction, second: pycolmap.Reconstruction) -> Jo
     return Join(via, scale, n, spread, tuple(sorted(new)))
 
 
-def verify(rec: pycolmap.Reconstruction, join: Join, base: set[str], database: Path) -> Join:
+def verify(
+    rec: pycolmap.Reconstruction,
+    join: Join,
+    base: set[str],
+    database: Path,
+    bridges: Collection[str] | None = None,
+) -> Join:
     """``join`` with the inliers of the verified pairs of ``database`` between the images it placed
     and the images of ``base`` (the first model's own, the shared image aside) that ``rec`` holds,
-    and of those it breaks (joincheck.py). Measured on the adjusted model: the placement alone
-    carries the second model's error in the shared image's pose, which the adjustment takes out of
-    a right join and cannot take out of a wrong one (its cross pairs have no points to pull by)."""
+    and of those it breaks (joincheck.py); ``alone`` where there are none and the shared image is
+    not among ``bridges`` (None: any image may bridge). Measured on the adjusted model: the
+    placement alone carries the second model's error in the shared image's pose, which the
+    adjustment takes out of a right join and cannot take out of a wrong one (its cross pairs have
+    no points to pull by)."""
 
     def view(name: str) -> View:
         image = rec.find_image_with_name(name)
@@ -167,7 +191,9 @@ def verify(rec: pycolmap.Reconstruction, join: Join, base: set[str], database: P
     placed = {name: view(name) for name in join.images if name in held}
     others = {name: view(name) for name in sorted(base & held) if name != join.via}
     check = cross_pairs(database, placed, others)
-    return replace(join, pairs_held=check.held, pairs_contradicted=check.contradicted)
+    silent = check.held == 0 and check.contradicted == 0
+    alone = silent and bridges is not None and join.via not in bridges
+    return replace(join, pairs_held=check.held, pairs_contradicted=check.contradicted, alone=alone)
 
 
 def join_models(
@@ -176,13 +202,19 @@ def join_models(
     image_dir: Path,
     work: Path,
     options: pycolmap.IncrementalPipelineOptions,
+    bridges: Collection[str] | None = None,
 ) -> tuple[list[pycolmap.Reconstruction], list[Join]]:
     """``models`` (largest first) with every later model that shares an image with the first
     placed into it, its points triangulated again from ``database`` (the mapper's copy) with the
     poses held and the whole bundle-adjusted; the models that could not be joined follow as they
     were. A join whose cross pairs refuse it (:func:`verify`) is undone and the rest joined again
-    without it. The joins come back with the models, refused ones included (``Join.refused``),
-    for the summary. ``work``: a scratch folder for the triangulation."""
+    without it, and so is one that no cross pair speaks for unless its shared image is among
+    ``bridges``: the images the project tiled (None: any image), whose crop keypoints are why
+    two right models can share such an image and nothing else. Through any other image, two
+    models that meet only there are a block the mapper could not tie to the rest, and that one
+    image's pose in each (a homography's other decomposition, a wrong pose chain) places it. The
+    joins come back with the models, refused ones included (``Join.refused``), for the summary.
+    ``work``: a scratch folder for the triangulation."""
     if len(models) < 2:
         return models, []
     base = _registered(models[0])
@@ -203,7 +235,7 @@ def join_models(
             first, str(database), str(image_dir), str(into), clear_points=True, options=options
         )
         adjust(joined)
-        checked = {k: verify(joined, j, base, database) for k, j in joins.items()}
+        checked = {k: verify(joined, j, base, database, bridges) for k, j in joins.items()}
         newly = {k: j for k, j in checked.items() if j.refused}
         if not newly:
             # a model whose images all went into the first adds nothing more
