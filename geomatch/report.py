@@ -92,9 +92,24 @@ def _photos(s: Mapping[str, Any]) -> dict[str, Any]:
         "images": s.get("images"),
         "registered": s.get("registered"),
         "unregistered": list(s.get("unregistered_names", [])),
+        "left_out": _left_out(s),
         "aerial": len(s.get("aerial", [])),
         "with_gps": s.get("gps_images"),
     }
+
+
+def _left_out(s: Mapping[str, Any]) -> list[dict[str, str]]:
+    """The photos the mapping registered and then kept out of the model on purpose, each with why:
+    a user should know a photo is missing because its place could not be vouched for, not only
+    that it is missing."""
+    out = [
+        {"name": str(n), "why": "its own pairs do not vouch for where the mapper placed it"}
+        for n in s.get("unvouched_left_out") or []
+    ]
+    for j in s.get("joins_refused") or []:
+        why = f"joined to the model through {j.get('via')} only: {j.get('reason', 'refused')}"
+        out += [{"name": str(n), "why": why} for n in j.get("images", [])]
+    return out
 
 
 def _model(s: Mapping[str, Any]) -> dict[str, Any]:
@@ -209,6 +224,8 @@ def to_markdown(r: Mapping[str, Any], title: str = "Survey report") -> str:
     ]
     if ph["unregistered"]:
         lines.append(f"- not registered: {', '.join(e(n) for n in ph['unregistered'])}")
+    for o in ph.get("left_out", []):
+        lines.append(f"  - {e(o['name'])}: left out, {e(o['why'])}")
     lines += ["", "## Model", ""]
     lines += [
         f"- models: {mo['models']} (the largest is reported)",

@@ -115,6 +115,30 @@ def test_the_report_names_what_a_survey_team_checks_first() -> None:
         assert text in md, text
 
 
+def test_photos_kept_out_of_the_model_on_purpose_are_named_with_why() -> None:
+    """A camera whose pairs do not vouch for it and a block whose join was refused are not just
+    'not registered': the team reads why each is missing."""
+    s = {
+        "registered": 4,
+        "images": 7,
+        "unregistered_names": ["a.jpg", "b.jpg", "c.jpg"],
+        "unvouched_left_out": ["a.jpg"],
+        "joins_refused": [
+            {
+                "via": "g2.jpg",
+                "images": ["b.jpg", "c.jpg"],
+                "reason": "only g2.jpg ties these cameras to the rest, and no pair of theirs checks it",
+            }
+        ],
+    }
+    r = survey_report(s)
+    assert [o["name"] for o in r["photos"]["left_out"]] == ["a.jpg", "b.jpg", "c.jpg"]
+    md = to_markdown(r)
+    assert "a.jpg: left out, its own pairs do not vouch" in md
+    assert "c.jpg: left out, joined to the model through g2.jpg only: only g2.jpg ties" in md
+    assert survey_report({"registered": 3, "images": 3})["photos"]["left_out"] == []
+
+
 def test_a_summary_without_gps_gcps_or_stages_still_reports() -> None:
     # an older run's summary, or a reconstruct job's, carries fewer keys
     r = survey_report({"registered": 3, "images": 3, "points3D": 10})

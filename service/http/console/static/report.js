@@ -51,6 +51,9 @@ export function showReport(report) {
   facts("report-facts", [
     ["registered", "Photos registered", `${shown(ph.registered)} of ${shown(ph.images)}`],
     ["unregistered", "Not registered", ph.unregistered.length ? ph.unregistered.join(", ") : "none"],
+    ph.left_out && ph.left_out.length
+      ? ["left-out", "Left out on purpose", ph.left_out.map((o) => `${o.name}: ${o.why}`).join("; ")]
+      : null,
     ["with-gps", "With GPS", ph.with_gps === null || ph.with_gps === undefined ? "none" : ph.with_gps],
     ph.aerial ? ["aerial", "Aerial", ph.aerial] : null,
     ["points", "3D points", shown(mo.points3D)],
