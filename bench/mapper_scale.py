@@ -84,10 +84,11 @@ def map_once(folder: Path, mapper: str) -> dict[str, Any]:
     (out / "images").mkdir(parents=True)  # COLMAP reads colours from it; there are no pixels
     shutil.copy(folder / "database.db", out / "database.db")
     code = (
-        "import sys, json, time; from pathlib import Path; from geomatch.sfm.mapping import reconstruct; "
+        "import sys, json, time; from pathlib import Path; "
+        "from geomatch.sfm.mapping import MappingSettings, reconstruct; "
         "import resource; t = time.perf_counter(); "
         "s = reconstruct(Path(sys.argv[1]) / 'database.db', Path(sys.argv[1]) / 'images', Path(sys.argv[1]), "
-        "mapper=sys.argv[2], track_refine=False); "
+        "MappingSettings(mapper=sys.argv[2], track_refine=False)); "
         "print(json.dumps({'wall': time.perf_counter() - t, 'stages': s['mapping_seconds'], "
         "'rss_mib': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))"
     )

@@ -4,7 +4,6 @@ the library's own dataclasses agree with it, and importing it costs no torch."""
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import re
 import subprocess
 import sys
@@ -138,7 +137,7 @@ def test_library_defaults_are_the_options() -> None:
     from geomatch.matching.matcher import MatcherConfig
     from geomatch.matching.optimizer import GeoOptions
     from geomatch.pipeline import RunOptions
-    from geomatch.sfm.mapping import reconstruct
+    from geomatch.sfm.mapping import MappingSettings
 
     config = MatcherConfig()
     for name in options.MATCH_OPTIONS:
@@ -158,9 +157,9 @@ def test_library_defaults_are_the_options() -> None:
         "min_pose_inliers",
     ):
         assert getattr(run, name) == DEFAULTS[name], name
-    params = inspect.signature(reconstruct).parameters
-    assert params["mapper"].default == DEFAULTS["mapper"]
-    assert params["min_pose_inliers"].default == DEFAULTS["min_pose_inliers"]
+    settings = MappingSettings()
+    assert settings.mapper == DEFAULTS["mapper"]
+    assert settings.min_pose_inliers == DEFAULTS["min_pose_inliers"]
 
 
 # -- checks --------------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -18,39 +18,12 @@ from ..geo.gcpfile import GcpError, GcpFile, read_gcp_file
 from ..options import DEFAULTS
 from ..sfm import mapping
 from ..sfm.colmapdb import ColmapDatabase
+from ..sfm.mapping import MappingSettings
 from ..sfm.upright import image_up
 from .plan import Plan
 from .prepare import ProjectImages
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class MappingSettings:
-    """How a project is mapped (geomatch.sfm.mapping.reconstruct). ``min_pose_inliers`` 0 is
-    COLMAP's 30, or 20 where the project has tiled aerial x ground pairs (``tiled``), which also
-    keeps two-view tracks and runs the leftover passes and re-maps. ``loop_check`` /
-    ``tree_check``: the view graph's checks; ``track_refine``: each track's points aligned on the
-    photos; ``survey``: every photo aerial (the survey's track refinement); ``bridges``: the plan's
-    tiled images, the only ones a join of two models may rest on alone. ``verbose`` lets
-    COLMAP's own log through, ``progress`` shows a bar: neither changes the model."""
-
-    mapper: str = "auto"
-    min_model_size: int = 3
-    min_pose_inliers: int = 0
-    loop_check: bool = True
-    tree_check: bool = True
-    track_refine: bool = True
-    tiled: bool = False
-    survey: bool = False
-    bridges: tuple[str, ...] = ()
-    seed: int = 0
-    verbose: bool = field(default=False, compare=False)
-    progress: bool = field(default=False, compare=False)
-
-    def as_dict(self) -> dict[str, Any]:
-        """The settings that shape the model, as the summary records them."""
-        return {k: v for k, v in asdict(self).items() if k not in ("verbose", "progress")}
 
 
 @dataclass(frozen=True)
@@ -101,28 +74,10 @@ def map_project(
     t0 = time.perf_counter()
     with ColmapDatabase(db_path) as db:
         stats, priors = db.stats(), db.pose_priors()
-    summary = mapping.reconstruct(
-        db_path,
-        images.folder,
-        out,
-        settings.mapper,
-        settings.min_model_size,
-        settings.seed,
-        settings.verbose,
-        settings.progress,
-        settings.min_pose_inliers,
-        settings.loop_check,
-        images.fixes,
-        settings.tree_check,
-        settings.track_refine,
-        settings.tiled,
-        # each photo's up where it is known (its gimbal, a survey's nadir camera): the view graph
-        # holds the pairs' rotations to it
-        image_up(images.metas, plan.survey),
-        settings.survey,
-        settings.bridges,
-    )
-    summary["mapping_settings"] = settings.as_dict()
+    # each photo's up where it is known (its gimbal, a survey's nadir camera): the view graph holds
+    # the pairs' rotations to it
+    up = image_up(images.metas, plan.survey)
+    summary = mapping.reconstruct(db_path, images.folder, out, settings, gps=images.fixes, up=up)
     summary["database"] = stats
     summary["pose_priors"] = priors
     summary.update(plan.summary_fields())

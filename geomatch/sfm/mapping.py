@@ -11,11 +11,11 @@ and ``summary.json``; other models, if any, go to ``sparse/1`` ...
 
 from __future__ import annotations
 
-import json
 import shutil
 import tempfile
 import time
-from collections.abc import Collection, Mapping
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -183,26 +183,48 @@ def incremental_options(
     return opts
 
 
+@dataclass(frozen=True)
+class MappingSettings:
+    """How a project is mapped: what both runners give :func:`reconstruct` (the pipeline's
+    ``mapping_settings`` makes them from the options and the plan). ``min_pose_inliers`` 0 is
+    COLMAP's 30, or 20 where the project has tiled aerial x ground pairs (``tiled``;
+    options.TILED_MIN_POSE_INLIERS), which also keeps two-view tracks and runs the leftover passes
+    and re-maps. ``loop_check`` / ``tree_check``: the view graph's checks (viewgraph.py);
+    ``track_refine``: each track's keypoints aligned on the photos (trackrefine.py); ``survey``: every
+    photo is aerial, and the track refinement takes the settings of such projects
+    (trackrefine.SURVEY); ``bridges``: the images the project tiled, the only ones a join of two
+    models may rest on alone (modeljoin.join_models; None: any image). ``verbose`` lets COLMAP's
+    own log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
+    line a user watching a terminal needs: neither changes the model."""
+
+    mapper: str = "auto"
+    min_model_size: int = 3
+    min_pose_inliers: int = 0
+    loop_check: bool = True
+    tree_check: bool = True
+    track_refine: bool = True
+    tiled: bool = False
+    survey: bool = False
+    bridges: tuple[str, ...] | None = None
+    seed: int = 0
+    verbose: bool = field(default=False, compare=False)
+    progress: bool = field(default=False, compare=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The settings that shape the model, as the summary records them."""
+        return {k: v for k, v in asdict(self).items() if k not in ("verbose", "progress")}
+
+
 def reconstruct(
     database: Path,
     image_dir: Path,
     out: Path,
-    mapper: str = "auto",
-    min_model_size: int = 3,
-    seed: int = 0,
-    verbose: bool = False,
-    progress: bool = False,
-    min_pose_inliers: int = 0,
-    loop_check: bool = True,
+    settings: MappingSettings | None = None,
     gps: GpsFixes | None = None,
-    tree_check: bool = True,
-    track_refine: bool = True,
-    tiled: bool = False,
     up: Mapping[str, np.ndarray] | None = None,
-    survey: bool = False,
-    bridges: Collection[str] | None = None,
 ) -> dict[str, Any]:
-    """Map, export the largest model and return (and write) the summary.
+    """Map, export the largest model (``out``: sparse/, points.ply) and return the summary, which
+    its caller completes and writes (geomatch.pipeline.outputs).
 
     With ``gps`` every model with three or more registered images that have a fix is moved into
     the fixes' ENU frame (geo/georef.py) before it is written, so ``sparse/``, ``points.ply`` and the
@@ -217,16 +239,15 @@ def reconstruct(
     (thinmatches.py), and then, with ``track_refine``, each track's keypoints are aligned on the
     photos (trackrefine.py); ``database`` itself keeps every verified pair and the matcher's keypoints,
     and the summary lists the dropped pairs (``view_graph``), the moved points
-    (``track_refinement``) and the kept matches (``thinning``). ``verbose`` lets COLMAP's own
-    log through (colmaplog.py); ``progress`` shows a bar of registered images instead, the one
-    line a user watching a terminal needs. ``min_pose_inliers`` 0 is COLMAP's 30, or 20 where
-    the project has tiled aerial x ground pairs (``tiled``; options.TILED_MIN_POSE_INLIERS).
-    ``up``: each photo's up in its camera frame where the photo knows it (upright.image_up), which
-    the view graph holds a pair's rotation to. ``survey``: every photo is aerial, and the track
-    refinement takes the settings of such projects (trackrefine.SURVEY). ``bridges``: the images
-    the project tiled, the only ones a join of two models may rest on alone
-    (modeljoin.join_models; None: any image).
+    (``track_refinement``) and the kept matches (``thinning``). ``up``: each photo's up in its
+    camera frame where the photo knows it (upright.image_up), which the view graph holds a pair's
+    rotation to.
     """
+    settings = settings or MappingSettings()
+    mapper, min_model_size, seed = settings.mapper, settings.min_model_size, settings.seed
+    min_pose_inliers, tiled, survey = settings.min_pose_inliers, settings.tiled, settings.survey
+    loop_check, tree_check, track_refine = settings.loop_check, settings.tree_check, settings.track_refine
+    verbose, progress, bridges = settings.verbose, settings.progress, settings.bridges
     if mapper not in MAPPERS:
         raise ValueError(f"unknown mapper {mapper!r}; choose from {', '.join(MAPPERS)}")
     # seconds per stage, so a slow project says which stage to look at
@@ -419,5 +440,5 @@ def reconstruct(
         )
         summary["registered_names"] = []
         summary["unregistered_names"] = all_names
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    summary["mapping_settings"] = settings.as_dict()
     return summary
