@@ -56,7 +56,7 @@ def test_what_the_console_and_the_report_read_is_in_the_record() -> None:
     assert report - FIELDS == set(), "geomatch.report reads fields no summary has"
 
 
-@pytest.mark.unit
+@pytest.mark.pipeline
 def test_a_run_writes_the_record_once(small_run: Path) -> None:
     summary = json.loads((small_run / "summary.json").read_text())
     assert set(summary) - FIELDS == set(), "fields the record lacks"
