@@ -4,7 +4,8 @@
   composition root); service and workers never import each other;
 - inside the library, a folder imports only folders ranked below it (RANKS);
 - no import loops between modules (lazy imports inside functions count: they load the same code;
-  imports under ``if TYPE_CHECKING:`` are annotations only and count for the layering alone);
+  imports under ``if TYPE_CHECKING:`` count too: a loop of annotations is two modules that cannot
+  be read apart);
 - no module touches another module's private names (``x._name``, ``from m import _name``), except
   the tests of that module (``tests/test_<module>.py``, by the module's name or by its path in
   geomatch with ``_`` for the dots: tests/test_synth_indoor.py for geomatch.synth.indoor) and the
@@ -89,24 +90,12 @@ def _modules() -> dict[str, Path]:
 MODULES = _modules()
 
 
-def _typing_only(tree: ast.AST) -> set[int]:
-    """ids of the import nodes under ``if TYPE_CHECKING:``."""
-    out: set[int] = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
-            out.update(id(n) for stmt in node.body for n in ast.walk(stmt))
-    return out
-
-
-def _imports(name: str, path: Path, runtime: bool = False) -> Iterator[tuple[str, int]]:
-    """(imported module of ours, line) for every import in the file, at any depth; ``runtime``:
-    leave out the imports made for type checkers only."""
+def _imports(name: str, path: Path) -> Iterator[tuple[str, int]]:
+    """(imported module of ours, line) for every import in the file, at any depth (under
+    ``if TYPE_CHECKING:`` too)."""
     is_pkg = path.name == "__init__.py"
     tree = ast.parse(path.read_text(), str(path))
-    skip = _typing_only(tree) if runtime else set()
     for node in ast.walk(tree):
-        if id(node) in skip:
-            continue
         if isinstance(node, ast.Import):
             for alias in node.names:
                 target = _ours(alias.name)
@@ -135,11 +124,11 @@ def _ours(dotted: str) -> str | None:
     return None
 
 
-def _graph(runtime: bool = False) -> dict[str, dict[str, int]]:
+def _graph() -> dict[str, dict[str, int]]:
     graph: dict[str, dict[str, int]] = {}
     for name, path in MODULES.items():
         edges = graph.setdefault(name, {})
-        for target, line in _imports(name, path, runtime):
+        for target, line in _imports(name, path):
             if target != name:
                 edges.setdefault(target, line)
     return graph
@@ -198,7 +187,7 @@ def test_folders_import_only_folders_below() -> None:
 
 
 def test_no_import_loops() -> None:
-    graph = _graph(runtime=True)
+    graph = _graph()
     # Tarjan's strongly connected components
     index: dict[str, int] = {}
     low: dict[str, int] = {}

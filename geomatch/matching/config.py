@@ -7,12 +7,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
 from ..epipolar.geometry import scale_fundamental
+from ..features.base import ImageFeatures, SparseFeatures, SparseMatch
 from ..features.refine import RefineOptions
 from ..imageio import Prepared
 from ..options import DEFAULTS, DENSE_BACKBONES, METHOD_FLAGS, METHODS, SPARSE_BACKBONES, Method
@@ -269,3 +270,23 @@ def config_from_options(**options: Any) -> MatcherConfig:
         raise TypeError(f"unknown matching options: {', '.join(sorted(unknown))}")
     base = MatcherConfig(**options)
     return replace(base, geo=replace(base.geo, **geo_kw), refine=replace(base.refine, **refine_kw))
+
+
+class MatcherParts(Protocol):
+    """What a matcher's helpers (variants.py: the matchers it derives; guided.py: the guided pass)
+    use of a :class:`~geomatch.matching.matcher.Matcher`, typed here so that they need not import
+    matcher.py, which imports them."""
+
+    config: MatcherConfig
+    device: torch.device
+    variants: dict[str, Any]  # the matchers derived for its pairs, by variant name
+
+    def derive(self, **overrides: Any) -> Any: ...
+
+    def features(self, image: np.ndarray, key: str | None = None) -> dict[str, ImageFeatures]: ...
+
+    def prepared(self, image: np.ndarray, key: str) -> Prepared: ...
+
+    def match_anchors(
+        self, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures, dense: bool = False
+    ) -> SparseMatch: ...

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import functools
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,10 +29,15 @@ import torch
 from ..epipolar.geometry import estimate_fundamental, homogeneous, sampson_distance
 from ..features.base import SparseFeatures
 from ..imageio import image_key
-from .config import GUIDED_LIGHTGLUE_POINTS, GUIDED_RATIO, SEED_RATIO, MatchResult, StageTimer, pair_result
-
-if TYPE_CHECKING:
-    from .matcher import Matcher
+from .config import (
+    GUIDED_LIGHTGLUE_POINTS,
+    GUIDED_RATIO,
+    SEED_RATIO,
+    MatcherParts,
+    MatchResult,
+    StageTimer,
+    pair_result,
+)
 
 # rows of the (N, M) matrices computed at once, in bytes of float32 per matrix. On the CPU a block
 # small enough to stay in cache: the passes over it (similarity, Sampson gate, top two, column
@@ -164,7 +169,7 @@ def strongest(f: SparseFeatures | None, n: int) -> SparseFeatures:
 
 
 def seed(
-    matcher: Matcher, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures, lightglue: bool
+    matcher: MatcherParts, key0: str, key1: str, sa: SparseFeatures, sb: SparseFeatures, lightglue: bool
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, int, str]:
     """The guided matcher's seed: (inliers in A, inliers in B, F, how many, which seed): mutual
     nearest neighbours with the ratio test, and where they fit fewer than ``anchors_suffice``
@@ -192,7 +197,7 @@ def seed(
 
 
 @torch.inference_mode()
-def seed_inliers(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:
+def seed_inliers(matcher: MatcherParts, image0: np.ndarray, image1: np.ndarray) -> int:
     """The inliers of the mutual-nearest-neighbour seed's F alone (no LightGlue): a cheap,
     sharp rank of a pair's quarter turns (a wrong turn fits a handful)."""
     key0, key1 = image_key(image0), image_key(image1)
@@ -203,7 +208,7 @@ def seed_inliers(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> in
 
 
 @torch.inference_mode()
-def match_guided(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> MatchResult:
+def match_guided(matcher: MatcherParts, image0: np.ndarray, image1: np.ndarray) -> MatchResult:
     """The pair by the two passes above: a seed F, then the matches its epipolar lines guide.
     ``stats["f_inliers"]`` is the seed's: below ``anchors_suffice`` the seed's matches are the
     answer (no guided pass), and the caller decides whether the full method runs."""

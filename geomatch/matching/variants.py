@@ -7,17 +7,15 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any, TypeVar, cast
 
-from .config import AUTO_PLAIN_PAIRS, GUIDED_KEYPOINTS
+from .config import AUTO_PLAIN_PAIRS, GUIDED_KEYPOINTS, MatcherParts
 
-if TYPE_CHECKING:
-    from .matcher import Matcher
+# a Matcher (or a subclass), typed by what these functions use of it: they give back its own kind
+M = TypeVar("M", bound=MatcherParts)
 
 
-def for_pair(
-    matcher: Matcher, tiled: bool, aerial_project: bool = False, aerial_pair: bool = False
-) -> Matcher:
+def for_pair(matcher: M, tiled: bool, aerial_project: bool = False, aerial_pair: bool = False) -> M:
     """The matcher a planned pair gets: ``matcher`` itself, except under ``auto``, where
 
     - a tiled (aerial x ground) pair gets the full ``geo`` method on every crop: on the
@@ -54,10 +52,10 @@ def for_pair(
                 light_first=True, escalate_from=cfg.anchors_suffice, guided_keypoints=GUIDED_KEYPOINTS
             )
         matcher.variants[variant] = matcher.derive(method=method, **overrides)
-    return matcher.variants[variant]
+    return cast(M, matcher.variants[variant])
 
 
-def light_matcher(matcher: Matcher) -> Matcher:
+def light_matcher(matcher: M) -> M:
     """``light_first``'s first matcher: the light anchors of a ground-only project's pairs, or with
     ``guided_keypoints`` the guided matcher's (:func:`geomatch.matching.guided.match_guided`)."""
     if "light-first:light" not in matcher.variants:
@@ -67,12 +65,12 @@ def light_matcher(matcher: Matcher) -> Matcher:
         matcher.variants["light-first:light"] = matcher.derive(
             method="sparse", light_first=False, **overrides
         )
-    return matcher.variants["light-first:light"]
+    return cast(M, matcher.variants["light-first:light"])
 
 
-def full_matcher(matcher: Matcher) -> Matcher:
+def full_matcher(matcher: M) -> M:
     """``light_first``'s matcher for the pairs the light one leaves weak: the same options at full
     strength (derived once, so its dense head is built once)."""
     if "light-first:full" not in matcher.variants:
         matcher.variants["light-first:full"] = matcher.derive(light_first=False, escalate_from=0)
-    return matcher.variants["light-first:full"]
+    return cast(M, matcher.variants["light-first:full"])
