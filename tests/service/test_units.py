@@ -237,9 +237,9 @@ def test_service_modules_do_not_import_torch() -> None:
         "service.http.api, geomatch_app.bootstrap, geomatch_app.cli, service.cli, "
         "workers.celery_queue, workers.local, workers.tasks, workers.jobs, workers.steps"
     )
-    # the option vocabulary, the export table, the command's parser, the survey report, a summary's
-    # finite numbers (pipeline.outputs) and the SQLite snapshot (standard library only) are all the
-    # API reads of the library
+    # the option vocabulary, the export table, the command's parser (the synth command's among it),
+    # the survey report, a summary's finite numbers (pipeline.outputs) and the SQLite snapshot
+    # (standard library only) are all the API reads of the library
     loaded = loaded_after(modules, ("torch", "geomatch", "cv2"))
     assert loaded == [
         "geomatch",
@@ -253,6 +253,8 @@ def test_service_modules_do_not_import_torch() -> None:
         "geomatch.report",
         "geomatch.sfm",
         "geomatch.sfm.sqlitecopy",
+        "geomatch.synth",
+        "geomatch.synth.command",
     ]
 
 
