@@ -16,8 +16,9 @@ import pycolmap
 import pyproj
 import pytest
 
-from geomatch.geo.gcp import GeoreferenceError, apply_to_model, georeference
+from geomatch.geo.gcp import apply_to_model, georeference
 from geomatch.geo.gcpfile import GcpError, GcpFile, parse_crs, read_gcp_file
+from geomatch.geo.gcpreport import GeoreferenceError
 
 from .fswatch import watched
 

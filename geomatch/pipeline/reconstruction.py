@@ -15,6 +15,7 @@ from typing import Any
 
 from ..geo import gcp as gcpgeo
 from ..geo.gcpfile import GcpError, GcpFile, read_gcp_file
+from ..geo.gcpreport import failed
 from ..options import DEFAULTS
 from ..sfm import mapping
 from ..sfm.colmapdb import ColmapDatabase
@@ -104,7 +105,7 @@ def georeference_by_gcps(
         gcps = read_gcp_file(control.text, images.sizes())
         gcpgeo.georeference_summary(summary, out, gcps, control.checkpoints)
     except GcpError as e:
-        summary["gcp"] = gcpgeo.failed(gcps, f"the project's GCP file: {e}")
+        summary["gcp"] = failed(gcps, f"the project's GCP file: {e}")
     except Exception as e:  # numbers the fit cannot take: the model stays as mapped
         log.warning("GCP georeferencing failed: %r", e)
-        summary["gcp"] = gcpgeo.failed(gcps, f"the GCP georeferencing failed ({control.explain(e)})")
+        summary["gcp"] = failed(gcps, f"the GCP georeferencing failed ({control.explain(e)})")
