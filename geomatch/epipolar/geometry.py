@@ -123,6 +123,12 @@ def estimate_fundamental(
     return Ft, torch.from_numpy(mask.ravel() > 0).to(pa.device)
 
 
+def skew(t: np.ndarray) -> np.ndarray:
+    """[t]x, the cross product as a matrix: E = [t]x R is the essential matrix of a relative pose
+    (R, t), which is how two posed cameras are held to their pair's matches."""
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]], np.float64)
+
+
 def scale_fundamental(fundamental: np.ndarray, to_a: np.ndarray, to_b: np.ndarray) -> np.ndarray:
     """F in new frames, given 3x3 maps ``to_a``/``to_b`` from the new frames into F's frames."""
     F = to_b.T @ fundamental @ to_a

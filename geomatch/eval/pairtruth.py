@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ..epipolar.geometry import skew
+
 MIN_INLIERS = 15  # COLMAP's min_num_inliers: pairs below it do not reach the mapper
 MAX_DISTANCE_PX = 4.0
 MAX_DISTANCE_DIAGONAL = 0.004
@@ -38,10 +40,6 @@ class PairVerdict:
     used: bool  # reached the mapper (not dropped by the view-graph checks)
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]], np.float64)
-
-
 def gt_fundamental(gt: pycolmap.Reconstruction, name0: str, name1: str) -> np.ndarray | None:
     """F with x1^T F x0 = 0 in COLMAP pixel coordinates; None when an image is unknown or the
     two surveyed centres coincide (no epipolar geometry)."""
@@ -55,7 +53,7 @@ def gt_fundamental(gt: pycolmap.Reconstruction, name0: str, name1: str) -> np.nd
         return None
     K0 = gt.cameras[ims[name0].camera_id].calibration_matrix()
     K1 = gt.cameras[ims[name1].camera_id].calibration_matrix()
-    E = _skew(t) @ rel.rotation.matrix()
+    E = skew(t) @ rel.rotation.matrix()
     return np.linalg.inv(K1).T @ E @ np.linalg.inv(K0)
 
 

@@ -16,7 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+import torch
 
+from ..epipolar.geometry import sampson_distance, skew
 from ..imageio import working_scale
 
 # a pair is heard from this many inliers on: COLMAP's own verification floor
@@ -50,10 +52,6 @@ class CrossPairs:
         return self.contradicted > self.held
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
 def sampson_px(a: View, b: View, kp_a: np.ndarray, kp_b: np.ndarray, matches: np.ndarray) -> float:
     """Median Sampson distance, in working pixels, of ``matches`` (rows of keypoint indices into
     ``kp_a``, ``kp_b``, COLMAP's pixel convention) under the two poses' essential matrix."""
@@ -64,15 +62,10 @@ def sampson_px(a: View, b: View, kp_a: np.ndarray, kp_b: np.ndarray, matches: np
     norm = float(np.linalg.norm(t))
     if norm == 0.0:
         return float("inf")  # one centre for two cameras: no epipolar geometry holds a pair
-    essential = _skew(t / norm) @ rel
+    essential = torch.from_numpy(skew(t / norm) @ rel)
     xa = np.asarray(a.camera.cam_from_img(kp_a[matches[:, 0]].astype(np.float64)), np.float64)
     xb = np.asarray(b.camera.cam_from_img(kp_b[matches[:, 1]].astype(np.float64)), np.float64)
-    xa = np.c_[xa, np.ones(len(xa))]
-    xb = np.c_[xb, np.ones(len(xb))]
-    ex, etx = xa @ essential.T, xb @ essential
-    num = np.sum(xb * ex, axis=1) ** 2
-    den = ex[:, 0] ** 2 + ex[:, 1] ** 2 + etx[:, 0] ** 2 + etx[:, 1] ** 2
-    dist = np.sqrt(num / np.maximum(den, 1e-30))
+    dist = np.sqrt(sampson_distance(essential, torch.from_numpy(xa), torch.from_numpy(xb)).numpy())
     focal = 0.5 * (a.camera.mean_focal_length() + b.camera.mean_focal_length())
     side = max(a.camera.width, a.camera.height, b.camera.width, b.camera.height)
     return float(np.median(dist)) * focal / working_scale(side)

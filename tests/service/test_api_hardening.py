@@ -229,8 +229,12 @@ def test_schema_says_what_the_server_takes(server: tuple[Deployment, httpx.Clien
         if p["name"] == "format"
     )
     assert fmt["schema"]["enum"] == [
+        # the files the run writes (the map's among them) come first, then those built on request
         "zip",
         "ply",
+        "orthophoto",
+        "dsm",
+        "map-preview",
         "json",
         "scene",
         "nerfstudio",
@@ -239,9 +243,6 @@ def test_schema_says_what_the_server_takes(server: tuple[Deployment, httpx.Clien
         "openmvs",
         "odm",
         "laz",
-        "orthophoto",
-        "dsm",
-        "map-preview",
     ]
     r = c.get("/v1/projects/0123/model", params={"format": "tar"})
     assert r.status_code == 422 and "format" in r.json()["detail"], r.text
