@@ -357,11 +357,12 @@ PROJECT_OPTIONS = (
     "snap_radius",
     "camera",
     "mapper",
+    "min_pose_inliers",
     "ortho",
     "ortho_gsd",
 )
 # the options a reconstruct job takes from its match job or its project (the rest are matching's)
-RECONSTRUCT_OPTIONS = ("mapper", "ortho", "ortho_gsd")
+RECONSTRUCT_OPTIONS = ("mapper", "min_pose_inliers", "ortho", "ortho_gsd")
 PAIR_OPTIONS = ("method", "resize", "tiling")  # one pair matched on its own (gRPC MatchPair)
 
 

@@ -82,6 +82,7 @@ def test_rest_schema_is_the_options() -> None:
 
     assert tuple(schemas.ProjectConfig.model_fields) == PROJECT_OPTIONS
     assert set(schemas.MatchIn.model_fields) == {*PROJECT_OPTIONS, "reconstruct"}
+    assert set(schemas.ReconstructIn.model_fields) == {*options.RECONSTRUCT_OPTIONS, "checkpoints"}
     for name in PROJECT_OPTIONS:
         field = schemas.ProjectConfig.model_fields[name]
         assert field.default is None, name  # unset: the project's, else the default
@@ -126,6 +127,9 @@ def test_proto_is_the_options() -> None:
         if name != "pairs":  # a oneof there: pair_spec (the option) or pair_list
             assert PROTO_TYPES[submit[name]] is OPTIONS[name].type, name
     assert "pair_spec" in submit and "pair_list" in submit
+    reconstruct = _proto_fields("SubmitReconstructionRequest")
+    for name in options.RECONSTRUCT_OPTIONS:  # what the job takes of a project's options
+        assert PROTO_TYPES[reconstruct[name]] is OPTIONS[name].type, name
     pair = _proto_fields("MatchPairOptions")
     assert tuple(pair) == PAIR_OPTIONS
     for name, kind in pair.items():
@@ -178,6 +182,10 @@ def test_library_defaults_are_the_options() -> None:
         ("pairs", "sequential:3", True),
         ("pairs", "sequential:0", False),
         ("mapper", "global", True),
+        ("min_pose_inliers", 0, True),
+        ("min_pose_inliers", 2, False),
+        ("min_pose_inliers", 60, True),
+        ("min_pose_inliers", 10001, False),
         ("camera", "per-image", True),
         ("tiling", "maybe", False),
     ],

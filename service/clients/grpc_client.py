@@ -219,7 +219,8 @@ class GrpcClient:
         reconstruct: bool = False,
         **options: Any,
     ) -> Any:
-        """Options: method, resize, tiling, snap_radius, camera, mapper (None: the default)."""
+        """Options: method, resize, tiling, snap_radius, camera, and for the reconstruct job mapper,
+        min_pose_inliers, ortho, ortho_gsd (None: the default)."""
         req = pb2.SubmitMatchingRequest(
             project_id=project_id,
             reconstruct=reconstruct,
@@ -234,10 +235,17 @@ class GrpcClient:
         return self._call("SubmitMatching", req)
 
     def submit_reconstruction(
-        self, project_id: str, mapper: str | None = None, checkpoints: Iterable[str] | int | None = None
+        self,
+        project_id: str,
+        mapper: str | None = None,
+        checkpoints: Iterable[str] | int | None = None,
+        **options: Any,
     ) -> Any:
-        """``checkpoints``: GCP names held out of the fit, or how many (None: none)."""
-        req = pb2.SubmitReconstructionRequest(project_id=project_id)
+        """``checkpoints``: GCP names held out of the fit, or how many (None: none). Options:
+        min_pose_inliers, ortho, ortho_gsd (None: the project's)."""
+        req = pb2.SubmitReconstructionRequest(
+            project_id=project_id, **{k: v for k, v in options.items() if v is not None}
+        )
         if mapper is not None:
             req.mapper = mapper
         if isinstance(checkpoints, int):

@@ -20,6 +20,8 @@ from .pb import pb2
 
 CONFIG_FIELDS = options.PROJECT_OPTIONS  # ProjectConfig's fields, and SubmitMatchingRequest's but pairs
 PAIR_FIELDS = options.PAIR_OPTIONS  # MatchPairOptions' fields
+# SubmitReconstructionRequest's mapping options; its mapper is start_reconstruct's own argument
+MAPPING_FIELDS = tuple(n for n in options.RECONSTRUCT_OPTIONS if n != "mapper")
 CAPTURE_ENUM = {"auto": pb2.CAPTURE_AUTO, "aerial": pb2.CAPTURE_AERIAL, "ground": pb2.CAPTURE_GROUND}
 JOB_KINDS = {
     "match": pb2.JOB_KIND_MATCH,

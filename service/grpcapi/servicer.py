@@ -143,7 +143,7 @@ class MatchingServicer(pb2_grpc.MatchingServicer):
     ) -> pb2.Job:
         mapper = request.mapper if request.HasField("mapper") else None
         checkpoints = convert.checkpoints(request)
-        mapping = {k: getattr(request, k) for k in ("ortho", "ortho_gsd") if request.HasField(k)}
+        mapping = convert.optional_fields(request, convert.MAPPING_FIELDS)
         return convert.job(
             self.service.jobs.start_reconstruct(tenant_id, request.project_id, mapper, checkpoints, mapping)
         )

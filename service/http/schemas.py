@@ -229,6 +229,9 @@ class ReconstructIn(_Strict):
     mapper: option_type("mapper") | None = Field(  # type: ignore[valid-type]
         None, examples=[options.DEFAULTS["mapper"]], description=" | ".join(options.MAPPERS)
     )
+    min_pose_inliers: option_type("min_pose_inliers") | None = Field(  # type: ignore[valid-type]
+        None, examples=[60], description=options.OPTIONS["min_pose_inliers"].help
+    )
     ortho: option_type("ortho") | None = Field(  # type: ignore[valid-type]
         None, examples=["on"], description=" | ".join(options.ORTHO) + ": " + options.OPTIONS["ortho"].help
     )

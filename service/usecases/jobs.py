@@ -106,10 +106,13 @@ class JobUseCases(UseCases):
     ) -> JobView:
         """``checkpoints``: ground control points held out of the fit to judge it (names, or how
         many, spread over the points' sorted names), checked against the project's GCP file;
-        ``mapping``: ``ortho`` / ``ortho_gsd`` for this job (else the project's)."""
+        ``mapping``: the reconstruct options but the mapper (``min_pose_inliers``, ``ortho``,
+        ``ortho_gsd``) for this job (else the project's)."""
         with self._unless_deleted(tenant_id, project_id), self.ctx.store.session() as s:
             p = self._project(s, tenant_id, project_id)
             mapper = check_option("mapper", mapper or p.config.get("mapper") or DEFAULTS["mapper"])
+            # the values before the project's state: a bad one is refused as REST's schema refuses it
+            config = {**DEFAULTS, **check_config(dict(p.config)), **check_config(dict(mapping or {}))}
             matched = s.scalar(
                 select(func.count())
                 .select_from(Job)
@@ -122,7 +125,6 @@ class JobUseCases(UseCases):
                 )
             check_open_jobs(s, self.ctx.settings, tenant_id)
             held_out = check_checkpoints(s, self.ctx.storage, project_id, checkpoints)
-            config = {**DEFAULTS, **check_config(dict(p.config)), **check_config(dict(mapping or {}))}
             mapping = {k: config[k] for k in RECONSTRUCT_OPTIONS if k != "mapper"}
             job = _reconstruct_job(s, project_id, tenant_id, mapper, checkpoints=held_out, mapping=mapping)
             view = job_view(job)
@@ -222,10 +224,14 @@ def _reconstruct_job(
     mapping: dict[str, Any] | None = None,
 ) -> Job:
     """``checkpoints`` go into the options only when asked for (the job's GCP step reads them), and
-    so does the map (``mapping``: ``ortho`` on, with its ``ortho_gsd``)."""
+    so do the PnP minimum (``mapping``'s ``min_pose_inliers`` other than 0, auto) and the map
+    (``ortho`` on, with its ``ortho_gsd``): a job's options read as what was asked of it, and a
+    job stored without them maps with the defaults."""
     options: dict[str, Any] = {"mapper": mapper}
     if checkpoints:
         options["checkpoints"] = checkpoints
+    if mapping and mapping.get("min_pose_inliers"):
+        options["min_pose_inliers"] = int(mapping["min_pose_inliers"])
     if mapping and mapping.get("ortho") == "on":
         options |= {"ortho": "on", "ortho_gsd": float(mapping.get("ortho_gsd") or 0.0)}
     job = Job(

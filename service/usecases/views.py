@@ -97,6 +97,7 @@ class MatchRequest:
     camera: str | None = None
     reconstruct: bool = False  # queue a reconstruct job that starts when matching succeeds
     mapper: str | None = None
+    min_pose_inliers: int | None = None  # that reconstruct job's PnP minimum (0: auto)
     ortho: str | None = None  # that reconstruct job's map (geomatch.ortho)
     ortho_gsd: float | None = None
     # that reconstruct job's check points (names, or how many), as ``start_reconstruct`` takes them

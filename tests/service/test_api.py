@@ -281,6 +281,7 @@ def test_malformed_json_is_400(deployment: Deployment, a: httpx.Client, project:
         ({"resize": 5}, "resize"),
         ({"tiling": "sometimes"}, "tiling"),
         ({"reconstruct": True, "mapper": "hierarchical"}, "mapper"),
+        ({"reconstruct": True, "min_pose_inliers": 2}, "min_pose_inliers must be 0 (auto"),
         ({"colour": "blue"}, "colour"),
         (["exhaustive"], "body"),
     ],

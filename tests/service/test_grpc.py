@@ -604,6 +604,8 @@ def test_bad_requests(a: GrpcClient, dep: GrpcDeployment, scene: Path) -> None:
     code, details = error_of(lambda: a.submit_matching(lonely))
     assert code == grpc.StatusCode.INVALID_ARGUMENT and "matching needs at least 2" in details
     assert code_of(lambda: a.submit_reconstruction(lonely)) == grpc.StatusCode.FAILED_PRECONDITION
+    code, details = error_of(lambda: a.submit_reconstruction(lonely, min_pose_inliers=2))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "min_pose_inliers must be 0 (auto" in details
     code, details = error_of(lambda: a.download_model(lonely, dep.root / "x.zip"))
     assert code == grpc.StatusCode.NOT_FOUND and "no model yet" in details
     code, details = error_of(lambda: a.download_model(lonely, dep.root / "x.zip", "hloc"))

@@ -1,6 +1,7 @@
 """`geomatch run` and the service run one orchestration: a small mixed project (one aerial photo,
 three street-level ones) matched and mapped both ways gets the same plan, the same mapper settings
-and a summary with the same fields, with tiling off and with the defaults."""
+and a summary with the same fields, with tiling off and with the defaults, and with a PnP minimum
+of its own (`--min-pose-inliers`, the service's `min_pose_inliers`)."""
 
 from __future__ import annotations
 
@@ -24,13 +25,14 @@ GROUND = ["ground_00.png", "ground_01.png", "ground_02.png"]
 MATCHING = {"method": "sparse", "resize": 320}
 
 
-def served(d: Deployment, key: str, scene: Path, tiling: str) -> tuple[dict[str, Any], Path]:
-    """The reconstruct job's summary of the project matched through the service, and its folder."""
+def served(d: Deployment, key: str, scene: Path, tiling: str, **options: Any) -> tuple[dict[str, Any], Path]:
+    """The reconstruct job's summary of the project matched through the service (``options``: more
+    of the match body's), and its folder."""
     with d.client(key) as c:
         pid = c.post("/v1/projects", json={"name": f"parity-{tiling}"}).json()["id"]
         assert upload(c, pid, [scene / "images" / n for n in AERIAL], "aerial").status_code == 201
         assert upload(c, pid, [scene / "images" / n for n in GROUND], "ground").status_code == 201
-        body = {**MATCHING, "tiling": tiling, "reconstruct": True}
+        body = {**MATCHING, "tiling": tiling, **options, "reconstruct": True}
         accepted = c.post(f"/v1/projects/{pid}/match", json=body).json()
         match = wait_job(c, accepted["job_id"])
         assert match["state"] == "succeeded", (match, d.logs())
@@ -39,12 +41,12 @@ def served(d: Deployment, key: str, scene: Path, tiling: str) -> tuple[dict[str,
         return dict(recon["result"]), d.home / "projects" / pid
 
 
-def ran(scene: Path, out: Path, tiling: str) -> dict[str, Any]:
+def ran(scene: Path, out: Path, tiling: str, **options: Any) -> dict[str, Any]:
     images = out.parent / f"images-{tiling}"
     images.mkdir()
     for n in AERIAL + GROUND:
         shutil.copy(scene / "images" / n, images / n)
-    opts = RunOptions(**MATCHING, tiling=tiling, aerial_names=AERIAL, progress=False)
+    opts = RunOptions(**MATCHING, tiling=tiling, aerial_names=AERIAL, progress=False, **options)
     return run(images, out, opts)
 
 
@@ -86,3 +88,30 @@ def test_a_mixed_project_matched_untiled_is_mapped_untiled(
         recon = wait_job(c, accepted["reconstruct_job_id"])
     assert recon["state"] == "succeeded", (recon, deployment.logs())
     assert recon["result"]["mapping_settings"]["tiled"] is False
+
+
+def test_a_pnp_minimum_maps_the_service_as_it_maps_a_run(
+    deployment: Deployment, key_a: str, scene: Path, tmp_path: Path
+) -> None:
+    """``min_pose_inliers`` reaches the mapper of a reconstruct job as ``geomatch run
+    --min-pose-inliers`` gives it: from the match body to its chained job, from a reconstruct's own
+    body; a value outside the option's range is refused before any job is queued. Below COLMAP's
+    30, so that the small scene still maps whatever the minimum lets in."""
+    by_run = ran(scene, tmp_path / "run", "off", min_pose_inliers=12)
+    by_service, project = served(deployment, key_a, scene, "off", min_pose_inliers=12)
+    assert by_run["mapping_settings"]["min_pose_inliers"] == 12
+    assert by_service["mapping_settings"] == by_run["mapping_settings"]
+
+    pid = project.name
+    with deployment.client(key_a) as c:
+        for bad in (2, 10001):
+            r = c.post(f"/v1/projects/{pid}/reconstruct", json={"min_pose_inliers": bad})
+            assert r.status_code == 422 and "min_pose_inliers must be 0 (auto" in r.text, r.text
+        r = c.post("/v1/projects", json={"name": "bad pnp", "config": {"min_pose_inliers": 2}})
+        assert r.status_code == 422 and "min_pose_inliers" in r.text, r.text
+        r = c.post(f"/v1/projects/{pid}/reconstruct", json={"min_pose_inliers": 25})
+        assert r.status_code == 202, r.text
+        recon = wait_job(c, r.json()["job_id"])
+    assert recon["state"] == "succeeded", (recon, deployment.logs())
+    assert recon["options"]["min_pose_inliers"] == 25
+    assert recon["result"]["mapping_settings"] == {**by_run["mapping_settings"], "min_pose_inliers": 25}

@@ -12,6 +12,7 @@ from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
+from geomatch.options import RECONSTRUCT_OPTIONS
 from geomatch_core.errors import NotFound
 
 from ...paging import JOBS
@@ -22,6 +23,8 @@ from .deps import MAX_OFFSET, Svc, Tenant, link_next
 
 router = APIRouter(tags=["jobs"])
 EVENTS_POLL_S = 0.5
+# the reconstruct body's mapping options; its mapper is start_reconstruct's own argument
+MAPPING = tuple(k for k in RECONSTRUCT_OPTIONS if k != "mapper")
 
 
 def job_out(j: JobView) -> JobOut:
@@ -41,7 +44,7 @@ def reconstruct(
     project_id: str, svc: Svc, tenant_id: Tenant, body: ReconstructIn | None = None
 ) -> JobAccepted:
     mapper, checkpoints = (body.mapper, body.checkpoints) if body else (None, None)
-    mapping = {k: getattr(body, k) for k in ("ortho", "ortho_gsd") if body and getattr(body, k) is not None}
+    mapping = {k: getattr(body, k) for k in MAPPING if body and getattr(body, k) is not None}
     job = svc.jobs.start_reconstruct(tenant_id, project_id, mapper, checkpoints, mapping)
     return JobAccepted(job_id=job.id)
 
