@@ -50,12 +50,16 @@ def ran(scene: Path, out: Path, tiling: str, **options: Any) -> dict[str, Any]:
     return run(images, out, opts)
 
 
-@pytest.mark.parametrize("tiling", ["off", "auto"])
+# tiling off with a PnP minimum of its own (below COLMAP's 30, so that the small scene still maps
+# whatever it lets in), and the defaults
+@pytest.mark.parametrize(("tiling", "pnp"), [("off", 12), ("auto", 0)])
 def test_service_and_run_plan_and_map_alike(
-    deployment: Deployment, key_a: str, scene: Path, tmp_path: Path, tiling: str
+    deployment: Deployment, key_a: str, scene: Path, tmp_path: Path, tiling: str, pnp: int
 ) -> None:
-    by_run = ran(scene, tmp_path / "run", tiling)
-    by_service, project = served(deployment, key_a, scene, tiling)
+    given = {"min_pose_inliers": pnp} if pnp else {}
+    by_run = ran(scene, tmp_path / "run", tiling, **given)
+    by_service, project = served(deployment, key_a, scene, tiling, **given)
+    assert by_run["mapping_settings"]["min_pose_inliers"] == pnp
 
     # tiling off: no pair tiled, and the mapper takes the plain project's settings both ways
     assert by_run["mapping_settings"]["tiled"] is (tiling != "off")
@@ -71,6 +75,8 @@ def test_service_and_run_plan_and_map_alike(
     assert set(by_service) - JOB_FIELDS == set(by_run) - RUN_FIELDS
     assert set(by_service) >= JOB_FIELDS and set(by_run) >= RUN_FIELDS
     assert by_service["report"].keys() == by_run["report"].keys()
+    if pnp:
+        reconstruct_takes_its_own_pnp_minimum(deployment, key_a, project.name, by_run)
 
 
 def test_a_mixed_project_matched_untiled_is_mapped_untiled(
@@ -90,20 +96,10 @@ def test_a_mixed_project_matched_untiled_is_mapped_untiled(
     assert recon["result"]["mapping_settings"]["tiled"] is False
 
 
-def test_a_pnp_minimum_maps_the_service_as_it_maps_a_run(
-    deployment: Deployment, key_a: str, scene: Path, tmp_path: Path
-) -> None:
-    """``min_pose_inliers`` reaches the mapper of a reconstruct job as ``geomatch run
-    --min-pose-inliers`` gives it: from the match body to its chained job, from a reconstruct's own
-    body; a value outside the option's range is refused before any job is queued. Below COLMAP's
-    30, so that the small scene still maps whatever the minimum lets in."""
-    by_run = ran(scene, tmp_path / "run", "off", min_pose_inliers=12)
-    by_service, project = served(deployment, key_a, scene, "off", min_pose_inliers=12)
-    assert by_run["mapping_settings"]["min_pose_inliers"] == 12
-    assert by_service["mapping_settings"] == by_run["mapping_settings"]
-
-    pid = project.name
-    with deployment.client(key_a) as c:
+def reconstruct_takes_its_own_pnp_minimum(d: Deployment, key: str, pid: str, by_run: dict[str, Any]) -> None:
+    """A reconstruct body's ``min_pose_inliers`` reaches its mapper; one outside the option's range
+    is refused before any job is queued."""
+    with d.client(key) as c:
         for bad in (2, 10001):
             r = c.post(f"/v1/projects/{pid}/reconstruct", json={"min_pose_inliers": bad})
             assert r.status_code == 422 and "min_pose_inliers must be 0 (auto" in r.text, r.text
@@ -112,6 +108,6 @@ def test_a_pnp_minimum_maps_the_service_as_it_maps_a_run(
         r = c.post(f"/v1/projects/{pid}/reconstruct", json={"min_pose_inliers": 25})
         assert r.status_code == 202, r.text
         recon = wait_job(c, r.json()["job_id"])
-    assert recon["state"] == "succeeded", (recon, deployment.logs())
+    assert recon["state"] == "succeeded", (recon, d.logs())
     assert recon["options"]["min_pose_inliers"] == 25
     assert recon["result"]["mapping_settings"] == {**by_run["mapping_settings"], "min_pose_inliers": 25}
