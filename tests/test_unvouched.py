@@ -14,7 +14,7 @@ from geomatch.localize import LocalizeOptions, Project, judge
 from geomatch.localize.absolute import Correspondences, estimate_pose
 from geomatch.localize.localizer import unvouched_cameras
 from geomatch.sfm.leftovers import leave_out_unvouched
-from geomatch.sfm.modelagree import agreement, misplaced, outvoted, unvouched
+from geomatch.sfm.modelagree import agreement, misplaced, outvoted, undecided, unvouched
 from geomatch.sfm.viewgraph import ViewGraphReport
 
 from .colmap_synthetic import synthetic_database
@@ -115,6 +115,30 @@ def test_an_image_held_by_one_pairs_other_rotation_is_outvoted() -> None:
     assert misplaced(bad, rots, inl) == [] and agreement(bad, rots, inl).clean
     assert outvoted(bad, rots, inl) == [a] and unvouched(bad, rots, inl) == [a]
     assert outvoted(rec, rots, inl) == []
+
+
+def test_an_image_tied_by_one_pair_that_admits_two_rotations_is_not_vouched_for() -> None:
+    """Its only pair with the model is near-flat: the true rotation and the homography's other
+    decomposition hold it alike, so the model cannot say which the mapper took; with a second pair
+    the true rotation holds both and the twin only one."""
+    rec = _model()
+    rots, inl = _pairs(rec)
+    a, b, c = (rec.images[i].name for i in (2, 3, 4))
+    bad = _turned(rec, 2, 60.0)
+    only = {(x, y) for x, y in rots if a not in (x, y) or b in (x, y)}  # a's one pair: with b
+    rots1 = {p: r for p, r in rots.items() if p in only}
+    inl1 = {p: n for p, n in inl.items() if p in only}
+    key = (a, b) if (a, b) in rots1 else (b, a)
+    pa, pb = (bad.find_image_with_name(n).cam_from_world().rotation.matrix() for n in key)
+    rots1[key] = [*rots1[key], pb @ pa.T]  # the twin the turned model holds
+    for model in (bad, rec):  # placed on either rotation, nothing tells which is right
+        assert outvoted(model, rots1, inl1) == [] and undecided(model, rots1, inl1) == [a]
+        assert a in unvouched(model, rots1, inl1) and misplaced(model, rots1, inl1) == []
+    # a second pair (with c) decides: the true rotation holds both, the twin one
+    key2 = (a, c) if (a, c) in rots else (c, a)
+    rots2, inl2 = {**rots1, key2: rots[key2]}, {**inl1, key2: inl[key2]}
+    assert undecided(rec, rots2, inl2) == []
+    assert a in outvoted(bad, rots2, inl2)
 
 
 def test_localize_reads_which_cameras_the_projects_pairs_vouch_for(tmp_path: Path) -> None:
