@@ -185,17 +185,23 @@ def leave_out_unvouched(
     model: pycolmap.Reconstruction, report: ViewGraphReport, work: Path
 ) -> tuple[pycolmap.Reconstruction, list[str]]:
     """``model`` without the cameras its own pairs do not vouch for (modelagree.unvouched), and
-    their names; ``model`` itself when there are none or they would be half of it or more (then
-    which side is right is no longer clear, and the attempts' agreement decided). Why: the passes
-    above and the mapping attempts keep what holds its pairs best, and a camera still held by no
-    pair with the rest of the model is one whose place nothing checks; a user cannot tell it from
-    the right ones, and a photo localized against it lands wherever it is."""
-    out = set(unvouched(model, report.kept_rotations, report.kept_inliers))
-    if not out or 2 * len(out) >= model.num_reg_images():
-        return model, []
-    trimmed = pycolmap.Reconstruction(model)
-    _deregister(trimmed, out)
-    return _posed_only(trimmed, work / "vouched"), sorted(out)
+    their names. Why: the passes above and the mapping attempts keep what holds its pairs best,
+    and a camera still held by no pair with the rest of the model is one whose place nothing
+    checks; a user cannot tell it from the right ones, and a photo localized against it lands
+    wherever it is. In two steps: the cameras the pairs speak against first, then, on what is
+    left, those tied between two rotations (a camera held wrong bends its neighbours' pairs into
+    ties, which go with it). Neither step takes half of the model or more: then which side is
+    right is no longer clear, and the attempts' agreement decided."""
+    left_out: list[str] = []
+    for ties in (False, True):
+        out = set(unvouched(model, report.kept_rotations, report.kept_inliers, ties=ties))
+        if not out or 2 * len(out) >= model.num_reg_images():
+            continue
+        trimmed = pycolmap.Reconstruction(model)
+        _deregister(trimmed, out)
+        model = _posed_only(trimmed, work / ("tied" if ties else "vouched"))
+        left_out += sorted(out)
+    return model, sorted(left_out)
 
 
 def hold_to_fixes(

@@ -112,16 +112,18 @@ def unvouched(
     rec: pycolmap.Reconstruction,
     rotations: Mapping[tuple[str, str], list[np.ndarray]],
     inliers: Mapping[tuple[str, str], int],
+    ties: bool = True,
 ) -> list[str]:
     """The registered images whose place the model's own pairs do not vouch for, by name: those
-    :func:`misplaced` and :func:`undecided` find, and every image outside the group that the held
-    pairs tie to the most inliers (a block held only within itself, however few inliers it
-    contradicts: whether the mapper placed it right no pair says). A user's model should rather
-    lack such a camera than hold it wrong, and a photo localized against it alone is placed
-    wherever it is."""
+    :func:`misplaced` and :func:`outvoted` find, with ``ties`` those :func:`undecided` finds, and
+    every image outside the group that the held pairs tie to the most inliers (a block held only
+    within itself, however few inliers it contradicts: whether the mapper placed it right no pair
+    says). A user's model should rather lack such a camera than hold it wrong, and a photo
+    localized against it alone is placed wherever it is."""
     groups = _held_groups(_pair_errors(rec, rotations), inliers)
     apart = {n for group in groups[1:] for n in group}
-    return sorted(apart | set(misplaced(rec, rotations, inliers)) | set(undecided(rec, rotations, inliers)))
+    doubted = undecided if ties else outvoted
+    return sorted(apart | set(misplaced(rec, rotations, inliers)) | set(doubted(rec, rotations, inliers)))
 
 
 def outvoted(
