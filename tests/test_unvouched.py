@@ -14,7 +14,7 @@ from geomatch.localize import LocalizeOptions, Project, judge
 from geomatch.localize.absolute import Correspondences, estimate_pose
 from geomatch.localize.localizer import unvouched_cameras
 from geomatch.sfm.leftovers import leave_out_unvouched
-from geomatch.sfm.modelagree import agreement, misplaced, outvoted, undecided, unvouched
+from geomatch.sfm.modelagree import agreement, misplaced, most_outvoted, outvoted, undecided, unvouched
 from geomatch.sfm.viewgraph import ViewGraphReport
 
 from .colmap_synthetic import synthetic_database
@@ -114,7 +114,8 @@ def test_an_image_held_by_one_pairs_other_rotation_is_outvoted() -> None:
     # it holds 300 of its 420 inliers: more than a tenth, and the model is clean
     assert misplaced(bad, rots, inl) == [] and agreement(bad, rots, inl).clean
     assert outvoted(bad, rots, inl) == [a] and unvouched(bad, rots, inl) == [a]
-    assert outvoted(rec, rots, inl) == []
+    assert most_outvoted(bad, rots, inl) == a  # the other rotation holds 120 inliers more
+    assert outvoted(rec, rots, inl) == [] and most_outvoted(rec, rots, inl) is None
 
 
 def test_an_image_tied_by_one_pair_that_admits_two_rotations_is_not_vouched_for() -> None:

@@ -21,7 +21,7 @@ import pycolmap
 from ..geo.gpscheck import GpsCheck, beyond
 from ..geo.similarity import umeyama
 from ..options import LEFTOVER_MIN_POSE_INLIERS
-from .modelagree import agreement, misplaced, misplaced_blocks, unvouched
+from .modelagree import agreement, misplaced, misplaced_blocks, most_outvoted, unvouched
 from .modeljoin import Join, adjust, join_models
 from .pairpose import Placement, place
 from .viewgraph import ViewGraphReport
@@ -188,19 +188,26 @@ def leave_out_unvouched(
     their names. Why: the passes above and the mapping attempts keep what holds its pairs best,
     and a camera still held by no pair with the rest of the model is one whose place nothing
     checks; a user cannot tell it from the right ones, and a photo localized against it lands
-    wherever it is. In two steps: the cameras the pairs speak against first, then, on what is
-    left, those tied between two rotations (a camera held wrong bends its neighbours' pairs into
-    ties, which go with it). Neither step takes half of the model or more: then which side is
-    right is no longer clear, and the attempts' agreement decided."""
+    wherever it is. The cameras the pairs speak against go first, then those tied between two
+    rotations (a camera held wrong bends its neighbours' pairs into ties, which go with it).
+    Where the doubted are half of what is left or more, only the worst outvoted one goes, and the
+    rest are judged again without it; never half of the model in all: then which side is right is
+    no longer clear, and the attempts' agreement decided."""
+    rotations, inliers = report.kept_rotations, report.kept_inliers
+    start = model.num_reg_images()
     left_out: list[str] = []
     for ties in (False, True):
-        out = set(unvouched(model, report.kept_rotations, report.kept_inliers, ties=ties))
-        if not out or 2 * len(out) >= model.num_reg_images():
-            continue
-        trimmed = pycolmap.Reconstruction(model)
-        _deregister(trimmed, out)
-        model = _posed_only(trimmed, work / ("tied" if ties else "vouched"))
-        left_out += sorted(out)
+        while True:
+            out = set(unvouched(model, rotations, inliers, ties=ties))
+            if out and 2 * len(out) >= model.num_reg_images():
+                worst = most_outvoted(model, rotations, inliers)
+                out = {worst} if worst is not None else set()
+            if not out or 2 * (len(left_out) + len(out)) >= start:
+                break
+            trimmed = pycolmap.Reconstruction(model)
+            _deregister(trimmed, out)
+            model = _posed_only(trimmed, work / f"vouched_{len(left_out)}")
+            left_out += sorted(out)
     return model, sorted(left_out)
 
 

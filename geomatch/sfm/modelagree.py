@@ -142,6 +142,20 @@ def outvoted(
     return sorted(n for n, (own, other) in _rotation_votes(rec, rotations, inliers).items() if other > own)
 
 
+def most_outvoted(
+    rec: pycolmap.Reconstruction,
+    rotations: Mapping[tuple[str, str], list[np.ndarray]],
+    inliers: Mapping[tuple[str, str], int],
+) -> str | None:
+    """The outvoted image (:func:`outvoted`) whose pairs another rotation would hold by the most
+    inliers more than its own, or None. Why: one camera held wrong turns its neighbours' pairs with
+    it against them too, so in a small model the outvoted can be half of it; the worst is the
+    cause, and the others hold their pairs again once it is gone."""
+    margins = {n: other - own for n, (own, other) in _rotation_votes(rec, rotations, inliers).items()}
+    worst = max(sorted(margins), key=lambda n: margins[n], default=None)
+    return worst if worst is not None and margins[worst] > 0 else None
+
+
 def undecided(
     rec: pycolmap.Reconstruction,
     rotations: Mapping[tuple[str, str], list[np.ndarray]],
