@@ -14,7 +14,15 @@ from geomatch.localize import LocalizeOptions, Project, judge
 from geomatch.localize.absolute import Correspondences, estimate_pose
 from geomatch.localize.localizer import unvouched_cameras
 from geomatch.sfm.leftovers import leave_out_unvouched
-from geomatch.sfm.modelagree import agreement, misplaced, most_outvoted, outvoted, undecided, unvouched
+from geomatch.sfm.modelagree import (
+    agreement,
+    misplaced,
+    most_outvoted,
+    outvoted,
+    undecided,
+    unvouched,
+    weakest_tied,
+)
 from geomatch.sfm.viewgraph import ViewGraphReport
 
 from .colmap_synthetic import synthetic_database
@@ -135,6 +143,7 @@ def test_an_image_tied_by_one_pair_that_admits_two_rotations_is_not_vouched_for(
     for model in (bad, rec):  # placed on either rotation, nothing tells which is right
         assert outvoted(model, rots1, inl1) == [] and undecided(model, rots1, inl1) == [a]
         assert a in unvouched(model, rots1, inl1) and misplaced(model, rots1, inl1) == []
+        assert weakest_tied(model, rots1, inl1) == a
     # candidates a few degrees from the truth on every pair (one pair's estimators disagreeing a
     # little) are no second place
     near = _turned(rec, 2, 6.0).find_image_with_name(a).cam_from_world().rotation.matrix()

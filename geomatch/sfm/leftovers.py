@@ -21,7 +21,7 @@ import pycolmap
 from ..geo.gpscheck import GpsCheck, beyond
 from ..geo.similarity import umeyama
 from ..options import LEFTOVER_MIN_POSE_INLIERS
-from .modelagree import agreement, misplaced, misplaced_blocks, most_outvoted, unvouched
+from .modelagree import agreement, misplaced, misplaced_blocks, most_outvoted, unvouched, weakest_tied
 from .modeljoin import Join, adjust, join_models
 from .pairpose import Placement, place
 from .viewgraph import ViewGraphReport
@@ -190,9 +190,10 @@ def leave_out_unvouched(
     checks; a user cannot tell it from the right ones, and a photo localized against it lands
     wherever it is. The cameras the pairs speak against go first, then those tied between two
     rotations (a camera held wrong bends its neighbours' pairs into ties, which go with it).
-    Where the doubted are half of what is left or more, only the worst outvoted one goes, and the
-    rest are judged again without it; never half of the model in all: then which side is right is
-    no longer clear, and the attempts' agreement decided."""
+    Where the doubted are half of what is left or more, only the worst goes (the most outvoted,
+    else the tied one held by the fewest inliers), and the rest are judged again without it; never
+    half of the model in all: then which side is right is no longer clear, and the attempts'
+    agreement decided."""
     rotations, inliers = report.kept_rotations, report.kept_inliers
     start = model.num_reg_images()
     left_out: list[str] = []
@@ -201,6 +202,8 @@ def leave_out_unvouched(
             out = set(unvouched(model, rotations, inliers, ties=ties))
             if out and 2 * len(out) >= model.num_reg_images():
                 worst = most_outvoted(model, rotations, inliers)
+                if worst is None and ties:
+                    worst = weakest_tied(model, rotations, inliers)
                 out = {worst} if worst is not None else set()
             if not out or 2 * (len(left_out) + len(out)) >= start:
                 break

@@ -160,6 +160,19 @@ def most_outvoted(
     return worst if worst is not None and margins[worst] > 0 else None
 
 
+def weakest_tied(
+    rec: pycolmap.Reconstruction,
+    rotations: Mapping[tuple[str, str], list[np.ndarray]],
+    inliers: Mapping[tuple[str, str], int],
+) -> str | None:
+    """Of the images tied between two rotations (:func:`undecided` without the outvoted), the one
+    its own pairs hold by the fewest inliers, or None: where the ties are half of a small model,
+    the one least held goes first, and the rest may hold again without it."""
+    votes = _rotation_votes(rec, rotations, inliers, TIE_DEG)
+    tied = sorted(n for n, (own, other) in votes.items() if other >= own)
+    return min(tied, key=lambda n: votes[n][0], default=None)
+
+
 def undecided(
     rec: pycolmap.Reconstruction,
     rotations: Mapping[tuple[str, str], list[np.ndarray]],
