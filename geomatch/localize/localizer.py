@@ -261,13 +261,13 @@ def unvouched_cameras(
     project: Project, rec: Any, up: Mapping[str, np.ndarray] | None = None
 ) -> frozenset[str]:
     """The model's cameras that their own pairs in the project's database do not vouch for
-    (modelagree.unvouched, over the pairs the view-graph checks keep): a photo placed against them
+    (modelagree.unvouched_in_steps, over the pairs the view-graph checks keep): a photo placed against them
     alone is not localized (:func:`.answer.judge`). Asked only of projects with aerial images,
     whose mapping is held to its pairs: an air-to-ground model can hold a block of cameras turned
     tens of degrees on right pairs, and a photo localized against that block is as far off.
     ``up``: the photos' up where they know it, as the run's view graph had it (upright.py)."""
-    from ..sfm.modelagree import unvouched
+    from ..sfm.modelagree import unvouched_in_steps
     from ..sfm.viewgraph import kept_pairs
 
     report = kept_pairs(str(project.database), up)
-    return frozenset(unvouched(rec, report.kept_rotations, report.kept_inliers))
+    return frozenset(unvouched_in_steps(rec, report.kept_rotations, report.kept_inliers))

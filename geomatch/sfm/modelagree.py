@@ -130,6 +130,23 @@ def unvouched(
     return sorted(apart | set(misplaced(rec, rotations, inliers)) | set(doubted(rec, rotations, inliers)))
 
 
+def unvouched_in_steps(
+    rec: pycolmap.Reconstruction,
+    rotations: Mapping[tuple[str, str], list[np.ndarray]],
+    inliers: Mapping[tuple[str, str], int],
+) -> list[str]:
+    """:func:`unvouched` as the mapping leaves cameras out (leftovers.leave_out_unvouched): those
+    the pairs speak against, then the tied ones among the rest, judged without the first. Why: a
+    block held wrong leaves its right neighbours holding only their pairs with the rest, which a
+    rotation through the block can nearly match; without the block they hold all they have."""
+    strong = set(unvouched(rec, rotations, inliers, ties=False))
+    rest = pycolmap.Reconstruction(rec)
+    for im in list(rest.images.values()):
+        if im.name in strong and im.has_pose:
+            rest.deregister_frame(im.frame_id)
+    return sorted(strong | set(unvouched(rest, rotations, inliers, ties=True)))
+
+
 def outvoted(
     rec: pycolmap.Reconstruction,
     rotations: Mapping[tuple[str, str], list[np.ndarray]],
