@@ -21,7 +21,7 @@ from geomatch.ortho.accuracy import patch_offsets
 from geomatch.ortho.cog import is_cog
 from geomatch.ortho.dsm import NODATA, build_dsm
 from geomatch.ortho.photos import PhotoCache
-from geomatch.ortho.survey import open_survey
+from geomatch.ortho.survey import open_survey, within_reach
 from geomatch.synth.sensors import GPS_ORIGIN
 from tests.ortho_scene import OrthoScene, make_scene, truth_image
 
@@ -346,3 +346,16 @@ def test_a_gcp_target_is_found_and_a_dark_bush_is_not() -> None:
     assert found is not None and abs(found[0] - cx) < 1.5 and abs(found[1] - cy) < 1.5, found
     img[..., 3] = 0  # outside the map: nothing
     assert find_target(img, res) is None
+
+
+def test_points_beyond_the_photos_reach_make_no_surface() -> None:
+    """A block of cameras 45 m over the ground maps what lies under it: a low-parallax point
+    hundreds of metres out or below (a sparse model has a few) would stretch the DSM, and the
+    photos' edges with it, over ground no photo sees from above."""
+    rng = np.random.default_rng(0)
+    centres = np.column_stack([rng.uniform(0, 80, 18), rng.uniform(0, 80, 18), np.full(18, 45.0)])
+    ground = np.column_stack([rng.uniform(-20, 100, 500), rng.uniform(-20, 100, 500), rng.normal(0, 2, 500)])
+    far_out = np.array([[450.0, 40.0, 1.0], [40.0, -300.0, -3.0]])
+    far_below = np.array([[40.0, 40.0, -500.0], [20.0, 60.0, -80.0]])
+    keep = within_reach(np.concatenate([ground, far_out, far_below]), centres)
+    assert keep[:500].all() and not keep[500:].any()
