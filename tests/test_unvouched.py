@@ -144,6 +144,10 @@ def test_an_image_tied_by_one_pair_that_admits_two_rotations_is_not_vouched_for(
         assert outvoted(model, rots1, inl1) == [] and undecided(model, rots1, inl1) == [a]
         assert a in unvouched(model, rots1, inl1) and misplaced(model, rots1, inl1) == []
         assert weakest_tied(model, rots1, inl1) == a
+    # one strong pair (hundreds of inliers) pins the essential matrix with points off the plane: its
+    # listed twin is no second place
+    strong = {**inl1, key: 800}
+    assert undecided(bad, rots1, strong) == [] and undecided(rec, rots1, strong) == []
     # candidates a few degrees from the truth on every pair (one pair's estimators disagreeing a
     # little) are no second place
     near = _turned(rec, 2, 6.0).find_image_with_name(a).cam_from_world().rotation.matrix()

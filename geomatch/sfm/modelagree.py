@@ -32,6 +32,11 @@ CLEAN_SHARE = 0.1
 # from its own: the estimators of one right pair give candidates a few degrees apart (5.3 deg on
 # the service tests' scene, every pair held by both), a homography's other decomposition 30-110
 TIE_DEG = 2 * AGREE_DEG
+# ...and only for a camera its own rotation holds by fewer inliers than this: the twins seen were
+# held by 114-198 inliers of a near-flat pair, while a right camera hung on one pair of 700 or more
+# (the demo scene's ground_03: 707 with ground_02) has its essential matrix pinned by points off
+# the plane, and the homography's other decomposition, listed among its candidates, explains few
+TIE_MAX_INLIERS = 400
 
 
 @dataclass(frozen=True)
@@ -186,7 +191,7 @@ def weakest_tied(
     its own pairs hold by the fewest inliers, or None: where the ties are half of a small model,
     the one least held goes first, and the rest may hold again without it."""
     votes = _rotation_votes(rec, rotations, inliers, TIE_DEG)
-    tied = sorted(n for n, (own, other) in votes.items() if other >= own)
+    tied = sorted(n for n, (own, other) in votes.items() if own < TIE_MAX_INLIERS and other >= own)
     return min(tied, key=lambda n: votes[n][0], default=None)
 
 
@@ -204,7 +209,9 @@ def undecided(
     rotation a few degrees off holds what the model's holds through the neighbouring candidates
     that one pair's estimators give: no second place, so not a tie."""
     tied = {
-        n for n, (own, other) in _rotation_votes(rec, rotations, inliers, TIE_DEG).items() if other >= own
+        n
+        for n, (own, other) in _rotation_votes(rec, rotations, inliers, TIE_DEG).items()
+        if own < TIE_MAX_INLIERS and other >= own
     }
     return sorted(tied | set(outvoted(rec, rotations, inliers)))
 
