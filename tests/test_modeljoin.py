@@ -124,14 +124,22 @@ def test_a_second_model_in_other_units_is_placed_where_the_shared_image_says(tmp
     assert {im.name for im in first.images.values() if im.has_pose} == {f"im{i}" for i in range(5)}
 
 
+def off_the_surface(
+    seed: int, low: float, high: float
+) -> tuple[pycolmap.Reconstruction, pycolmap.Reconstruction]:
+    """A first model on the ground plane and a second sharing im2 whose points lie at heights drawn
+    from [low, high]: depths in im2 that one scale explains only as well as those heights allow."""
+    rng = np.random.default_rng(seed)
+    first = model([0, 1, 2], plane_points(rng, 600))
+    points = plane_points(rng, 300)
+    points[:, 2] = rng.uniform(low, high, size=len(points))
+    return first, model([2, 3, 4], points)
+
+
 def test_depths_that_disagree_refuse_the_join() -> None:
     """The second model's points in the shared image lie at depths that no one scale explains
     (here: scattered far off the first model's surface), so no scale is trusted."""
-    rng = np.random.default_rng(1)
-    first = model([0, 1, 2], plane_points(rng, 600))
-    scattered = plane_points(rng, 300)
-    scattered[:, 2] = rng.uniform(-15.0, 10.0, size=len(scattered))
-    second = model([2, 3, 4], scattered)
+    first, second = off_the_surface(seed=1, low=-15.0, high=10.0)
     found = depth_scale(first, second, "im2")
     assert found is not None and found[2] > 0.1
     assert place(first, second) is None
@@ -142,11 +150,7 @@ def test_a_scale_from_loosely_agreeing_depths_is_not_trusted() -> None:
     """Depths a few metres off the first model's surface (log ratios spread ~0.07) still give a
     median near the truth here, but a spread like it came with a join that put an aerial camera
     14 % of the scene off: with no pair to check such a join, it is not made."""
-    rng = np.random.default_rng(11)
-    first = model([0, 1, 2], plane_points(rng, 600))
-    loose = plane_points(rng, 300)
-    loose[:, 2] = rng.uniform(-3.0, 3.0, size=len(loose))
-    second = model([2, 3, 4], loose)
+    first, second = off_the_surface(seed=11, low=-3.0, high=3.0)
     found = depth_scale(first, second, "im2")
     assert found is not None and found[1] >= MIN_NEIGHBOURS and 0.05 < found[2] < 0.1
     assert place(first, second) is None

@@ -190,9 +190,8 @@ def weakest_tied(
     """Of the images tied between two rotations (:func:`undecided` without the outvoted), the one
     its own pairs hold by the fewest inliers, or None: where the ties are half of a small model,
     the one least held goes first, and the rest may hold again without it."""
-    votes = _rotation_votes(rec, rotations, inliers, TIE_DEG)
-    tied = sorted(n for n, (own, other) in votes.items() if own < TIE_MAX_INLIERS and other >= own)
-    return min(tied, key=lambda n: votes[n][0], default=None)
+    tied = _tied(rec, rotations, inliers)
+    return min(sorted(tied), key=lambda n: tied[n], default=None)
 
 
 def undecided(
@@ -208,12 +207,18 @@ def undecided(
     so, each held by its one pair with ground_01 through a candidate other than the true one. A
     rotation a few degrees off holds what the model's holds through the neighbouring candidates
     that one pair's estimators give: no second place, so not a tie."""
-    tied = {
-        n
-        for n, (own, other) in _rotation_votes(rec, rotations, inliers, TIE_DEG).items()
-        if own < TIE_MAX_INLIERS and other >= own
-    }
-    return sorted(tied | set(outvoted(rec, rotations, inliers)))
+    return sorted(set(_tied(rec, rotations, inliers)) | set(outvoted(rec, rotations, inliers)))
+
+
+def _tied(
+    rec: pycolmap.Reconstruction,
+    rotations: Mapping[tuple[str, str], list[np.ndarray]],
+    inliers: Mapping[tuple[str, str], int],
+) -> dict[str, int]:
+    """The images tied between two rotations (over TIE_DEG apart, under TIE_MAX_INLIERS held),
+    with the inliers their own rotation holds."""
+    votes = _rotation_votes(rec, rotations, inliers, TIE_DEG)
+    return {n: own for n, (own, other) in votes.items() if own < TIE_MAX_INLIERS and other >= own}
 
 
 def _rotation_votes(
