@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -220,6 +221,18 @@ def run_geomatch(photos: int, ground: int, seed: int, rendered: dict[str, Any]) 
     return row
 
 
+def plan_stage(home: Path) -> float | None:
+    """The match job's plan stage as its plan step logged it: seconds from the job's start to its
+    pairs planned, the plan's per-photo steps on every worker included (workers/photosteps.py)."""
+    found = None
+    for log in sorted(home.glob("*.log")):
+        for line in log.read_text(errors="replace").splitlines():
+            m = re.search(r"the plan stage took ([0-9.]+)s", line)
+            if m:
+                found = float(m.group(1))
+    return found
+
+
 def run_service(
     photos: int, ground: int, seed: int, rendered: dict[str, Any], mode: str, workers: int
 ) -> dict[str, Any]:
@@ -293,7 +306,7 @@ def run_service(
         "pairs": str(s.get("database", {}).get("matched_pairs", "?")),
         "render_per_photo": rendered["per_photo"],
         "features": None,
-        "plan": None,
+        "plan": plan_stage(home),
         "matching": wall - mapping,
         "writing": None,
         "view_graph": m.get("view_graph", 0.0),

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 from typing import Any, cast
 
-from sqlalchemy import CursorResult, Update, select, update
+from sqlalchemy import CursorResult, Update, func, select, update
 from sqlalchemy.orm import Session
 
 from geomatch.pipeline.outputs import finite
 
-from .models import TERMINAL_STATES, Job, JobPair, now
+from .models import TERMINAL_STATES, Job, JobPair, JobPhoto, now
 from .queue import ENTRY_STEP, JobQueue
 from .store import MetadataStore
 
@@ -44,6 +44,11 @@ def claim(store: MetadataStore, job_id: str) -> Job | None:
         return job
 
 
+def running_for(job: Job) -> float:
+    """Seconds since ``job`` started running (0 before it did)."""
+    return (now() - job.started_at).total_seconds() if job.started_at is not None else 0.0
+
+
 def is_active(store: MetadataStore, job_id: str) -> bool:
     with store.session() as s:
         return s.scalar(select(Job.state).where(Job.id == job_id)) == "running"
@@ -61,6 +66,25 @@ def mark_pair_done(store: MetadataStore, job_id: str, idx: int, matches: int, in
         if flipped:
             s.execute(update(Job).where(Job.id == job_id).values(done=Job.done + 1))
         return bool(flipped)
+
+
+def mark_photos_done(store: MetadataStore, job_id: str, chunk: int) -> int | None:
+    """How many of a match job's plan photos are left once ``chunk``'s are done; None when they were
+    done before (a redelivered step). The job's row is locked first, so that steps ending together
+    count one after the other and exactly one of them sees none left."""
+    with store.session() as s:
+        if s.get(Job, job_id, with_for_update=True) is None:
+            return None
+        flipped = _changed(
+            s,
+            update(JobPhoto)
+            .where(JobPhoto.job_id == job_id, JobPhoto.chunk == chunk, JobPhoto.done.is_(False))
+            .values(done=True),
+        )
+        if not flipped:
+            return None
+        left = s.scalar(select(func.count()).where(JobPhoto.job_id == job_id, JobPhoto.done.is_(False)))
+        return int(left or 0)
 
 
 def claim_pairs(store: MetadataStore, job_id: str, window: int) -> list[int]:

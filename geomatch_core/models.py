@@ -1,4 +1,5 @@
-"""Metadata tables: tenants, API keys, projects, images, jobs and the pairs of match jobs.
+"""Metadata tables: tenants, API keys, projects, images, jobs, the pairs of match jobs and the
+photos their plans extract ahead.
 
 Files (images, COLMAP databases, models) are not here but under the storage root; rows point to
 them by project id and image name. ``JobPair`` rows make match progress exact under redelivery:
@@ -152,3 +153,18 @@ class JobPair(Base):
     done: Mapped[bool] = mapped_column(Boolean, default=False)
     matches: Mapped[int | None] = mapped_column(Integer, default=None)
     inliers: Mapped[int | None] = mapped_column(Integer, default=None)
+
+
+class JobPhoto(Base):
+    """A photo whose plan features a match job extracts before planning, in steps spread over the
+    workers (``workers.photosteps``): which step (``chunk``) and what it extracts. The rows make
+    the count of photos left exact under redelivery, as ``JobPair`` rows do for pairs."""
+
+    __tablename__ = "job_photos"
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
+    name: Mapped[str] = mapped_column(String(255), primary_key=True)
+    chunk: Mapped[int] = mapped_column(Integer)
+    # the quarter turn a survey's plan will likely score the photo at first (pipeline.turns); -1: none
+    turn: Mapped[int] = mapped_column(Integer, default=-1)
+    sparse: Mapped[bool] = mapped_column(Boolean, default=False)  # retrieval's upright features
+    done: Mapped[bool] = mapped_column(Boolean, default=False)

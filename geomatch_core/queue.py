@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 PLAN_MATCH = "geomatch.plan_match"
+PLAN_FEATURES = "geomatch.plan_features"  # a chunk of a match job's photos, before its plan
 MATCH_PAIR = "geomatch.match_pair"
 RECONSTRUCT = "geomatch.reconstruct"
 RENDER_PAIR = "geomatch.render_pair"

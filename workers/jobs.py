@@ -2,7 +2,9 @@
 embedded threads), and what a job's failure records (a localize job's step: localize.py).
 
 A match job is ``plan_match`` -> ``match_pair`` per pair, a window of them at a time (each pair
-step makes the features it needs and queues the next pair); a reconstruct job is one
+step makes the features it needs and queues the next pair); a survey's or a retrieval plan's
+photos first get their features in ``plan_features`` steps on every worker, the last of which
+queues ``plan_match`` again to plan (photosteps.py); a reconstruct job is one
 ``reconstruct``, a localize job one ``localize``. The planning and the mapping are the library's
 stages (geomatch.pipeline.prepare, geomatch.pipeline.reconstruction), the ones ``geomatch run``
 calls: this module runs them queued. Every step may run twice (redelivery
@@ -39,7 +41,7 @@ from geomatch_core.errors import too_many_pairs, too_much_queued
 from geomatch_core.models import Image, Job, JobPair
 from geomatch_core.queue import LOCALIZE, MATCH_PAIR, RENDER_PAIR
 
-from . import redact, runtime
+from . import photosteps, redact, runtime
 from .context import PermanentError, StepContext
 from .localize import drop_photos
 
@@ -52,6 +54,8 @@ def plan_match(ctx: StepContext, job_id: str) -> str:
     if job is None:
         return "skipped"
     if not job.planned:
+        if not photosteps.ready(ctx, job):  # the plan's features still being extracted
+            return "features spread"
         _plan(ctx, job)
     return _dispatch(ctx, job_id)
 
@@ -81,6 +85,7 @@ def _plan(ctx: StepContext, job: Job) -> None:
         words = spec if pairs_list is None else "the pair list"
         raise PermanentError(too_many_pairs(least, len(names), limit, words, exact))
     request = PlanRequest(spec, pairs_list, opts["tiling"])
+    computed = _computed(ctx, opts)
     plan = plan_project(
         images,
         dict(rows),
@@ -133,13 +138,22 @@ def _plan(ctx: StepContext, job: Job) -> None:
         row.total = len(todo)
         row.planned = True
     log.info(
-        "planned %d pairs (%d already matched, %d tiled) in %.1fs",
+        "planned %d pairs (%d already matched, %d tiled) in %.1fs, %d features computed; "
+        "the plan stage took %.1fs since the job started",
         len(todo),
         len(plan.pairs) - len(todo),
         sum(p.tiled for p in todo),
         time.perf_counter() - t0,
+        _computed(ctx, opts) - computed,
+        jobstate.running_for(job),
         extra={"job_id": job.id, "project_id": pid},
     )
+
+
+def _computed(ctx: StepContext, opts: dict[str, Any]) -> int:
+    """Features this process's matcher for ``opts`` has computed and stored so far."""
+    store = getattr(runtime.matcher(ctx, opts), "store", None)
+    return int(store.saved) if store is not None else 0
 
 
 def _dispatch(ctx: StepContext, job_id: str) -> str:

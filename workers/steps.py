@@ -10,15 +10,17 @@ from geomatch_core.queue import (
     LOCALIZE,
     MATCH_PAIR,
     MATCH_TWO,
+    PLAN_FEATURES,
     PLAN_MATCH,
     RECONSTRUCT,
     RENDER_PAIR,
 )
 
-from . import jobs, localize, pairmatch
+from . import jobs, localize, pairmatch, photosteps
 
 STEPS: dict[str, Callable[..., Any]] = {
     PLAN_MATCH: jobs.plan_match,
+    PLAN_FEATURES: photosteps.plan_features,
     MATCH_PAIR: jobs.match_pair,
     RECONSTRUCT: jobs.reconstruct,
     LOCALIZE: localize.localize,

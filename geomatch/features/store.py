@@ -45,6 +45,7 @@ class FeatureStore:
         # features and leaves the folder as it found it, file times included
         self.writable = writable
         self.hits = 0  # features read back, for every matcher sharing the store
+        self.saved = 0  # features computed and written, likewise
 
     @property
     def enabled(self) -> bool:
@@ -82,6 +83,7 @@ class FeatureStore:
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
+        self.saved += 1
         if self.max_bytes:
             self.prune(self.max_bytes)
 

@@ -80,6 +80,17 @@ def turn_score(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:
     return anchor_count(matcher, image0, image1)
 
 
+def score_features(matcher: Matcher, image: np.ndarray) -> None:
+    """Extract (and store, for a matcher over a feature store) the features :func:`turn_score`
+    reads of ``image``, ahead of the scoring: how a queued plan spreads a survey's extraction over
+    its workers before it decides the turns in one step."""
+    if matcher.config.light_first and matcher.config.guided_keypoints:
+        light_matcher(matcher).features(image)
+    else:
+        probe = matcher if matcher.config.method == "sparse" else matcher.derive(method="sparse")
+        probe.features(image)
+
+
 @torch.inference_mode()
 def anchor_count(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> int:
     """How many matches LightGlue alone finds (features and result cached like the anchors, so

@@ -124,20 +124,20 @@ def plan(
     # a survey (every image aerial) gets its turns once per image and its pairs the guided matcher;
     # a project with ground images keeps the per-pair probe and geo (matching.variants.for_pair)
     if matcher is not None and survey and any(p.rotate and not p.tiled for p in planned):
-        # ranked as a plain pair of two aerial photos is first matched (auto: the guided seed)
-        probe = for_pair(matcher, tiled=False, aerial_project=True, aerial_pair=True)
-        guided = probe.config.light_first and probe.config.guided_keypoints > 0
+        probe, sure = turn_probe(matcher)
         turns = image_turns(
-            planned,
-            partial(turn_score, probe),
-            folder,
-            gps_enu,
-            progress,
-            sure=TURN_SURE_SEED if guided else TURN_SURE,
-            hint=SiftHints().hint,
+            planned, partial(turn_score, probe), folder, gps_enu, progress, sure=sure, hint=SiftHints().hint
         )
         planned = pairing.with_turns(planned, turns)
     return sorted(planned, key=lambda p: (not p.tiled, p.name0 if p.aerial_first else p.name1, p.key))
+
+
+def turn_probe(matcher: Matcher) -> tuple[Matcher, int]:
+    """The matcher a survey's turns are scored with, and the score that is sure: ranked as a plain
+    pair of two aerial photos is first matched (auto: the guided seed)."""
+    probe = for_pair(matcher, tiled=False, aerial_project=True, aerial_pair=True)
+    guided = probe.config.light_first and probe.config.guided_keypoints > 0
+    return probe, TURN_SURE_SEED if guided else TURN_SURE
 
 
 def plan_in_words(

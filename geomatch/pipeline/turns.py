@@ -50,6 +50,44 @@ def image_turns(
     GPS fixes): on real surveys they do not say how the pixels are turned. A return line flown
     180 deg round can hold photos that are not turned at all, and a camera that yaws against the
     track turns some pairs by a half turn and others by a quarter (docs/benchmarks.md)."""
+
+    def probe(known: str, known_turn: int, n: str, first: int) -> list[int]:
+        return turn_scores(score, quarter_turn(images[known], known_turn), images[n], first, sure)
+
+    return _grow(planned, probe, images, enu, progress, sure, hint)
+
+
+def likely_turns(
+    planned: Sequence[Pair],
+    images: Images,
+    enu: Mapping[str, np.ndarray],
+    hint: Callable[[str, np.ndarray, str, np.ndarray], TurnHint] | None = None,
+) -> dict[str, int]:
+    """The turns :func:`image_turns` gives when each photo scores sure at the first turn it is
+    scored at (the hinted one, else its partner's), without a network: the turn whose features
+    each photo's scoring will most likely read, so that they can be extracted ahead, in parallel
+    (a queued plan's per-photo steps). The order of the probes and the hints are image_turns' own;
+    a guess that is wrong costs its extraction, never the plan (image_turns still decides)."""
+
+    def probe(known: str, known_turn: int, n: str, first: int) -> list[int]:
+        counts = [0, 0, 0, 0]
+        counts[first] = TURN_SURE
+        return counts
+
+    return _grow(planned, probe, images, enu, False, TURN_SURE, hint)
+
+
+def _grow(
+    planned: Sequence[Pair],
+    probe: Callable[[str, int, str, int], list[int]],
+    images: Images,
+    enu: Mapping[str, np.ndarray],
+    progress: bool,
+    sure: int,
+    hint: Callable[[str, np.ndarray, str, np.ndarray], TurnHint] | None,
+) -> dict[str, int]:
+    """The frame grown from the root as image_turns describes; ``probe(known, its turn, image,
+    turn first)``: the image's scores at the four turns against its decided partner."""
     partners: dict[str, list[Pair]] = {}
     for p in planned:
         if p.rotate and not p.tiled:
@@ -111,7 +149,7 @@ def image_turns(
         # scored in the frame: the partner as it will be matched (its features are reused), the
         # image first at the hinted turn or else the partner's, then the half turn of a line flown
         # back; a turn with a sure score is the answer without trying the rest
-        counts = turn_scores(score, quarter_turn(images[known], turns[known]), images[n], first, sure)
+        counts = probe(known, turns[known], n, first)
         best, runner_up = sorted(counts, reverse=True)[:2]
         log.debug("turn probe %s -> %s: %s", known, n, counts)
         if best < TURN_MIN_MATCHES or (best < sure and best < PROBE_MARGIN * max(runner_up, 1)):
