@@ -92,6 +92,7 @@ def _plan(ctx: StepContext, job: Job) -> None:
         request,
         lambda: runtime.matcher(ctx, opts),
         frames(image_dir, runtime.images_mb(ctx)),
+        hint=photosteps.known_hints(ctx, job),
     )
     if limit and len(plan.pairs) > limit:  # auto, gps:K, retrieval:K: known once planned; no row written
         words = plan.in_words if pairs_list is None else "the pair list"
@@ -137,6 +138,7 @@ def _plan(ctx: StepContext, job: Job) -> None:
         )
         row.total = len(todo)
         row.planned = True
+    photosteps.forget(ctx, job)
     log.info(
         "planned %d pairs (%d already matched, %d tiled) in %.1fs, %d features computed; "
         "the plan stage took %.1fs since the job started",

@@ -17,9 +17,12 @@ not done. A small project, or one whose plan reads no features, is planned in on
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import time
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
@@ -31,6 +34,9 @@ from geomatch_core.queue import PLAN_FEATURES, PLAN_MATCH
 
 from . import runtime
 from .context import StepContext
+
+if TYPE_CHECKING:
+    from geomatch.pipeline.plan import Hint
 
 log = logging.getLogger("geomatch.workers")
 
@@ -82,6 +88,11 @@ def _spread(ctx: StepContext, job: Job) -> bool:
     )
     if work is None:
         return False
+    if work.hints:  # before the rows: a plan that finds the rows done finds the hints
+        path = _hints_path(ctx, job)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text(json.dumps(work.hints_json()) + "\n")
+        tmp.replace(path)
     chunks = min(len(names), CHUNKS_PER_SLOT * max(1, ctx.queue.slots()))
     size = math.ceil(len(names) / chunks)
     try:
@@ -106,6 +117,28 @@ def _spread(ctx: StepContext, job: Job) -> bool:
         extra={"job_id": job.id, "project_id": pid},
     )
     return True
+
+
+def _hints_path(ctx: StepContext, job: Job) -> Path:
+    return ctx.storage.project_dir(job.project_id) / f"plan-hints-{job.id}.json"
+
+
+def known_hints(ctx: StepContext, job: Job) -> Hint | None:
+    """The SIFT hints the job's guess of its turns made (:func:`_spread`), for its plan; None
+    where it made none (the plan then makes its own)."""
+    from geomatch.matching.turnhint import KnownHints
+    from geomatch.pipeline.plan_photos import hints_from_json
+
+    try:
+        rows = json.loads(_hints_path(ctx, job).read_text())
+    except FileNotFoundError:
+        return None
+    return KnownHints(hints_from_json(rows)).hint
+
+
+def forget(ctx: StepContext, job: Job) -> None:
+    """Drop what the job's plan no longer needs, once planned."""
+    _hints_path(ctx, job).unlink(missing_ok=True)
 
 
 def plan_features(ctx: StepContext, job_id: str, chunk: int) -> str:

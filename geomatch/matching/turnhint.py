@@ -13,6 +13,7 @@ orders the turns tried and skips the pairs that share nothing.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import cv2
@@ -97,3 +98,17 @@ def turn_of_angle(degrees: float) -> int:
     """The quarter turn (np.rot90's k) that undoes a rotation of ``degrees`` in pixel coordinates
     (y down) from the second photo to the first: np.rot90 by k maps pixels by -90 k degrees."""
     return round(-degrees / 90.0) % 4
+
+
+class KnownHints:
+    """The hints of pairs hinted before (a queued plan's guess of its turns, made in an earlier step:
+    geomatch.pipeline.plan_photos), SiftHints' for any other pair: the same answers, without
+    extracting and matching SIFT a second time."""
+
+    def __init__(self, known: Mapping[tuple[str, str], TurnHint]) -> None:
+        self.known = dict(known)
+        self._sift = SiftHints()
+
+    def hint(self, name0: str, image0: np.ndarray, name1: str, image1: np.ndarray) -> TurnHint:
+        found = self.known.get((name0, name1))
+        return found if found is not None else self._sift.hint(name0, image0, name1, image1)

@@ -24,7 +24,7 @@ from ..imagefolder import Images
 from ..matching.matcher import Matcher
 from ..matching.probes import TURN_SURE, TURN_SURE_SEED
 from ..matching.rotation import turn_score
-from ..matching.turnhint import SiftHints
+from ..matching.turnhint import SiftHints, TurnHint
 from ..matching.variants import for_pair
 from ..metadata import ImageMeta
 from ..options import DEFAULTS, parse_plan
@@ -32,6 +32,9 @@ from . import pair_sources as pairing
 from .pair_sources import Pair
 from .retrieval import vlad
 from .turns import image_turns
+
+# a pair's turn hint: (name0, image0, name1, image1) -> TurnHint (matching.turnhint)
+Hint = Callable[[str, np.ndarray, str, np.ndarray], TurnHint]
 
 
 @dataclass(frozen=True)
@@ -81,6 +84,7 @@ def plan(
     progress: bool = False,
     fixes: GpsFixes | None = None,
     metas: Mapping[str, ImageMeta] | None = None,
+    hint: Hint | None = None,
 ) -> list[Pair]:
     """The pairs to match (``pairs_list``, else ``spec``, a union of its parts), tiled where
     ``tiling`` says, in a cache-friendly order: all pairs of one aerial image (its five crops)
@@ -89,7 +93,8 @@ def plan(
     (global descriptors come from its sparse features); ``gps:K`` pairs by the ``fixes`` (images
     without one: see pairs.gps_neighbours), by look point, and by shared ground where ``metas``
     give both images a footprint (gps.plan_points, gps.footprints); ``auto`` is exhaustive or
-    ``gps:K`` by the project's size and fixes (pairs.auto_pairs)."""
+    ``gps:K`` by the project's size and fixes (pairs.auto_pairs). ``hint``: the turns' SIFT hints
+    (SiftHints.hint by default; a queued plan passes those its earlier step made)."""
     # not ``images or ...``: an Images with nothing decoded yet has length 0, and a fresh
     # Images(image_dir) would read the photos at their stored size, not at the caller's working size
     folder = images if images is not None else Images(image_dir)
@@ -125,9 +130,9 @@ def plan(
     # a project with ground images keeps the per-pair probe and geo (matching.variants.for_pair)
     if matcher is not None and survey and any(p.rotate and not p.tiled for p in planned):
         probe, sure = turn_probe(matcher)
-        turns = image_turns(
-            planned, partial(turn_score, probe), folder, gps_enu, progress, sure=sure, hint=SiftHints().hint
-        )
+        score = partial(turn_score, probe)
+        hint = hint or SiftHints().hint
+        turns = image_turns(planned, score, folder, gps_enu, progress, sure=sure, hint=hint)
         planned = pairing.with_turns(planned, turns)
     return sorted(planned, key=lambda p: (not p.tiled, p.name0 if p.aerial_first else p.name1, p.key))
 

@@ -2,14 +2,16 @@
 photo (a survey's turn scores, retrieval's global descriptors) and their extraction. A queued
 runner extracts them in steps spread over its workers, into the feature store every worker reads
 (geomatch.features.store), then plans in one step (prepare.plan_project, unchanged), which finds
-them there. The plan decides from the features alone, wherever they were made, so it is the plan
-one step would have made; ``geomatch run`` plans in one go and never calls this.
+them there, and the SIFT hints the guess of a survey's turns made (:attr:`PhotoWork.hints`). The
+plan decides from the features and hints alone, wherever they were made, so it is the plan one
+step would have made; ``geomatch run`` plans in one go and never calls this.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -17,7 +19,7 @@ from ..geo import gps
 from ..imagefolder import Images
 from ..matching.matcher import Matcher
 from ..matching.rotation import quarter_turn, score_features
-from ..matching.turnhint import SiftHints
+from ..matching.turnhint import SiftHints, TurnHint
 from ..options import plan_needs_matcher
 from .aerial import aerial_set
 from .plan import plan, turn_probe
@@ -33,6 +35,15 @@ class PhotoWork:
 
     turns: Mapping[str, int] | None
     sparse: bool
+    hints: Mapping[tuple[str, str], TurnHint] = field(default_factory=dict)  # those the guess made
+
+    def hints_json(self) -> list[list[Any]]:
+        """:attr:`hints` as JSON keeps them (:func:`hints_from_json`)."""
+        return [[a, b, h.turn, h.inliers] for (a, b), h in sorted(self.hints.items())]
+
+
+def hints_from_json(rows: Sequence[Sequence[Any]]) -> dict[tuple[str, str], TurnHint]:
+    return {(str(a), str(b)): TurnHint(int(t), int(n)) for a, b, t, n in rows}
 
 
 def photo_work(
@@ -66,8 +77,14 @@ def photo_work(
         metas=images.metas,
     )
     points = gps.plan_points(images.fixes, images.metas) if images.fixes is not None else {}
-    guessed = likely_turns(pairs, decoded, points, SiftHints().hint)
-    return PhotoWork({n: guessed.get(n, 0) for n in images.names}, sparse)
+    sift, hints = SiftHints(), {}
+
+    def hint(name0: str, image0: np.ndarray, name1: str, image1: np.ndarray) -> TurnHint:
+        hints[name0, name1] = h = sift.hint(name0, image0, name1, image1)
+        return h
+
+    guessed = likely_turns(pairs, decoded, points, hint)
+    return PhotoWork({n: guessed.get(n, 0) for n in images.names}, sparse, hints)
 
 
 def extract(matcher: Matcher, image: np.ndarray, turn: int | None, sparse: bool) -> None:

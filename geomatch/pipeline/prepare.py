@@ -19,7 +19,7 @@ from ..options import plan_needs_matcher
 from ..sfm.colmapdb import ColmapDatabase
 from . import database
 from .aerial import aerial_set
-from .plan import Plan, plan, plan_in_words
+from .plan import Hint, Plan, plan, plan_in_words
 
 
 @dataclass(frozen=True)
@@ -67,11 +67,12 @@ def plan_project(
     matcher: Callable[[], Matcher],
     decoded: Images,
     progress: bool = False,
+    hint: Hint | None = None,
 ) -> Plan:
     """The project's plan: its aerial images (``captures``: aerial | ground | auto per image,
     aerial.aerial_set), its pairs (plan.plan) and the plan in words. ``matcher`` is called only
     when the plan reads the images' features (retrieval's global descriptors, a survey's quarter
-    turns), so a plan that does not loads no network."""
+    turns), so a plan that does not loads no network. ``hint``: as plan.plan's."""
     enu = images.fixes.enu if images.fixes is not None else None
     aerial = aerial_set(captures, images.metas, enu)
     survey = bool(images.names) and aerial >= set(images.names)
@@ -89,6 +90,7 @@ def plan_project(
         progress,
         fixes=images.fixes,
         metas=images.metas,
+        hint=hint,
     )
     words = (
         "explicit list" if explicit else plan_in_words(request.spec, images.names, images.fixes, images.metas)
