@@ -12,7 +12,8 @@ and queues the chunks; the chunk step that leaves no photo undone queues ``plan_
 which then plans. Each step may run twice: a chunk's rows flip to done once
 (``jobstate.mark_photos_done``, the job's row locked), so one step sees the count reach zero; a
 redelivered or recovered ``plan_match`` (workers.recovery, workers.sweep) queues again the chunks
-not done. A small project, or one whose plan reads no features, is planned in one step as before.
+not done. A small project, one whose plan reads no features, and a runner of one slot plan in one
+step as before.
 """
 
 from __future__ import annotations
@@ -74,7 +75,8 @@ def _spread(ctx: StepContext, job: Job) -> bool:
             ).all()
         )
     names = sorted(captures)
-    if len(names) < MIN_PHOTOS or ctx.settings.feature_cache_mb <= 0:  # no store: nothing to share
+    # no store: nothing to share; one slot (the embedded runner's one thread): nothing to run beside
+    if len(names) < MIN_PHOTOS or ctx.settings.feature_cache_mb <= 0 or ctx.queue.slots() < 2:
         return False
     t0 = time.perf_counter()
     image_dir = ctx.storage.images_dir(pid)
@@ -93,7 +95,7 @@ def _spread(ctx: StepContext, job: Job) -> bool:
         tmp = path.with_name(f".{path.name}.tmp")
         tmp.write_text(json.dumps(work.hints_json()) + "\n")
         tmp.replace(path)
-    chunks = min(len(names), CHUNKS_PER_SLOT * max(1, ctx.queue.slots()))
+    chunks = min(len(names), CHUNKS_PER_SLOT * ctx.queue.slots())
     size = math.ceil(len(names) / chunks)
     try:
         with ctx.store.session() as s:
