@@ -46,7 +46,11 @@ def candidate_rotations(
     side = max(cam0.width, cam0.height, cam1.width, cam1.height)
     focal /= working_scale(side)
     out: list[np.ndarray] = []
-    E, mask = cv2.findEssentialMat(n0, n1, np.eye(3), cv2.RANSAC, 0.999, 1.0 / focal)
+    # USAC rather than plain RANSAC: with a calibration from EXIF only part of the verified inliers
+    # fit an essential matrix at one pixel, so plain RANSAC ran all its iterations on every pair;
+    # USAC's local optimisation stops early, and the candidates it gives are as near the peer's
+    # model (docs/benchmarks.md, "Drone surveys", "Where the time goes")
+    E, mask = cv2.findEssentialMat(n0, n1, np.eye(3), cv2.USAC_DEFAULT, 0.999, 1.0 / focal)
     if E is not None and E.shape == (3, 3):
         n, R, _, _ = cv2.recoverPose(E, n0, n1, np.eye(3), mask=mask)
         if n >= 8:
