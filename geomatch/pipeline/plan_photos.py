@@ -22,8 +22,8 @@ from ..matching.rotation import quarter_turn, score_features
 from ..matching.turnhint import SiftHints, TurnHint
 from ..options import plan_needs_matcher
 from .aerial import aerial_set
-from .plan import plan, turn_probe
-from .prepare import PlanRequest, ProjectImages
+from .plan import turn_probe
+from .prepare import PlanRequest, ProjectImages, project_pairs
 from .turns import likely_turns
 
 
@@ -64,18 +64,7 @@ def photo_work(
     if sparse:
         return PhotoWork(dict.fromkeys(images.names, 0), sparse)
     # the pairs plan.plan turns: planned without a matcher, they are the same, unturned
-    pairs = plan(
-        images.folder,
-        images.names,
-        aerial,
-        request.spec,
-        request.pairs_list,
-        request.tiling,
-        None,
-        decoded,
-        fixes=images.fixes,
-        metas=images.metas,
-    )
+    pairs = project_pairs(images, aerial, request, None, decoded)
     points = gps.plan_points(images.fixes, images.metas) if images.fixes is not None else {}
     sift, hints = SiftHints(), {}
 
