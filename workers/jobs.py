@@ -153,8 +153,9 @@ def _plan(ctx: StepContext, job: Job) -> None:
 
 
 def _computed(ctx: StepContext, opts: dict[str, Any]) -> int:
-    """Features this process's matcher for ``opts`` has computed and stored so far."""
-    store = getattr(runtime.matcher(ctx, opts), "store", None)
+    """Features this process's matcher for ``opts`` has computed and stored so far (0 before it is
+    built: counting builds none, so a plan that reads no features loads no network)."""
+    store = getattr(runtime.built_matcher(ctx, opts), "store", None)
     return int(store.saved) if store is not None else 0
 
 

@@ -32,14 +32,29 @@ def job_options(stored: Mapping[str, Any]) -> dict[str, Any]:
     return resolve(stored, PROJECT_OPTIONS)
 
 
+def _matchers() -> OrderedDict[tuple[Any, ...], Matcher]:
+    cache: OrderedDict[tuple[Any, ...], Matcher] = _local.__dict__.setdefault("matchers", OrderedDict())
+    return cache
+
+
+def _matcher_key(ctx: StepContext, options: Mapping[str, Any]) -> tuple[Any, ...]:
+    return (options["method"], options["resize"], ctx.settings.device)
+
+
+def built_matcher(ctx: StepContext, options: Mapping[str, Any]) -> Matcher | None:
+    """The thread's matcher for ``options`` if one was built, without building it (loading a
+    network is the plan's to decide: prepare.plan_project)."""
+    return _matchers().get(_matcher_key(ctx, options))
+
+
 def matcher(ctx: StepContext, options: Mapping[str, Any]) -> Matcher:
     """The thread's matcher for resolved ``options`` (:func:`job_options`)."""
     from geomatch.features.store import FeatureStore
     from geomatch.matching.stored import build_matcher
 
     method, resize = options["method"], options["resize"]
-    key = (method, resize, ctx.settings.device)
-    cache: OrderedDict[tuple[Any, ...], Matcher] = _local.__dict__.setdefault("matchers", OrderedDict())
+    key = _matcher_key(ctx, options)
+    cache = _matchers()
     if key in cache:
         cache.move_to_end(key)
         return cache[key]
