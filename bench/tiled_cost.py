@@ -30,6 +30,7 @@ from geomatch.metadata import read_metadata
 from geomatch.pipeline import match_pairs
 from geomatch.pipeline import plan as planning
 from geomatch.pipeline.aerial import aerial_set, captures
+from geomatch.pipeline.project import PlanRequest, ProjectImages
 from geomatch.synth.aerial import Scene, write_scene
 
 ROWS = [
@@ -75,7 +76,8 @@ def main() -> None:
             warm = images[names[0]]
             m.match(warm, warm)  # networks loaded, not timed
             m.clear_caches()
-            planned = planning.plan(image_dir, names, aerial, "exhaustive", None, tiling, m, images, False)
+            project = ProjectImages(image_dir, names, metas, None)
+            planned = planning.plan(project, aerial, PlanRequest("exhaustive", None, tiling), m, images)
             ag = [p for p in planned if (p.name0 in aerial) != (p.name1 in aerial)]
             gg = [p for p in planned if p.name0 not in aerial and p.name1 not in aerial]
             secs, crops, matches, right = [], [], [], []

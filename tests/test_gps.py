@@ -32,7 +32,7 @@ from geomatch.geo.similarity import umeyama_upright, upright_with_heights
 from geomatch.metadata import ImageMeta, exif_for, gps_exif, read_metadata, up_in_camera
 from geomatch.options import PairSpecError, check, parse_plan
 from geomatch.pipeline import pair_sources as pairs
-from geomatch.pipeline.prepare import ProjectImages
+from geomatch.pipeline.project import ProjectImages
 from geomatch.sfm.colmapdb import ColmapDatabase
 from geomatch.synth.aerial import Scene, write_scene
 from geomatch.synth.groundtruth import write_gt
@@ -140,8 +140,8 @@ def test_malformed_or_absurd_metadata_is_dropped_field_by_field(
 
 @pytest.mark.unit
 def test_synth_writes_fixes_and_leaves_renders_alone(tmp_path: Path) -> None:
-    plain = write_scene(tmp_path / "plain", 2, 2, seed=3, width=64, height=48)
-    noisy = write_scene(tmp_path / "gps", 2, 2, seed=3, width=64, height=48, gps_noise=2.0)
+    plain = write_scene(tmp_path / "plain", 2, 2, seed=3, size=(64, 48))
+    noisy = write_scene(tmp_path / "gps", 2, 2, seed=3, size=(64, 48), gps_noise=2.0)
     truth = json.loads((tmp_path / "gps" / "gt" / "gps.json").read_text())
     assert truth["origin"] == GPS_ORIGIN.as_dict() and truth["sigma_m"] == 2.0
     names = [c.name for c in noisy]

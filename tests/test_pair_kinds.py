@@ -14,6 +14,7 @@ from geomatch import options
 from geomatch.imagefolder import Images
 from geomatch.options import PAIR_KIND, PAIR_KINDS, PAIR_SPEC_LIST, fewest_pairs, parse_plan
 from geomatch.pipeline import plan as planning
+from geomatch.pipeline.project import PlanRequest, ProjectImages
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.unit
@@ -98,5 +99,5 @@ def test_a_new_kind_is_a_row_and_a_planner(monkeypatch: pytest.MonkeyPatch, tmp_
     assert not options.plan_needs_matcher("every:2")
     assert re.fullmatch(pair_spec_pattern((*PAIR_KINDS, row)), "every:2 + gps:3")
     names = [f"{i}.png" for i in range(6)]
-    planned = planning.plan(tmp_path, names, set(), "every:2")
+    planned = planning.plan(ProjectImages(tmp_path, names, {}, None), set(), PlanRequest("every:2"))
     assert {p.key for p in planned} == set(every(names, 2))

@@ -76,7 +76,7 @@ def test_retrieval_ranks_by_global_descriptor() -> None:
 
 
 def test_aerial_from_synthetic_exif_and_xmp(tmp_path) -> None:
-    cams = write_scene(tmp_path, 2, 2, seed=3, width=96, height=72)
+    cams = write_scene(tmp_path, 2, 2, seed=3, size=(96, 72))
     names = [c.name for c in cams]
     metas = {n: read_metadata(tmp_path / "images" / n) for n in names}
     for c in cams:

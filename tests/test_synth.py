@@ -48,7 +48,7 @@ def test_views_agree_through_the_ground_truth_geometry(scene: Scene) -> None:
 
 
 def test_scene_files_and_colmap_model(tmp_path) -> None:
-    cams = write_scene(tmp_path, n_aerial=2, n_ground=3, seed=1, width=160, height=120)
+    cams = write_scene(tmp_path, n_aerial=2, n_ground=3, seed=1, size=(160, 120))
     names = sorted(p.name for p in (tmp_path / "images").iterdir())
     assert names == sorted(c.name for c in cams) and len(names) == 5
     assert (tmp_path / "aerial.txt").read_text().split() == ["aerial_00.png", "aerial_01.png"]

@@ -26,7 +26,7 @@ W, H = 160, 120
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list]:
     out = tmp_path_factory.mktemp("flight")
-    return out, write_flight(out, 12, ground=1, seed=2, width=W, height=H)
+    return out, write_flight(out, 12, ground=1, seed=2, size=(W, H))
 
 
 def _heading_diff(a: float, b: float) -> float:

@@ -67,6 +67,7 @@ def test_the_plan_reads_the_photos_through_the_callers_folder_even_before_it_dec
     photos again at their stored size, so a survey's turn probes hashed other pixels than its
     matching and every photo's features were extracted twice."""
     from geomatch.pipeline import plan as planning
+    from geomatch.pipeline.project import PlanRequest, ProjectImages
 
     _jpeg(tmp_path / "a.jpg", 1600, 900)
     _jpeg(tmp_path / "b.jpg", 1600, 900)
@@ -79,6 +80,7 @@ def test_the_plan_reads_the_photos_through_the_callers_folder_even_before_it_dec
         return [("a.jpg", "b.jpg")]
 
     monkeypatch.setitem(planning.PLANNERS, "exhaustive", probe)
-    planning.plan(tmp_path, ["a.jpg", "b.jpg"], set(), "exhaustive", images=images)
+    request = PlanRequest("exhaustive")
+    planning.plan(ProjectImages(tmp_path, ["a.jpg", "b.jpg"], {}, None), set(), request, decoded=images)
     assert seen and seen[0] is images
     assert seen[0]["a.jpg"].shape == (450, 800, 3)

@@ -65,7 +65,8 @@ def _plan(ctx: StepContext, job: Job) -> None:
     photos read, its aerial images and plan decided, its images registered; the plan kept beside
     the database (plan.json) for the reconstruct job, the pairs not matched yet as the job's rows."""
     from geomatch.pipeline import database
-    from geomatch.pipeline.prepare import PlanRequest, ProjectImages, frames, plan_project, register
+    from geomatch.pipeline.prepare import frames, plan_project, register
+    from geomatch.pipeline.project import PlanRequest, ProjectImages
     from geomatch.sfm.colmapdb import ColmapDatabase
 
     t0 = time.perf_counter()
@@ -301,7 +302,7 @@ def reconstruct(ctx: StepContext, job_id: str) -> str:
     from geomatch.pipeline.orthomap import add_map
     from geomatch.pipeline.outputs import finish
     from geomatch.pipeline.plan import Plan
-    from geomatch.pipeline.prepare import ProjectImages
+    from geomatch.pipeline.project import ProjectImages
     from geomatch.pipeline.reconstruction import map_project, mapping_settings
     from geomatch.sfm.colmapdb import ColmapDatabase
 

@@ -60,6 +60,7 @@ def _match(
     from geomatch.pipeline import match_pairs
     from geomatch.pipeline.aerial import aerial_set
     from geomatch.pipeline.plan import plan
+    from geomatch.pipeline.project import PlanRequest, ProjectImages
 
     def check() -> None:
         if time.time() > deadline:
@@ -72,7 +73,8 @@ def _match(
     taken = dict(zip(names, captures, strict=True))
     metas = {n: read_metadata(folder / n) for n in names if taken[n] == "auto"}
     aerial = aerial_set(taken, metas)
-    pair = plan(folder, names, aerial, pairs_list=[names], tiling=options["tiling"])[0]
+    request = PlanRequest(pairs_list=[names], tiling=options["tiling"])
+    pair = plan(ProjectImages(folder, names, metas, None), aerial, request)[0]
     a, b = read_image(folder / "0"), read_image(folder / "1")  # not runtime.image: these are read once
     matcher = runtime.matcher(ctx, options)
     t1 = time.perf_counter()

@@ -65,7 +65,8 @@ def ready(ctx: StepContext, job: Job) -> bool:
 def _spread(ctx: StepContext, job: Job) -> bool:
     """Write the job's photo rows, chunked; False when the plan is left to one step."""
     from geomatch.pipeline.plan_photos import photo_work
-    from geomatch.pipeline.prepare import PlanRequest, ProjectImages, frames
+    from geomatch.pipeline.prepare import frames
+    from geomatch.pipeline.project import PlanRequest, ProjectImages
 
     opts, pid = runtime.job_options(job.options), job.project_id
     with ctx.store.session() as s:

@@ -8,7 +8,7 @@ and, when asked, adds the photo to the project (:func:`add_to_project`, add.py).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +45,6 @@ def localize_photos(
     *,
     model_dir: Path | None = None,
     images_dir: Path | None = None,
-    aerial: Collection[str] | None = None,
 ) -> list[Localization]:
     """Each photo's pose in the project's model (one :class:`Localization` per photo, in order).
 
@@ -53,10 +52,10 @@ def localize_photos(
     one the run recorded. ``add``: also put the photos into the project (:func:`add_to_project`).
     ``progress(done, total)`` is called after each photo. ``model_dir`` / ``images_dir``: where
     the model and the images are when the project's layout does not say (see project.py's
-    docstring); ``aerial``: the model's aerial images, when neither the summary nor their
-    metadata says."""
+    docstring). The model's aerial images are those its summary or their metadata name (a caller
+    that knows better builds its own :class:`Localizer`)."""
     project = Project.find(Path(project_dir), model_dir, images_dir)
-    localizer = Localizer(project, options or LocalizeOptions(), matcher, aerial)
+    localizer = Localizer(project, options or LocalizeOptions(), matcher)
     snap = float(project.run_options.get("snap_radius", DEFAULTS["snap_radius"]))
     results = []
     for k, photo in enumerate(photos):

@@ -234,16 +234,16 @@ class StageTimer:
 
 def pair_result(
     method: str,
-    pa: torch.Tensor,
-    pb: torch.Tensor,
-    ps: torch.Tensor,
+    matches: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     F_net: torch.Tensor | None,
-    prep0: Prepared,
-    prep1: Prepared,
+    preps: tuple[Prepared, Prepared],
     stats: dict[str, Any],
     timer: StageTimer,
 ) -> MatchResult:
-    """Points and F from the network inputs' frames to the original images'."""
+    """Points and F from the network inputs' frames to the original images'. ``matches``: the
+    points in each image and their scores."""
+    pa, pb, ps = matches
+    prep0, prep1 = preps
     F = np.zeros((3, 3))
     if F_net is not None:
         F = scale_fundamental(F_net.double().cpu().numpy(), prep0.from_original(), prep1.from_original())

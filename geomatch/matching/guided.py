@@ -225,7 +225,7 @@ def match_guided(matcher: MatcherParts, image0: np.ndarray, image1: np.ndarray) 
         pa, pb, F, n, how = seed(matcher, key0, key1, sa, sb, lightglue=True)
     stats: dict[str, Any] = {"f_inliers": n, "seed": how}
     if F is None or n < cfg.anchors_suffice:
-        return pair_result(cfg.method, pa, pb, torch.ones(pa.shape[0]), F, prep0, prep1, stats, timer)
+        return pair_result(cfg.method, (pa, pb, torch.ones(pa.shape[0])), F, (prep0, prep1), stats, timer)
     with timer("guided"):
         ia, ib, sim = mutual_ratio(
             sa.descriptors, sb.descriptors, GUIDED_RATIO, (F, sa.keypoints, sb.keypoints, cfg.geo.tau)
@@ -239,4 +239,4 @@ def match_guided(matcher: MatcherParts, image0: np.ndarray, image1: np.ndarray) 
         near = sampson_distance(F_guided.to(ga), ga, gb) <= KEEP_SAMPSON
         ga, gb, sim = ga[near], gb[near], sim[near]
     F_out = F if F_guided is None else F_guided
-    return pair_result(cfg.method, ga, gb, sim, F_out, prep0, prep1, stats, timer)
+    return pair_result(cfg.method, (ga, gb, sim), F_out, (prep0, prep1), stats, timer)

@@ -409,9 +409,8 @@ class Matcher:
     def _result(
         self, pa: torch.Tensor, pb: torch.Tensor, ps: torch.Tensor, F_net: torch.Tensor | None, pair: _Pair
     ) -> MatchResult:
-        return pair_result(
-            self.config.method, pa, pb, ps, F_net, pair.prep0, pair.prep1, pair.stats, pair.timer
-        )
+        preps = (pair.prep0, pair.prep1)
+        return pair_result(self.config.method, (pa, pb, ps), F_net, preps, pair.stats, pair.timer)
 
 
 def _anchor_fit(anchors: Anchors, cfg: MatcherConfig) -> tuple[torch.Tensor | None, int]:

@@ -19,17 +19,16 @@ import numpy as np
 from tqdm import tqdm
 
 from ..geo import gps
-from ..geo.gps import GpsFixes
 from ..imagefolder import Images
 from ..matching.matcher import Matcher
 from ..matching.probes import TURN_SURE, TURN_SURE_SEED
 from ..matching.rotation import turn_score
 from ..matching.turnhint import SiftHints, TurnHint
 from ..matching.variants import for_pair
-from ..metadata import ImageMeta
-from ..options import DEFAULTS, parse_plan
+from ..options import parse_plan
 from . import pair_sources as pairing
 from .pair_sources import Pair
+from .project import PlanRequest, ProjectImages
 from .retrieval import vlad
 from .turns import image_turns
 
@@ -73,37 +72,36 @@ PLANNERS: dict[str, Callable[[PlanInputs, int], list[tuple[str, str]]]] = {
 
 
 def plan(
-    image_dir: Path,
-    names: Sequence[str],
+    images: ProjectImages,
     aerial: set[str],
-    spec: str = DEFAULTS["pairs"],
-    pairs_list: Sequence[Sequence[str]] | None = None,
-    tiling: str = DEFAULTS["tiling"],
+    request: PlanRequest,
     matcher: Matcher | None = None,
-    images: Images | None = None,
+    decoded: Images | None = None,
     progress: bool = False,
-    fixes: GpsFixes | None = None,
-    metas: Mapping[str, ImageMeta] | None = None,
     hint: Hint | None = None,
 ) -> list[Pair]:
-    """The pairs to match (``pairs_list``, else ``spec``, a union of its parts), tiled where
-    ``tiling`` says, in a cache-friendly order: all pairs of one aerial image (its five crops)
-    together. With ``matcher`` the plain pairs with an aerial side get their quarter turn once per
-    image (:func:`image_turns`), else each pair probes its own. ``retrieval:K`` needs ``matcher``
-    (global descriptors come from its sparse features); ``gps:K`` pairs by the ``fixes`` (images
-    without one: see pairs.gps_neighbours), by look point, and by shared ground where ``metas``
-    give both images a footprint (gps.plan_points, gps.footprints); ``auto`` is exhaustive or
-    ``gps:K`` by the project's size and fixes (pairs.auto_pairs). ``hint``: the turns' SIFT hints
-    (SiftHints.hint by default; a queued plan passes those its earlier step made)."""
-    # not ``images or ...``: an Images with nothing decoded yet has length 0, and a fresh
-    # Images(image_dir) would read the photos at their stored size, not at the caller's working size
-    folder = images if images is not None else Images(image_dir)
+    """The pairs to match (``request.pairs_list``, else ``request.spec``, a union of its parts),
+    tiled where ``request.tiling`` says, in a cache-friendly order: all pairs of one aerial image
+    (its five crops) together. With ``matcher`` the plain pairs with an aerial side get their
+    quarter turn once per image (:func:`image_turns`), else each pair probes its own.
+    ``retrieval:K`` needs ``matcher`` (global descriptors come from its sparse features); ``gps:K``
+    pairs by the images' fixes (images without one: see pairs.gps_neighbours), by look point, and
+    by shared ground where the metadata give both images a footprint (gps.plan_points,
+    gps.footprints); ``auto`` is exhaustive or ``gps:K`` by the project's size and fixes
+    (pairs.auto_pairs). ``decoded``: the photos as the matcher reads them (the working size).
+    ``hint``: the turns' SIFT hints (SiftHints.hint by default; a queued plan passes those its
+    earlier step made)."""
+    # not ``decoded or ...``: an Images with nothing decoded yet has length 0, and a fresh
+    # Images(folder) would read the photos at their stored size, not at the caller's working size
+    folder = decoded if decoded is not None else Images(images.folder)
     gps_enu: Mapping[str, np.ndarray] = {}
     footprints: Mapping[str, np.ndarray] | None = None
+    fixes = images.fixes
     if fixes is not None:
-        gps_enu = gps.plan_points(fixes, metas) if metas is not None else fixes.enu
-        footprints = gps.footprints(fixes, metas) if metas is not None else None
-    names = list(names)
+        gps_enu = gps.plan_points(fixes, images.metas)
+        footprints = gps.footprints(fixes, images.metas)
+    names = list(images.names)
+    spec, pairs_list, tiling = request.spec, request.pairs_list, request.tiling
     if pairs_list is not None:
         raw = pairing.explicit(pairs_list, names)
     else:
@@ -145,15 +143,14 @@ def turn_probe(matcher: Matcher) -> tuple[Matcher, int]:
     return probe, TURN_SURE_SEED if guided else TURN_SURE
 
 
-def plan_in_words(
-    spec: str, names: Sequence[str], fixes: GpsFixes | None, metas: Mapping[str, ImageMeta] | None
-) -> str:
+def plan_in_words(spec: str, images: ProjectImages) -> str:
     """The plan :func:`plan` makes of ``spec``, in words: ``auto``'s choice (pairs.auto_pairs)."""
     if spec.strip() != "auto":
         return spec.strip()
-    enu = gps.plan_points(fixes, metas) if fixes is not None and metas is not None else {}
-    footprints = gps.footprints(fixes, metas) if fixes is not None and metas is not None else None
-    return pairing.auto_pairs(list(names), enu, footprints)[1]
+    fixes = images.fixes
+    enu = gps.plan_points(fixes, images.metas) if fixes is not None else {}
+    footprints = gps.footprints(fixes, images.metas) if fixes is not None else None
+    return pairing.auto_pairs(list(images.names), enu, footprints)[1]
 
 
 def global_descriptors(

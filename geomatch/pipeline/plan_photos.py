@@ -23,7 +23,8 @@ from ..matching.turnhint import SiftHints, TurnHint
 from ..options import plan_needs_matcher
 from .aerial import aerial_set
 from .plan import turn_probe
-from .prepare import PlanRequest, ProjectImages, project_pairs
+from .prepare import project_pairs
+from .project import PlanRequest, ProjectImages
 from .turns import likely_turns
 
 

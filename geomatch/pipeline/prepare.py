@@ -5,54 +5,20 @@ runners (``geomatch run`` and a match job's plan step) do exactly this before an
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from ..geo import gps
-from ..geo.gps import GpsFixes
 from ..imagefolder import Images
 from ..imageio import WORKING_SIDE
 from ..matching.matcher import Matcher
-from ..metadata import ImageMeta, read_metadata
 from ..options import plan_needs_matcher
 from ..sfm.colmapdb import ColmapDatabase
 from . import database
 from .aerial import aerial_set
 from .pair_sources import Pair
 from .plan import Hint, Plan, plan, plan_in_words
-
-
-@dataclass(frozen=True)
-class ProjectImages:
-    """A project's photos as every stage after reading them sees them: their names (relative to
-    ``folder``, in order), each one's metadata, and the GPS fixes (None: not georeferenced, or too
-    few photos with a fix: geo.gps.fixes)."""
-
-    folder: Path
-    names: list[str]
-    metas: dict[str, ImageMeta]
-    fixes: GpsFixes | None
-
-    @classmethod
-    def read(cls, folder: Path, names: Sequence[str], georeference: bool = True) -> ProjectImages:
-        metas = {n: read_metadata(folder / n) for n in names}
-        fixes = gps.fixes(list(names), metas) if georeference else None
-        return cls(folder, list(names), metas, fixes)
-
-    def sizes(self) -> dict[str, tuple[int, int]]:
-        """(width, height) of each photo."""
-        return {n: (m.width, m.height) for n, m in self.metas.items()}
-
-
-@dataclass(frozen=True)
-class PlanRequest:
-    """What a run or a match job asks of the plan: ``spec`` (options.PAIR_KINDS; ignored with
-    ``pairs_list``), an explicit pair list, and ``tiling`` (auto | on | off)."""
-
-    spec: str
-    pairs_list: Sequence[Sequence[str]] | None
-    tiling: str
+from .project import PlanRequest, ProjectImages
 
 
 def frames(folder: Path, budget_mb: float) -> Images:
@@ -80,9 +46,7 @@ def plan_project(
     explicit = request.pairs_list is not None
     needs = (not explicit and plan_needs_matcher(request.spec)) or survey
     pairs = project_pairs(images, aerial, request, matcher() if needs else None, decoded, progress, hint)
-    words = (
-        "explicit list" if explicit else plan_in_words(request.spec, images.names, images.fixes, images.metas)
-    )
+    words = "explicit list" if explicit else plan_in_words(request.spec, images)
     return Plan(pairs, sorted(aerial), words, survey)
 
 
@@ -98,20 +62,7 @@ def project_pairs(
     """The project's pairs as plan.plan makes them of its images and ``request``; without
     ``matcher`` a survey's pairs come unturned (what the plan steps spread over the workers
     guess the turns of)."""
-    return plan(
-        images.folder,
-        images.names,
-        aerial,
-        request.spec,
-        request.pairs_list,
-        request.tiling,
-        matcher,
-        decoded,
-        progress,
-        fixes=images.fixes,
-        metas=images.metas,
-        hint=hint,
-    )
+    return plan(images, aerial, request, matcher, decoded, progress, hint)
 
 
 def register(path: Path, images: ProjectImages, share_camera: bool | None) -> dict[str, int]:

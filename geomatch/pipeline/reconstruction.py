@@ -22,7 +22,7 @@ from ..sfm.colmapdb import ColmapDatabase
 from ..sfm.mapping import MappingSettings
 from ..sfm.upright import image_up
 from .plan import Plan
-from .prepare import ProjectImages
+from .project import ProjectImages
 
 log = logging.getLogger(__name__)
 

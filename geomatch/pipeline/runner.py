@@ -34,7 +34,8 @@ from . import aerial, database, match_pairs
 from .database import PairMatches
 from .orthomap import add_map
 from .outputs import finish
-from .prepare import PlanRequest, ProjectImages, frames, plan_project, register
+from .prepare import frames, plan_project, register
+from .project import PlanRequest, ProjectImages
 from .reconstruction import ControlPoints, map_project, mapping_settings
 
 

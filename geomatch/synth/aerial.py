@@ -211,21 +211,20 @@ def write_scene(
     n_aerial: int = 8,
     n_ground: int = 12,
     seed: int = 0,
-    width: int = 640,
-    height: int = 480,
+    size: tuple[int, int] = (640, 480),
     gps_noise: float | None = None,
     gps_names: set[str] | None = None,
     baro_noise: float | None = None,
 ) -> list[Camera]:
-    """Render a scene into ``out`` (images/, gt/, aerial.txt) and return its cameras.
-    ``gps_noise``: write GPS fixes with that sigma (metres), and relative altitudes with
-    ``baro_noise`` (None: BARO_NOISE_M); ``gps_names``: fixes only into these images (a mixed
-    project), all when None."""
+    """Render a scene into ``out`` (images/, gt/, aerial.txt) and return its cameras; ``size``:
+    the photos' (width, height). ``gps_noise``: write GPS fixes with that sigma (metres), and
+    relative altitudes with ``baro_noise`` (None: BARO_NOISE_M); ``gps_names``: fixes only into
+    these images (a mixed project), all when None."""
     baro_noise = BARO_NOISE_M if baro_noise is None else baro_noise
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     scene = Scene(seed)
-    cams = scene.cameras(n_aerial, n_ground, width, height)
+    cams = scene.cameras(n_aerial, n_ground, *size)
     fixes = gps_fixes(cams, gps_noise, seed) if gps_noise is not None else {}
     heights = baro_heights(cams, baro_noise, seed) if gps_noise is not None else {}
     if gps_names is not None:

@@ -100,8 +100,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         args.aerial,
         args.ground,
         args.seed,
-        args.width,
-        args.height,
+        (args.width, args.height),
         args.gps_noise,
         baro_noise=args.baro_noise,  # None: synth.sensors.BARO_NOISE_M
     )
@@ -130,8 +129,7 @@ def _synth_flight(args: argparse.Namespace, t0: float) -> int:
         args.photos,
         args.ground or 0,
         args.seed,
-        args.width,
-        args.height,
+        (args.width, args.height),
         GPS_NOISE_M if args.gps_noise is None else args.gps_noise,
         BARO_NOISE_M if args.baro_noise is None else args.baro_noise,
     )

@@ -37,17 +37,18 @@ def write_flight(
     photos: int,
     ground: int = 0,
     seed: int = 0,
-    width: int = 640,
-    height: int = 480,
+    size: tuple[int, int] = (640, 480),
     gps_noise: float = GPS_NOISE_M,
     baro_noise: float = BARO_NOISE_M,
     altitude: float = 80.0,
 ) -> list[Camera]:
     """Render a survey of ``photos`` nadir photos (and ``ground`` handheld ones) into ``out``
-    (module docstring) and return its cameras. An image already in ``images/`` is kept (the
-    renders are deterministic), so an interrupted render resumes."""
+    (module docstring) and return its cameras; ``size``: the photos' (width, height). An image
+    already in ``images/`` is kept (the renders are deterministic), so an interrupted render
+    resumes."""
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
+    width, height = size
     plan = FlightPlan.make(photos, width, height, altitude)
     gsd = altitude / (FOCAL_PER_WIDTH * width)
     world = World(seed, texel_m=gsd / 2)

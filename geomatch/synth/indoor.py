@@ -180,30 +180,33 @@ def _rooms(seed: int, salt: int) -> Iterator[tuple[int, Room, np.random.Generato
         k += 1
 
 
+@dataclass(frozen=True)
+class _Draw:
+    """How one kind of pair is drawn: its stream of rooms (``salt``), the random views per room,
+    the name tag, the test on the small depth renders and the test on the full-size pair."""
+
+    salt: int
+    n_candidates: int
+    tag: str
+    candidate: Callable[[float, float, float], bool]
+    keep: Callable[[IndoorPair], bool]
+
+
 def _choose_pairs(
-    seed: int,
-    salt: int,
-    n_pairs: int,
-    n_candidates: int,
-    tag: str,
-    candidate: Callable[[float, float, float], bool],
-    keep: Callable[[IndoorPair], bool],
-    width: int,
-    height: int,
-    supersample: int,
+    seed: int, n_pairs: int, draw: _Draw, width: int, height: int, supersample: int
 ) -> list[IndoorPair]:
-    """Room after room, up to :data:`PAIRS_PER_ROOM` pairs of ``n_candidates`` random views: the
-    view pairs whose (rotation, covisibility, baseline) on the small depth renders pass
-    ``candidate``, in random order, no view in two pairs, each rendered full size and taken if it
-    passes ``keep``. Deterministic per (seed, salt)."""
+    """Room after room, up to :data:`PAIRS_PER_ROOM` pairs of ``draw.n_candidates`` random views:
+    the view pairs whose (rotation, covisibility, baseline) on the small depth renders pass
+    ``draw.candidate``, in random order, no view in two pairs, each rendered full size and taken if
+    it passes ``draw.keep``. Deterministic per (seed, salt)."""
     out: list[IndoorPair] = []
-    for k, room, rng in _rooms(seed, salt):
-        cams, small, depths = _candidates(room, rng, n_candidates, width, height)
+    for k, room, rng in _rooms(seed, draw.salt):
+        cams, small, depths = _candidates(room, rng, draw.n_candidates, width, height)
         options = [
             (i, j)
             for i in range(len(cams))
             for j in range(i + 1, len(cams))
-            if candidate(*_pair_stats(small, depths, i, j))
+            if draw.candidate(*_pair_stats(small, depths, i, j))
         ]
         used: set[int] = set()
         taken = 0
@@ -211,9 +214,9 @@ def _choose_pairs(
             i, j = options[idx]
             if i in used or j in used or taken == PAIRS_PER_ROOM or len(out) == n_pairs:
                 continue
-            name = f"s{seed}_{tag}r{k}_{i:02d}_{j:02d}"
+            name = f"s{seed}_{draw.tag}r{k}_{i:02d}_{j:02d}"
             pair = _make_pair(room, cams[i], cams[j], name, supersample, 1000 * k + 2 * taken)
-            if not keep(pair):
+            if not draw.keep(pair):
                 continue
             used |= {i, j}
             out.append(pair)
@@ -246,7 +249,7 @@ def indoor_pairs(
             and _solvable(pair)
         )
 
-    return _choose_pairs(seed, 0, n_pairs, 48, "", candidate, keep, width, height, supersample)
+    return _choose_pairs(seed, n_pairs, _Draw(0, 48, "", candidate, keep), width, height, supersample)
 
 
 def no_overlap_pairs(
@@ -262,7 +265,8 @@ def no_overlap_pairs(
     def keep(pair: IndoorPair) -> bool:
         return not covisibility(pair.depth0, pair.depth1, pair.K0, pair.K1, pair.R, pair.t, stride=2) > 0
 
-    return _choose_pairs(seed, 1, n_pairs, 32, "none_", candidate, keep, width, height, supersample)
+    draw = _Draw(1, 32, "none_", candidate, keep)
+    return _choose_pairs(seed, n_pairs, draw, width, height, supersample)
 
 
 def write_room(

@@ -18,7 +18,7 @@ pytestmark = pytest.mark.browser
 
 def test_the_map_card_shows_the_orthophoto_and_the_cameras(console: Console, tmp_path: Path) -> None:  # noqa: F811
     flight = tmp_path / "flight"
-    write_flight(flight, photos=8, width=320, height=240, seed=5)
+    write_flight(flight, photos=8, size=(320, 240), seed=5)
     c = console.d.client(console.key)
     pid = c.post("/v1/projects", json={"name": "console map", "config": {"resize": 320}}).json()["id"]
     assert upload(c, pid, sorted((flight / "images").iterdir())).status_code == 201

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.service
 @pytest.fixture(scope="module")
 def mapped(deployment: Deployment, key_a: str, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     flight = tmp_path_factory.mktemp("flight")
-    write_flight(flight, photos=8, width=320, height=240, seed=5)
+    write_flight(flight, photos=8, size=(320, 240), seed=5)
     c = deployment.client(key_a)
     pid = c.post("/v1/projects", json={"name": "map", "config": {"resize": 320}}).json()["id"]
     r = upload(c, pid, sorted((flight / "images").iterdir()))

@@ -17,7 +17,8 @@ import pytest
 
 from geomatch.features.store import FeatureStore
 from geomatch.matching.stored import build_matcher
-from geomatch.pipeline.prepare import PlanRequest, ProjectImages, frames, plan_project
+from geomatch.pipeline.prepare import frames, plan_project
+from geomatch.pipeline.project import PlanRequest, ProjectImages
 from geomatch.synth.flight import write_flight
 from geomatch_core import jobstate
 from geomatch_core.config import Settings
@@ -42,7 +43,7 @@ PLAN_LOG = re.compile(r"planned \d+ pairs .* (\d+) features computed")
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("fanout-flight")
-    write_flight(d, photos=PHOTOS, width=320, height=240, seed=5)
+    write_flight(d, photos=PHOTOS, size=(320, 240), seed=5)
     return d / "images"
 
 
