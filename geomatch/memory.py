@@ -18,12 +18,16 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import gc
+import os
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
+from dataclasses import dataclass
 from functools import cache
 from typing import Generic, TypeVar
 
 import numpy as np
+
+from .options import OptionError
 
 K = TypeVar("K", bound=Hashable)
 V = TypeVar("V")
@@ -96,3 +100,51 @@ def return_freed_memory() -> bool:
         return False
     trim(0)
     return True
+
+
+# GEOMATCH_CACHE_MB: the in-memory caches of one job (a worker's job thread, or `geomatch run`), in
+# MiB, all together. One number because an operator sizes a process, not its caches.
+CACHE_MB = 1536
+
+
+# GEOMATCH_RUN_FEATURES_MB: the on-disk feature store of a run's folder (``OUT/features``), in MiB;
+# 0 turns it off (the service's store is GEOMATCH_FEATURE_CACHE_MB, in its storage). A run keeps
+# its features so that ``geomatch localize OUT`` and a resumed run read them instead of running the
+# networks again: a new photo is then matched against the model without re-extracting the model's
+# images, which is most of a cold localization's time.
+RUN_FEATURES_MB = 4096
+
+
+def env_mib(name: str, default: float) -> float:
+    """A MiB setting from the environment (``default`` when unset); a clear error when not a number."""
+    raw = os.environ.get(name, "").strip()
+    try:
+        return float(raw) if raw else default
+    except ValueError:
+        raise OptionError(f"{name} must be a number of MiB, got {raw!r}") from None
+
+
+def run_feature_store_bytes() -> int:
+    return max(0, int(env_mib("GEOMATCH_RUN_FEATURES_MB", RUN_FEATURES_MB) * 1024 * 1024))
+
+
+@dataclass(frozen=True)
+class CacheBudget:
+    """How one GEOMATCH_CACHE_MB is shared by a job's in-memory caches, in MiB: decoded images
+    (1/6: a pair needs two, a tiled pair reuses its aerial image), then per matcher the per-image
+    features (4/5 of the rest, dense maps included) and recent pairs' LightGlue outputs (1/5).
+    The default 1536 gives 256 / 1024 / 256, :class:`~geomatch.matching.matcher.MatcherConfig`'s own."""
+
+    images_mb: float
+    features_mb: float
+    anchors_mb: float
+
+
+def cache_budget(total_mb: float | None = None, matchers: int = 1) -> CacheBudget:
+    """The split of ``total_mb`` (default: GEOMATCH_CACHE_MB, else :data:`CACHE_MB`) for a job
+    that keeps up to ``matchers`` matchers (distinct option sets), each with its own caches."""
+    if total_mb is None:
+        total_mb = env_mib("GEOMATCH_CACHE_MB", CACHE_MB)
+    total_mb = max(64.0, total_mb)
+    per_matcher = 5 / 6 * total_mb / max(1, matchers)
+    return CacheBudget(total_mb / 6, 0.8 * per_matcher, 0.2 * per_matcher)

@@ -10,8 +10,8 @@ from PIL import Image
 
 from geomatch.imagefolder import Images
 from geomatch.matching.matcher import MatcherConfig
-from geomatch.memory import ByteLRU
-from geomatch.options import OptionError, cache_budget
+from geomatch.memory import ByteLRU, cache_budget
+from geomatch.options import OptionError
 
 pytestmark = pytest.mark.unit
 

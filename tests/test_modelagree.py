@@ -10,7 +10,7 @@ import pycolmap
 import pytest
 
 from geomatch.sfm.modelagree import agreement, misplaced, misplaced_blocks
-from geomatch.sfm.viewgraph import filter_database
+from geomatch.sfm.viewgraph_filter import filter_database
 
 from .colmap_synthetic import synthetic_database
 

@@ -15,7 +15,7 @@ from geomatch.sfm import pairpose
 from geomatch.sfm.leftovers import Continuation, place_leftovers, rejoin_blocks, replace_misplaced
 from geomatch.sfm.mapping import incremental_options
 from geomatch.sfm.pairrotations import rotation_angle
-from geomatch.sfm.viewgraph import ViewGraphReport
+from geomatch.sfm.viewgraph_filter import ViewGraphReport
 
 from .colmap_synthetic import synthetic_database
 

@@ -23,7 +23,7 @@ from geomatch.sfm.modelagree import (
     unvouched,
     weakest_tied,
 )
-from geomatch.sfm.viewgraph import ViewGraphReport
+from geomatch.sfm.viewgraph_filter import ViewGraphReport
 
 from .colmap_synthetic import synthetic_database
 

@@ -293,7 +293,7 @@ def test_reading_the_kept_pairs_leaves_a_finished_projects_files_as_they_were(tm
     import sqlite3
     import time
 
-    from geomatch.sfm.viewgraph import kept_pairs
+    from geomatch.sfm.viewgraph_filter import kept_pairs
 
     from .colmap_synthetic import synthetic_database
 

@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 
     from geomatch.imagefolder import PhotoScale
     from geomatch.matching.matcher import Matcher
-    from geomatch.options import CacheBudget
+    from geomatch.memory import CacheBudget
 
     from .context import StepContext
 
@@ -122,6 +122,6 @@ def images_mb(ctx: StepContext) -> float:
 
 
 def _budget(ctx: StepContext) -> CacheBudget:
-    from geomatch.options import cache_budget
+    from geomatch.memory import cache_budget
 
     return cache_budget(ctx.settings.cache_mb, MAX_MATCHERS)

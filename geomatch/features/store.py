@@ -17,7 +17,7 @@ from typing import Any, Protocol
 
 import torch
 
-from ..options import run_feature_store_bytes
+from ..memory import run_feature_store_bytes
 from .base import DenseFeatures, ImageFeatures, SparseFeatures
 
 

@@ -267,7 +267,7 @@ def unvouched_cameras(
     tens of degrees on right pairs, and a photo localized against that block is as far off.
     ``up``: the photos' up where they know it, as the run's view graph had it (upright.py)."""
     from ..sfm.modelagree import unvouched_in_steps
-    from ..sfm.viewgraph import kept_pairs
+    from ..sfm.viewgraph_filter import kept_pairs
 
     report = kept_pairs(str(project.database), up)
     return frozenset(unvouched_in_steps(rec, report.kept_rotations, report.kept_inliers))

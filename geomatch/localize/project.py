@@ -83,7 +83,7 @@ def project_matcher(project: Project, features: Path | None = None) -> Any:
     the run folder's own ``features/``) and writes none."""
     from ..features.store import run_feature_store
     from ..matching.stored import build_matcher
-    from ..options import cache_budget
+    from ..memory import cache_budget
 
     recorded = project.run_options
     budget = cache_budget()

@@ -127,7 +127,7 @@ class MatcherConfig:
     subpixel: str = "auto"
     # recent images' features (dense maps included, the largest entries: 128 values a pixel), LRU,
     # bounded in bytes: a worker's memory must not grow with the project
-    # (the split of GEOMATCH_CACHE_MB's default, options.cache_budget)
+    # (the split of GEOMATCH_CACHE_MB's default, memory.cache_budget)
     cache_features_mb: float = 1024.0
     cache_anchors_mb: float = 256.0  # recent pairs' LightGlue output (soft assignments included)
 

@@ -27,8 +27,8 @@ from ..geo.gcpfile import GcpError, read_gcp_file
 from ..imagefolder import PipelineError, list_images
 from ..matching.matcher import Matcher
 from ..matching.stored import build_matcher
-from ..memory import return_freed_memory
-from ..options import DEFAULTS, cache_budget, parse_plan, resolve
+from ..memory import cache_budget, return_freed_memory
+from ..options import DEFAULTS, parse_plan, resolve
 from ..sfm.colmapdb import ColmapDatabase, PairWrite
 from . import aerial, database, match_pairs
 from .database import PairMatches

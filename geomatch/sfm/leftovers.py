@@ -24,7 +24,7 @@ from ..options import LEFTOVER_MIN_POSE_INLIERS
 from .modelagree import agreement, misplaced, misplaced_blocks, most_outvoted, unvouched, weakest_tied
 from .modeljoin import Join, adjust, join_models
 from .pairpose import Placement, place
-from .viewgraph import ViewGraphReport
+from .viewgraph_filter import ViewGraphReport
 
 
 @dataclass(frozen=True)

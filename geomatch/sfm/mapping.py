@@ -50,7 +50,7 @@ from .pairpose import Placement
 from .sqlitecopy import snapshot_sqlite
 from .thinmatches import per_image_budget, thin_matches
 from .trackrefine import SURVEY, refine_tracks
-from .viewgraph import filter_database
+from .viewgraph_filter import filter_database
 
 # from this many images on, the incremental mapper's global bundle adjustments are lighter: they
 # leave out the 3D points whose cameras other points already hold (COLMAP's
