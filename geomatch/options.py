@@ -146,7 +146,7 @@ MIN_POSE_INLIERS = 30
 # images are matched on the whole image, and the two share few keypoints. Its model then falls
 # apart into an aerial-led half and a ground-led half, each right. 20 joins the halves of the
 # synthetic sweep's split tuning scenes; 15, the inliers that verify a pair, places more cameras
-# wrongly (docs/pipeline.md, "Mapping"; docs/benchmarks.md, "`geomatch run` over many seeds")
+# wrongly (docs/benchmarks.md, "`geomatch run` over many seeds")
 TILED_MIN_POSE_INLIERS = 20
 # ...and once that model is built (and joined, sfm/modeljoin.py), the images it still lacks get one
 # more pass at 15: COLMAP considers an image only from as many visible points as its PnP minimum,

@@ -7,8 +7,9 @@ keypoints per photo, the descriptor similarity of every pair of points is the co
 Sampson gate keeps only the candidates that lie on each other's epipolar lines. Two passes:
 
 1. seed: mutual nearest neighbours with a ratio test over all points (what COLMAP does with SIFT),
-   and a robust F on them; LightGlue is not needed on such pairs (the seed F has more inliers than
-   light LightGlue on the same photos, in less time: docs/pipeline.md, "Drone surveys");
+   and a robust F on them; LightGlue is not needed on such pairs (on the drone surveys the seed F
+   has more inliers than light LightGlue on the same photos, in less time; the runs:
+   docs/benchmarks.md, "Drone surveys beside COLMAP SIFT");
 2. guided: the mutual nearest neighbours again, each point choosing only among the points within
    ``tau`` (Sampson, px^2) of its epipolar line, with the ratio test among those candidates; the
    ambiguity a repeated texture makes along the whole image is gone, so several times the seed's

@@ -13,10 +13,11 @@ of that pair's other matches around the point. A keypoint belongs to one track, 
 keeps one position in all of its pairs. Where a track holds two keypoints of one photo (scene points
 chained by a wrong match) those keypoints stay where they are; the track's other photos are aligned.
 
-Two observations of one point at 640 px can be 3-6 photo pixels apart on a 2000 px photo, beyond
-what a Gauss-Newton alignment on lightly smoothed photos reaches: a first alignment on the photos at
-half size brings them within its reach. A point is kept where it converged within ``max_shift`` of
-where it started with a correlation of ``min_ncc`` or more; elsewhere it keeps the network's placing.
+Two observations of one point found at 640 px can be several photo pixels apart on a 2000 px photo
+(a network pixel is about three of them), beyond what a Gauss-Newton alignment on lightly smoothed
+photos reaches: a first alignment on the photos at half size brings them within its reach. A point
+is kept where it converged within ``max_shift`` of where it started with a correlation of
+``min_ncc`` or more; elsewhere it keeps the network's placing.
 """
 
 from __future__ import annotations
@@ -73,10 +74,11 @@ class TrackRefineOptions:
 # A survey's photos (every one aerial) see the ground from one height, so two views of a point differ
 # by little more than a turn and a shift in the image plane: a point may come from farther (the coarse
 # pass, max_shift) and a lower correlation still means the same spot; six steps a pass keep the cost
-# near the ground settings'. On the drone surveys this aligns about twice the observations and brings
+# near the ground settings'. On the drone surveys this aligns more of the observations and brings
 # the cameras closer to their GPS fixes; on the ground scenes, whose pairs are wide-baseline
 # perspective views, such settings lose pose accuracy, so they keep the defaults (the figures:
-# docs/benchmarks.md, "Drone surveys beside COLMAP SIFT").
+# docs/benchmarks.md, "Drone surveys beside COLMAP SIFT" for the surveys, "Real photographs with
+# surveyed cameras, beside COLMAP SIFT" for the ground scenes).
 SURVEY = TrackRefineOptions(max_shift=4.0, min_ncc=0.6, iterations=6, coarse_sigma=3.0)
 
 
@@ -132,11 +134,12 @@ def references(tracks: Tracks, max_track: int) -> np.ndarray:
     keypoint, a track too long, or one of two or more keypoints of one photo in its track.
 
     A track that holds several keypoints of one photo chains scene points together through a wrong
-    match (on a drone survey such keypoints lie a median 300 px apart); which of them is the
+    match (on a drone survey such keypoints lie hundreds of pixels apart); which of them is the
     reference's point is not known, so they stay where they are, while the photos that hold one
     keypoint of the track are aligned on the reference chosen among those (the mapper splits the
-    chain itself). Leaving such a track wholly alone kept the network's placing on a third of a
-    survey's keypoints.
+    chain itself). Leaving such a track wholly alone kept the network's placing on a large share of
+    a survey's keypoints (docs/benchmarks.md, "Drone surveys beside COLMAP SIFT", the survey track
+    refinement).
     """
     n = int(tracks.offsets[-1])
     ref = np.full(n, -1, np.int64)
