@@ -83,7 +83,8 @@ class MatcherConfig:
     # F-consistent matches is not matched at all (0: it matches all five crops instead). On the
     # air-to-ground tuning seeds no such pair came to a verified pair, right or wrong, while
     # matching all five crops at full strength made most of such a pair's time; every pair that
-    # did verify had at least 29 (bench/tiled_probes.py, docs/benchmarks.md)
+    # did verify had more (bench/tiled_probes.py; the counts: docs/benchmarks.md, "`geomatch run`
+    # over many seeds")
     tile_min_probe: int = 24
     # a tiled pair keeps a crop's matches only when the crop finds at least this many: a crop
     # that does not see the other photo's site still returns a few dozen coherent matches (one
@@ -109,7 +110,9 @@ class MatcherConfig:
     # geo: try the light anchors (``sparse`` with AUTO_PLAIN_PAIRS, what a ground-only project's
     # pairs get) first, and answer with them when they fit an F with at least ``anchors_suffice``
     # inliers; only a pair they leave weak pays for full-strength anchors and the dense rounds.
-    # ``auto`` sets it on the plain pairs of a project with aerial images (matching.variants.for_pair)
+    # ``auto`` sets it only on the plain pairs of two aerial photos of a survey, with
+    # ``guided_keypoints`` (matching.variants.for_pair); the other plain pairs of a project with
+    # aerial images get ``geo`` without it
     light_first: bool = False
     # light_first: a pair whose light anchors fit fewer inliers than this keeps the light answer
     # (0: every weak pair gets the full method). ``auto`` sets it to ``anchors_suffice`` on pairs of

@@ -17,7 +17,7 @@ from .matcher import Matcher
 from .rotation import best_turn, probe_points, quarter_turn, turn_score
 from .tiling import SELECT_MIN_PROBE, Crop, five_crops, select_crops
 
-# a turn is sure when it scores at least TURN_SURE LightGlue matches (a wrong turn gets 10-75 on
+# a turn is sure when it scores at least TURN_SURE LightGlue matches (a wrong turn gets fewer on
 # the real surveys) or TURN_SURE_SEED inliers of the guided matcher's seed F: the turns not scored
 # yet are not tried
 TURN_SURE = 100
@@ -78,7 +78,7 @@ def crop_probe_points(matcher: Matcher, aerial: np.ndarray, other: np.ndarray) -
 
     The probe runs on each crop, not on the whole aerial image: shrunk whole, the aerial image
     has lost the detail that tiling exists to give back, and on the demo scene's hard pairs it
-    found too few matches (28-43) to tell where the overlap is. A crop's probe needs only its
+    found too few matches to tell where the overlap is. A crop's probe needs only its
     sparse features (shared by all of the aerial image's partners); only the chosen crops get
     dense maps and full-strength LightGlue.
     """

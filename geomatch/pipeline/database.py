@@ -90,8 +90,8 @@ TILED_MIN_INLIERS = 60
 # project was tuned on (photos up to 2000 px at the default 640) met that threshold at up to 3.1 photo
 # pixels per network pixel, i.e. at 1.28 network pixels. On larger photos (a drone's 4000 px
 # originals: 6.25 photo px per network px) 4 photo pixels are 0.64 network pixels and reject right
-# matches wholesale (brighton_beach's originals lost a quarter of their points to it), so from there
-# the threshold follows the network's pixel.
+# matches wholesale (what brighton_beach's originals lost to it: docs/benchmarks.md, "Drone surveys
+# beside COLMAP SIFT"), so from there the threshold follows the network's pixel.
 VERIFY_NETWORK_PX = 1.28
 
 

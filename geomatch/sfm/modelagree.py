@@ -3,11 +3,11 @@
 Why: on the air-to-ground scenes the incremental mapper sometimes places a block of cameras
 tens of degrees off though every pair it used is right; which block, and whether at all, depends
 on its random seed (RANSAC samples, the order images are tried). Such a model contradicts its
-strongest pairs: an aerial image and the street photo it shares 958 inliers with, placed 10-80
-deg from that pair's two-view rotation, while a right model holds each right pair within a
-degree or two and disagrees only with the few weak wrong pairs the view-graph checks let through.
-The inliers of the pairs it contradicts, against those it holds, say which of several attempts
-to keep without any ground truth.
+strongest pairs: an aerial image and a street photo sharing many inliers, placed tens of degrees
+from that pair's two-view rotation, while a right model holds each right pair within a degree or
+two and disagrees only with the few weak wrong pairs the view-graph checks let through. The
+inliers of the pairs it contradicts, against those it holds, say which of several attempts to
+keep without any ground truth (docs/benchmarks.md, "`geomatch run` over many seeds").
 """
 
 from __future__ import annotations
@@ -26,16 +26,18 @@ from .pairrotations import rotation_angle
 # pair: the view-graph loops hold at 5 deg, and a right pair's rotation is good to about a degree
 AGREE_DEG = 5.0
 # a model that contradicts at most this share of its pairs' inliers is taken as it is: right
-# models of the synthetic seeds contradict 0-5 % (weak wrong pairs kept), misplaced ones 20 % on
+# models of the synthetic seeds contradict only the weak wrong pairs kept, misplaced ones far more
 CLEAN_SHARE = 0.1
 # another rotation a camera's pairs hold as well as its own is a second place for it only this far
-# from its own: the estimators of one right pair give candidates a few degrees apart (5.3 deg on
-# the service tests' scene, every pair held by both), a homography's other decomposition 30-110
+# from its own: the estimators of one right pair give candidates a few degrees apart (on the
+# service tests' scene two such rotations held every pair alike: docs/benchmarks.md, "Subsets of
+# the scenes: photos left out"), a homography's other decomposition tens of degrees
 TIE_DEG = 2 * AGREE_DEG
 # ...and only for a camera its own rotation holds by fewer inliers than this: the twins seen were
-# held by 114-198 inliers of a near-flat pair, while a right camera hung on one pair of 700 or more
-# (the demo scene's ground_03: 707 with ground_02) has its essential matrix pinned by points off
-# the plane, and the homography's other decomposition, listed among its candidates, explains few
+# held by weaker near-flat pairs, while a right camera hung on one strong pair (the demo scene's
+# ground_03 with ground_02) has its essential matrix pinned by points off the plane, and the
+# homography's other decomposition, listed among its candidates, explains few (the counts:
+# docs/benchmarks.md, "Subsets of the scenes: photos left out")
 TIE_MAX_INLIERS = 400
 
 
@@ -161,10 +163,10 @@ def outvoted(
     than the model's does, by name (the other cameras as the model has them). Why: a pair of a
     near-flat view admits a homography's other decomposition besides its true rotation, and the
     mapper can register an image on it: 2+6 tuning seed 300 without ground_04 and ground_05 wrote
-    ground_03 48 deg off, held by its pair with ground_02 (302 inliers) through the candidate 48
-    deg from the truth while its pair with aerial_01 (131) was contradicted by 40 deg; the true
-    rotation holds both. :func:`misplaced` passes it (it holds more than a tenth), and so does the
-    agreement (3 % of the model's inliers contradicted)."""
+    ground_03 far off, held by its stronger pair, with ground_02, through a candidate far from the
+    truth while its weaker pair, with aerial_01, was contradicted; the true rotation holds both.
+    :func:`misplaced` passes it (it holds more than a tenth), and so does the agreement (a small
+    share of the model's inliers contradicted)."""
     return sorted(n for n, (own, other) in _rotation_votes(rec, rotations, inliers).items() if other > own)
 
 
@@ -203,10 +205,11 @@ def undecided(
     as well as the model's, by name, and :func:`outvoted`'s. Why: an image tied to the model by
     one near-flat pair (or by pairs that all admit one other rotation) is placed by whichever
     decomposition the mapper's PnP or two-view step took, and nothing in the model says which; the
-    2+6 test scene 403 without two ground photos wrote ground_04 111 deg and ground_05 60 deg off
-    so, each held by its one pair with ground_01 through a candidate other than the true one. A
-    rotation a few degrees off holds what the model's holds through the neighbouring candidates
-    that one pair's estimators give: no second place, so not a tie."""
+    2+6 test scene 403 without two ground photos wrote ground_04 and ground_05 far off so, each
+    held by its one pair with ground_01 through a candidate other than the true one
+    (docs/benchmarks.md, "Subsets of the scenes: photos left out"). A rotation a few degrees off
+    holds what the model's holds through the neighbouring candidates that one pair's estimators
+    give: no second place, so not a tie."""
     return sorted(set(_tied(rec, rotations, inliers)) | set(outvoted(rec, rotations, inliers)))
 
 

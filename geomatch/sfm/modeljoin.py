@@ -37,8 +37,8 @@ NEIGHBOUR_PX = 8.0
 # a scale rests on at least this many neighbours, whose log depth ratios spread (median absolute
 # deviation) less than MAX_SCALE_SPREAD: a join on a few or disagreeing ratios would place the
 # second model's cameras at a wrong distance, worse than leaving them out. The right joins of the
-# air-to-ground subsets spread 0.002-0.017; one at 0.099 put its aerial camera 14 % of the scene
-# off, with no pair that could tell
+# air-to-ground subsets spread well under the bound, and one far over it put its aerial camera off
+# with no pair that could tell (docs/benchmarks.md, "Subsets of the scenes: photos left out")
 MIN_NEIGHBOURS = 5
 MAX_SCALE_SPREAD = 0.05
 

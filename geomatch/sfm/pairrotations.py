@@ -42,7 +42,7 @@ def candidate_rotations(
     focal = float(np.mean([cam0.mean_focal_length(), cam1.mean_focal_length()]))
     # the thresholds are in working pixels (imageio.WORKING_SIDE): on a 4000 px original one photo
     # pixel is a fraction of the points' precision, and a RANSAC that finds few inliers at it runs
-    # all its iterations (the view graph took 8 s of brighton's originals instead of 2 s)
+    # all its iterations (as it did on brighton's originals, slowing the view graph)
     side = max(cam0.width, cam0.height, cam1.width, cam1.height)
     focal /= working_scale(side)
     out: list[np.ndarray] = []

@@ -4,14 +4,15 @@ Why: a near-flat site (a survey's ground seen from above) admits two consistent 
 relative rotations: the essential matrix's and, from the homography's other decomposition, one
 that tilts the cameras against each other. The second family closes the view graph's
 triangles just as well, through the neighbours' own second decompositions, so the vote cannot
-tell them apart. On caliterra (75 nadir photos, judged by COLMAP SIFT's model) the vote took the
-second family for 77 of the 394 pairs that admit both, the spanning tree chained 21 rotations
-4-28 deg off, and the tree check dropped 44 right pairs. Where both photos know where up is (a
-DJI gimbal's pitch and roll, or a survey's nadir camera) a right rotation carries one photo's up
-onto the other's, to the gimbal's fraction of a degree or to a nadir camera's few degrees of
-sway; the second family misses it by the tilt it adds. The pair keeps the candidates that carry
-up within ``SLACK_DEG`` of the best one: on caliterra the vote is then right for 389 of the 394
-and the tree check drops 5 right pairs (docs/benchmarks.md, "Drone surveys").
+tell them apart. On caliterra (nadir photos, judged by COLMAP SIFT's model) the vote took the
+second family for some of the pairs that admit both, the spanning tree chained rotations of it,
+and the tree check dropped many right pairs. Where both photos know where up is (a DJI gimbal's
+pitch and roll, or a survey's nadir camera) a right rotation carries one photo's up onto the
+other's, to the gimbal's fraction of a degree or to a nadir camera's few degrees of sway; the
+second family misses it by the tilt it adds. The pair keeps the candidates that carry up within
+``SLACK_DEG`` of the best one: on caliterra the vote is then right for nearly all of them and
+the tree check drops few right pairs (docs/benchmarks.md, "Drone surveys beside COLMAP SIFT",
+what the view graph drops on caliterra).
 """
 
 from __future__ import annotations

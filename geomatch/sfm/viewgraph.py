@@ -157,19 +157,20 @@ def trusted_tree(
     matches agree with one geometry, not that the rotation the tree takes from them is right: a
     flat site's pair admits several, and where its triangles all run through wrong pairs (an
     image whose other pairs are all look-alikes) the vote can only pick among wrong closures. On
-    an air-to-ground scene two such pairs of 284 and 362 inliers, chained 45 and 69 deg off,
-    turned half the images and the check dropped four right pairs (113-213 inliers) that were
-    the only link between two groups of cameras, which the mapper then built as two models;
-    confirmed first, the chain crossed through the right pair of 213 inliers, whose triangle with
-    two right pairs confirms it. Where the strongest pairs close triangles with each other (a
-    courtyard's neighbour pairs) the forest is the one inliers alone give.
+    the air-to-ground scenes two such strong pairs, chained far off, turned half the images and
+    the check dropped the right pairs that were the only link between two groups of cameras,
+    which the mapper then built as two models; confirmed first, the chain crosses through a right
+    pair whose triangle with two right pairs confirms it (docs/benchmarks.md, "`geomatch run` over
+    many seeds"). Where the strongest pairs close triangles with each other (a courtyard's
+    neighbour pairs) the forest is the one inliers alone give.
 
     ``uncalibrated`` pairs (COLMAP's verification found an F their inliers fit but no essential
-    matrix of the known cameras) come after every other pair, by inliers: on 2+6 air-to-ground
-    seeds 54 of 57 wrong verified pairs were such pairs and 17 of 245 right ones, on castle-P19 and
-    fountain-P11 46 of 66 wrong and 3 of 148 right. Confirmed by another such pair (an image's
-    look-alike pairs agree with each other), a wrong pair would otherwise come before the image's
-    one right pair when that admits several rotations and closes no triangle."""
+    matrix of the known cameras) come after every other pair, by inliers: on the air-to-ground
+    seeds nearly all wrong verified pairs were such pairs and few right ones (docs/benchmarks.md,
+    "`geomatch run` over many seeds"), and so on castle-P19 and fountain-P11. Confirmed by another
+    such pair (an image's look-alike pairs agree with each other), a wrong pair would otherwise
+    come before the image's one right pair when that admits several rotations and closes no
+    triangle."""
     edges = dict(rotations)
 
     def rot(a: int, b: int) -> list[np.ndarray]:
@@ -285,7 +286,8 @@ def _voted_candidate(
     tie-break can pick the wrong one and turn every image behind it). A homography's second
     decomposition can close the same triangles as the right rotation, through its neighbours' own
     second decompositions, and then the tie-break decides: summed unweighted, a weak wrong
-    triangle's error decided it for a wrong rotation 31 deg off (a ground pair of 728 inliers)."""
+    triangle's error decided it for a strong ground pair's wrong rotation (docs/benchmarks.md,
+    "`geomatch run` over many seeds")."""
     cands = np.stack(rot(a, b))
     votes = np.zeros(len(cands))
     error = np.zeros(len(cands))

@@ -38,7 +38,8 @@ mapper and every camera comes out right. Both checks also drop a few right pairs
 the tree (an end-on view and its neighbour) the tree takes the essential matrix's rotation where
 COLMAP's pose is right (its triangles close for every candidate, and a tie goes to the first), so
 the right pairs across that link disagree with the tree; the mapper does without them. Other seeds
-and method ``sparse`` end the same way. Figures: docs/pipeline.md, "The view-graph checks".
+and method ``sparse`` end the same way. tests/test_twin_scene.py checks the default run and the
+run without the checks.
 
 Output of :func:`write_twin_scene`: ``images/`` (PNG with the EXIF of :func:`geomatch.synth.sensors.save_png`)
 and ``gt/`` (COLMAP text model), as :func:`geomatch.synth.aerial.write_scene` writes them.
