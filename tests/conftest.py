@@ -1,6 +1,7 @@
 from __future__ import annotations
 
-from collections.abc import Iterator
+import os
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -9,9 +10,11 @@ import torch
 from geomatch import Matcher, MatcherConfig
 from geomatch.synth.photos import WarpedPair, warped_pair
 
-from .small_scene import GPS_NOISE_M, RUN_OPTIONS, SEED, WITH_GPS
+from .small_scene import GPS_NOISE_M, SEED, WITH_GPS, run_options, write_pairs
 
-torch.set_num_threads(2)
+# two cores: one process uses both; under pytest-xdist (``make test``: two processes) one each, so
+# that the two do not fight over the cores
+torch.set_num_threads(1 if "PYTEST_XDIST_WORKER" in os.environ else 2)
 
 TIERS = ("unit", "nets", "pipeline", "service", "browser", "chaos")
 
@@ -41,14 +44,36 @@ def astronaut_pair() -> WarpedPair:
     return warped_pair("astronaut", seed=1, strength=0.15)
 
 
+def made_once(factory: pytest.TempPathFactory, name: str, make: Callable[[Path], None]) -> Path:
+    """A folder ``make`` fills once for the whole test run: with pytest-xdist (``make test`` runs
+    the files on two processes) the processes share it, the first one makes it under a file lock
+    and the others wait for it, so minutes of matching are not spent once per process."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        folder = factory.mktemp(name)
+        make(folder)
+        return folder
+    from filelock import FileLock
+
+    folder = factory.getbasetemp().parent / name  # the run's folder, above each process's own
+    made = folder.with_name(f"{name}.made")  # beside it: nothing in the folder but what make wrote
+    with FileLock(f"{folder}.lock"):
+        if not made.is_file():
+            folder.mkdir(exist_ok=True)
+            make(folder)
+            made.touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def small_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """tests/small_scene.py's scene, rendered once (images/, gt/, aerial.txt)."""
     from geomatch.synth.aerial import write_scene
 
-    d = tmp_path_factory.mktemp("small-scene")
-    write_scene(d, 2, 4, seed=SEED, gps_noise=GPS_NOISE_M, gps_names=WITH_GPS)
-    return d
+    def make(d: Path) -> None:
+        write_scene(d, 2, 4, seed=SEED, gps_noise=GPS_NOISE_M, gps_names=WITH_GPS)
+        write_pairs(d)
+
+    return made_once(tmp_path_factory, "small-scene", make)
 
 
 def _listing(folder: Path) -> dict[str, tuple[int, int]]:
@@ -63,9 +88,11 @@ def small_run(small_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> It
     checked when the session ends."""
     from geomatch.cli import main
 
-    out = tmp_path_factory.mktemp("small-run")
-    args = ["run", str(small_scene / "images"), "--out", str(out)]
-    assert main([*args, "--aerial-list", str(small_scene / "aerial.txt"), *RUN_OPTIONS]) == 0
+    def make(out: Path) -> None:
+        args = ["run", str(small_scene / "images"), "--out", str(out)]
+        assert main([*args, *run_options(small_scene)]) == 0
+
+    out = made_once(tmp_path_factory, "small-run", make)
     before = _listing(out)
     yield out
     assert _listing(out) == before, "a test wrote into the shared run; it should work on a copy_of_run()"

@@ -17,7 +17,7 @@ from geomatch.synth.aerial import Scene
 from geomatch.synth.camera import Camera
 from geomatch.synth.gcps import OFFSET, scene_gcps
 
-from .small_scene import RUN_OPTIONS, SEED, copy_of_run
+from .small_scene import SEED, copy_of_run, run_options
 
 
 def _cameras() -> list[Camera]:
@@ -33,15 +33,8 @@ def test_the_model_is_written_in_the_gcps_frame_and_judged_at_the_check_points(
     text, truth = scene_gcps(Scene(SEED), cams, 7, seed=3)
     gcp = tmp_path / "gcp_list.txt"
     gcp.write_text(text)
-    args = [
-        "run",
-        str(small_scene / "images"),
-        "--out",
-        str(run_dir),
-        "--aerial-list",
-        str(small_scene / "aerial.txt"),
-    ]
-    assert main([*args, *RUN_OPTIONS, "--gcp", str(gcp), "--checkpoints", "2"]) == 0
+    args = ["run", str(small_scene / "images"), "--out", str(run_dir), *run_options(small_scene)]
+    assert main([*args, "--gcp", str(gcp), "--checkpoints", "2"]) == 0
     s = json.loads((run_dir / "summary.json").read_text())
     g = s["gcp"]
     assert "error" not in g and s["frame"] == "GCP" and s["georeferenced"]
@@ -116,7 +109,7 @@ def test_metre_level_control_is_weighed_at_metres_and_leaves_the_clicks_meeting(
     gcp = tmp_path / "gcp_list.txt"
     gcp.write_text(text)
     args = ["run", str(small_scene / "images"), "--out", str(run_dir)]
-    args += ["--aerial-list", str(small_scene / "aerial.txt"), *RUN_OPTIONS]
+    args += run_options(small_scene)
     assert main([*args, "--gcp", str(gcp), "--checkpoints", "2"]) == 0
     g = json.loads((run_dir / "summary.json").read_text())["gcp"]
     check = [p for p in g["points"] if p["role"] == "check"]

@@ -17,7 +17,7 @@ import pytest
 
 from geomatch.cli import main
 
-from .small_scene import RUN_OPTIONS, copy_of_run
+from .small_scene import PAIRS, copy_of_run, run_options
 
 
 @pytest.fixture(scope="module")
@@ -34,17 +34,17 @@ def run_dir(small_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_every_image_is_registered(run_dir, scene) -> None:
     s = json.loads((run_dir / "summary.json").read_text())
     assert s["registered"] == s["images"] == 6, s
-    assert s["tiled_pairs"] == 8 and s["pairs"] == 15
-    # a project with tiled pairs keeps the points only two images see (sfm/mapping.py): 2896
-    # points, track length 2.36, reprojection error 0.31 px (without them: 848 points, 3.21); bounds
-    # at about 1.5 times below (points), 0.25 under (track length) and over 2 times (error)
+    assert s["tiled_pairs"] == 4 and s["pairs"] == len(PAIRS) == 11
+    # a project with tiled pairs keeps the points only two images see (sfm/mapping.py): 2718
+    # points, track length 2.39, reprojection error 0.31 px; bounds at about 1.4 times below
+    # (points), 0.25 under (track length) and over 2 times (error)
     assert s["mean_track_length"] >= 2.1 and s["points3D"] > 1900, s
     assert s["mean_reprojection_error"] < 0.7
     # the loop check saw the graph (pairs with a rotation, loops among them) and said what it dropped;
-    # 11 pairs and 8 loops here: the three tiled pairs under dbwrite.TILED_MIN_INLIERS (49-68 matches,
-    # the pairs that share little) are written without a geometry and are not in it
+    # 9 pairs and 3 loops here: the two pairs of the 11 matched whose matches verified no geometry
+    # (aerial x ground pairs that share little) are not in it
     vg = s["view_graph"]
-    assert vg["pairs"] >= 10 and vg["loops"] >= 6 and isinstance(vg["dropped"], list), vg
+    assert vg["pairs"] >= 8 and vg["loops"] >= 2 and isinstance(vg["dropped"], list), vg
     # a tiled project's model is held to its kept pairs' rotations (sfm/modelagree.py): this one,
     # right by the ground truth (test_eval_against_ground_truth), holds at least 90 % of their inliers
     agree = s["pair_agreement"]
@@ -96,8 +96,8 @@ def test_rerun_resumes_without_matching_again(run_dir, scene) -> None:
         before_pairs = before.num_matched_image_pairs()
     finally:
         before.close()
-    args = ["run", str(scene / "images"), "--out", str(run_dir), "--aerial-list", str(scene / "aerial.txt")]
-    assert main([*args, *RUN_OPTIONS]) == 0
+    args = ["run", str(scene / "images"), "--out", str(run_dir)]
+    assert main([*args, *run_options(scene)]) == 0
     s = json.loads((run_dir / "summary.json").read_text())
     assert s["pairs_matched_now"] == 0
     after = pycolmap.Database.open(str(run_dir / "database.db"))

@@ -2,8 +2,8 @@
 server-sent events), reconstruct, download the model and check it; then the batch client.
 
 Real uvicorn, real Celery worker, real networks and pycolmap. The scene is the one of
-tests/test_pipeline_e2e.py (2 aerial + 4 ground, 15 pairs of which 8 aerial x ground, tiled),
-matched at 480 px to keep CI short.
+tests/test_pipeline_e2e.py (2 aerial + 4 ground), matched at 480 px as its measured pair list
+(tests/small_scene.py's PAIRS: 11 pairs, 4 of them aerial x ground, tiled) to keep CI short.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import pytest
 
 from geomatch.geo.geodesy import EnuFrame
 
+from ..small_scene import PAIRS
 from .harness import GEOMATCH, Deployment, database_pairs, sse_events, upload, wait_job
 
 pytestmark = pytest.mark.service
@@ -46,7 +47,7 @@ def run(
     t["upload"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    r = c.post(f"/v1/projects/{pid}/match", json={"resize": RESIZE})
+    r = c.post(f"/v1/projects/{pid}/match", json={"resize": RESIZE, "pairs": [list(p) for p in PAIRS]})
     assert r.status_code == 202, r.text
     match_id = r.json()["job_id"]
     events: list[dict[str, Any]] = []
@@ -96,13 +97,13 @@ def test_timings(run: dict[str, Any], capsys: pytest.CaptureFixture[str]) -> Non
 
 def test_progress_goes_from_zero_to_total(run: dict[str, Any]) -> None:
     job = run["match"]
-    assert job["progress"] == {"done": 15, "total": 15}  # 6 images, exhaustive
+    assert job["progress"] == {"done": len(PAIRS), "total": len(PAIRS)}
     progress = [(e["state"], e["progress"]["done"], e["progress"]["total"]) for e in run["events"]]
     running = [(d, n) for s, d, n in progress if s == "running" and n]
     assert running and running[0][0] == 0, progress  # seen at 0 of the total once planned
     dones = [d for d, _ in running]
     assert dones == sorted(dones) and len(set(dones)) >= 3, progress  # moves up, step by step
-    assert progress[-1] == ("succeeded", 15, 15), progress
+    assert progress[-1] == ("succeeded", len(PAIRS), len(PAIRS)), progress
 
 
 def test_aerial_images_recognised_from_xmp(run: dict[str, Any]) -> None:
@@ -113,8 +114,7 @@ def test_aerial_images_recognised_from_xmp(run: dict[str, Any]) -> None:
 
 def test_every_pair_once_in_the_database(run: dict[str, Any], tmp_path: Path) -> None:
     pairs = database_pairs(run["client"], run["pid"], tmp_path / "db.db")
-    names = run["images"]
-    assert pairs == sorted((a, b) for i, a in enumerate(names) for b in names[i + 1 :])
+    assert pairs == sorted(PAIRS)
     db = pycolmap.Database.open(str(tmp_path / "db.db"))
     try:
         assert db.num_images() == 6
@@ -224,7 +224,8 @@ def test_match_picture(run: dict[str, Any]) -> None:
 
 def test_matching_again_matches_nothing_new(run: dict[str, Any]) -> None:
     c, pid = run["client"], run["pid"]
-    job = wait_job(c, c.post(f"/v1/projects/{pid}/match", json={"resize": RESIZE}).json()["job_id"])
+    body = {"resize": RESIZE, "pairs": [list(p) for p in PAIRS]}
+    job = wait_job(c, c.post(f"/v1/projects/{pid}/match", json=body).json()["job_id"])
     assert job["state"] == "succeeded" and job["progress"] == {"done": 0, "total": 0}
 
 
