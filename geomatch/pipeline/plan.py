@@ -18,7 +18,6 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from ..geo import gps
 from ..imagefolder import Images
 from ..matching.matcher import Matcher
 from ..matching.probes import TURN_SURE, TURN_SURE_SEED
@@ -94,12 +93,7 @@ def plan(
     # not ``decoded or ...``: an Images with nothing decoded yet has length 0, and a fresh
     # Images(folder) would read the photos at their stored size, not at the caller's working size
     folder = decoded if decoded is not None else Images(images.folder)
-    gps_enu: Mapping[str, np.ndarray] = {}
-    footprints: Mapping[str, np.ndarray] | None = None
-    fixes = images.fixes
-    if fixes is not None:
-        gps_enu = gps.plan_points(fixes, images.metas)
-        footprints = gps.footprints(fixes, images.metas)
+    gps_enu, footprints = images.plan_points(), images.footprints()
     names = list(images.names)
     spec, pairs_list, tiling = request.spec, request.pairs_list, request.tiling
     if pairs_list is not None:
@@ -147,10 +141,7 @@ def plan_in_words(spec: str, images: ProjectImages) -> str:
     """The plan :func:`plan` makes of ``spec``, in words: ``auto``'s choice (pairs.auto_pairs)."""
     if spec.strip() != "auto":
         return spec.strip()
-    fixes = images.fixes
-    enu = gps.plan_points(fixes, images.metas) if fixes is not None else {}
-    footprints = gps.footprints(fixes, images.metas) if fixes is not None else None
-    return pairing.auto_pairs(list(images.names), enu, footprints)[1]
+    return pairing.auto_pairs(list(images.names), images.plan_points(), images.footprints())[1]
 
 
 def global_descriptors(

@@ -15,15 +15,13 @@ from typing import Any
 
 import numpy as np
 
-from ..geo import gps
 from ..imagefolder import Images
 from ..matching.matcher import Matcher
 from ..matching.rotation import quarter_turn, score_features
 from ..matching.turnhint import SiftHints, TurnHint
 from ..options import plan_needs_matcher
 from .aerial import aerial_set
-from .plan import turn_probe
-from .prepare import project_pairs
+from .plan import plan, turn_probe
 from .project import PlanRequest, ProjectImages
 from .turns import likely_turns
 
@@ -65,8 +63,8 @@ def photo_work(
     if sparse:
         return PhotoWork(dict.fromkeys(images.names, 0), sparse)
     # the pairs plan.plan turns: planned without a matcher, they are the same, unturned
-    pairs = project_pairs(images, aerial, request, None, decoded)
-    points = gps.plan_points(images.fixes, images.metas) if images.fixes is not None else {}
+    pairs = plan(images, aerial, request, None, decoded)
+    points = images.plan_points()
     sift, hints = SiftHints(), {}
 
     def hint(name0: str, image0: np.ndarray, name1: str, image1: np.ndarray) -> TurnHint:

@@ -16,7 +16,6 @@ from ..options import plan_needs_matcher
 from ..sfm.colmapdb import ColmapDatabase
 from . import database
 from .aerial import aerial_set
-from .pair_sources import Pair
 from .plan import Hint, Plan, plan, plan_in_words
 from .project import PlanRequest, ProjectImages
 
@@ -45,24 +44,9 @@ def plan_project(
     survey = bool(images.names) and aerial >= set(images.names)
     explicit = request.pairs_list is not None
     needs = (not explicit and plan_needs_matcher(request.spec)) or survey
-    pairs = project_pairs(images, aerial, request, matcher() if needs else None, decoded, progress, hint)
+    pairs = plan(images, aerial, request, matcher() if needs else None, decoded, progress, hint)
     words = "explicit list" if explicit else plan_in_words(request.spec, images)
     return Plan(pairs, sorted(aerial), words, survey)
-
-
-def project_pairs(
-    images: ProjectImages,
-    aerial: set[str],
-    request: PlanRequest,
-    matcher: Matcher | None,
-    decoded: Images,
-    progress: bool = False,
-    hint: Hint | None = None,
-) -> list[Pair]:
-    """The project's pairs as plan.plan makes them of its images and ``request``; without
-    ``matcher`` a survey's pairs come unturned (what the plan steps spread over the workers
-    guess the turns of)."""
-    return plan(images, aerial, request, matcher, decoded, progress, hint)
 
 
 def register(path: Path, images: ProjectImages, share_camera: bool | None) -> dict[str, int]:

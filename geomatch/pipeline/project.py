@@ -9,6 +9,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ..geo import gps
 from ..geo.gps import GpsFixes
 from ..metadata import ImageMeta, read_metadata
@@ -35,6 +37,15 @@ class ProjectImages:
     def sizes(self) -> dict[str, tuple[int, int]]:
         """(width, height) of each photo."""
         return {n: (m.width, m.height) for n, m in self.metas.items()}
+
+    def plan_points(self) -> dict[str, np.ndarray]:
+        """The east-north point each located photo is paired by (gps.plan_points); none without
+        fixes."""
+        return gps.plan_points(self.fixes, self.metas) if self.fixes is not None else {}
+
+    def footprints(self) -> dict[str, np.ndarray] | None:
+        """The located photos' footprints on the ground (gps.footprints); None without fixes."""
+        return gps.footprints(self.fixes, self.metas) if self.fixes is not None else None
 
 
 @dataclass(frozen=True)
